@@ -1,0 +1,157 @@
+"""Typed configuration: dataclass sections with defaults, validated, loaded from and dumped to YAML.
+
+Each package owns its section as a frozen dataclass (e.g. ``SimulationConfig`` in
+``comreg_core.simulation``); this module is the one place that turns dicts/YAML into those
+dataclasses and back, with clear errors for unknown keys, wrong types and out-of-range values.
+Sections validate their own ranges in ``__post_init__`` by raising :class:`ConfigError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+from comreg_core.errors import ComRegError
+
+T = TypeVar("T")
+
+
+class ConfigError(ComRegError):
+    """A configuration value is unknown, of the wrong type, or out of range."""
+
+
+def require(condition: bool, field: str, message: str) -> None:
+    """Raise :class:`ConfigError` about ``field`` unless ``condition`` holds (range checks)."""
+    if not condition:
+        raise ConfigError(f"Config value '{field}' {message}.",
+                          "Fix it in the config file or on the command line.")
+
+
+def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
+    """Build dataclass ``cls`` from a (possibly partial) dict; nested dataclasses recurse.
+
+    Missing keys keep their defaults; unknown keys raise :class:`ConfigError` naming the valid ones.
+    """
+    data = dict(data or {})
+    if not isinstance(data, dict):
+        raise ConfigError(f"Config section '{where or cls.__name__}' must be a mapping.", "")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"Unknown config key(s) {', '.join(repr(k) for k in unknown)} in "
+            f"'{where or cls.__name__}'.", f"Valid keys: {', '.join(fields)}.")
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for name, value in data.items():
+        kwargs[name] = _coerce(hints[name], value, f"{where}.{name}" if where else name)
+    return cls(**kwargs)
+
+
+def _coerce(hint, value, where: str):
+    origin = typing.get_origin(hint)
+    if dataclasses.is_dataclass(hint):
+        return from_dict(hint, value, where)
+    if origin in (typing.Union, types.UnionType):
+        options = typing.get_args(hint)
+        if value is None and type(None) in options:
+            return None
+        for option in options:
+            if option is type(None):
+                continue
+            try:
+                return _coerce(option, value, where)
+            except ConfigError:
+                continue
+        raise ConfigError(f"Config value '{where}' = {value!r} has the wrong type ({hint}).", "")
+    if origin is typing.Literal:
+        if value not in typing.get_args(hint):
+            raise ConfigError(f"Config value '{where}' = {value!r} is not one of "
+                              f"{', '.join(map(repr, typing.get_args(hint)))}.", "")
+        return value
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"Config value '{where}' must be a list, got {value!r}.", "")
+        args = typing.get_args(hint)
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ConfigError(f"Config value '{where}' needs {len(args)} items, got "
+                                  f"{len(value)}.", "")
+            return tuple(_coerce(a, v, where) for a, v in zip(args, value))
+        item = args[0] if args else Any
+        return origin(_coerce(item, v, where) for v in value)
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"Config value '{where}' must be a number, got {value!r}.", "")
+        return float(value)
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"Config value '{where}' must be an integer, got {value!r}.", "")
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"Config value '{where}' must be true or false, got {value!r}.", "")
+        return value
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"Config value '{where}' must be text, got {value!r}.", "")
+        return value
+    return value
+
+
+def to_dict(config) -> dict[str, Any]:
+    """Plain dict (tuples as lists) of a dataclass config, ready for YAML."""
+
+    def plain(value):
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        return value
+
+    return plain(dataclasses.asdict(config))
+
+
+def load_config(cls: type[T], path: str | Path | None = None, overrides: dict | None = None) -> T:
+    """Defaults of ``cls``, updated from the YAML file at ``path`` then from ``overrides``."""
+    import yaml
+
+    from comreg_core.io._files import require_input_file
+
+    data: dict[str, Any] = {}
+    if path is not None:
+        path = require_input_file(path, "config file")
+        try:
+            loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"'{path}' is not valid YAML ({exc}).", "Fix the syntax.") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"'{path}' must hold a mapping of config keys.", "")
+        data = loaded or {}
+    merged = _deep_merge(data, overrides or {})
+    return from_dict(cls, merged)
+
+
+def write_config(config, path: str | Path) -> Path:
+    """Write ``config`` as YAML atomically; returns the path."""
+    import yaml
+
+    from comreg_core.io._files import atomic_output
+
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        tmp.write_text(yaml.safe_dump(to_dict(config), sort_keys=False), encoding="utf-8")
+    return path
+
+
+def _deep_merge(base: dict, update: dict) -> dict:
+    out = dict(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
