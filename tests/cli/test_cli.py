@@ -1,0 +1,147 @@
+"""The `comreg` command: version, help, info, and typed errors turned into exit status 2."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from comreg_core import __version__
+from comreg_core.cli import app
+from comreg_core.io import Volume, save_transform, write_volume
+from tests.helpers import FIBULA_STL, assert_close
+
+runner = CliRunner()
+
+
+def test_version_and_help():
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output.strip() == f"comreg {__version__}"
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0
+    for command in ("extract-ct", "info"):
+        assert command in result.output
+    result = runner.invoke(app, ["extract-ct", "--help"])
+    assert "--segment" in result.output and "--label" in result.output
+
+
+def test_console_script_is_installed_and_fast_to_import():
+    """`comreg --help` must not import VTK or torch (heavy imports live inside commands)."""
+    code = ("import sys, comreg_core.cli; "
+            "print(any(m in sys.modules for m in ('vtk', 'vtkmodules', 'torch', 'pyvista')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_info_on_mesh_volume_and_transform(tmp_path):
+    result = runner.invoke(app, ["info", str(FIBULA_STL)])
+    assert result.exit_code == 0, result.output
+    assert "triangles: 44194" in result.output and "space: LPS" in result.output
+    volume = Volume.from_geometry(np.zeros((4, 5, 6), np.uint8), spacing=(0.5, 0.5, 2.0),
+                                  origin=(1, 2, 3), space="RAS")
+    write_volume(volume, tmp_path / "v.nrrd")
+    result = runner.invoke(app, ["info", str(tmp_path / "v.nrrd")])
+    assert "size (i j k): 4 5 6" in result.output and "spacing (mm): 0.5 0.5 2" in result.output
+    assert "space: RAS" in result.output
+    T = np.eye(4)
+    T[:3, 3] = [10, 20, 30]
+    save_transform(T, tmp_path / "t.tfm")
+    result = runner.invoke(app, ["info", str(tmp_path / "t.tfm")])
+    assert result.exit_code == 0, result.output
+    assert "1 0 0 -10" in result.output and "0 0 1 -30" in result.output  # the inverse
+    assert "1 0 0 10" in result.output  # back as the point mapping
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("missing.nrrd", None, "does not exist"),
+    ("a.png", b"x", "extension ComReg cannot use"),
+    ("a.nrrd", b"NRRD0004\ntype: garbage\n", "corrupt or truncated"),
+])
+def test_user_errors_exit_2_with_one_line_and_no_traceback(tmp_path, name, content, message):
+    path = tmp_path / name
+    if content is not None:
+        path.write_bytes(content)
+    for args in (["info", str(path)], ["extract-ct", str(path), "--out", str(tmp_path / "o.stl")]):
+        result = runner.invoke(app, args)
+        assert result.exit_code == 2, result.output
+        assert message in result.output
+        assert "Traceback" not in result.output
+        assert not (tmp_path / "o.stl").exists()
+
+
+def test_extract_ct_on_the_bundled_sample_matches_the_ct_model(tmp_path):
+    """The README's main command: sample segmentation -> closed mesh near the original CT model."""
+    import pyvista as pv
+
+    from comreg_core.io import read_mesh
+    from tests.helpers import SHARED_DATA
+
+    sample = Path(__file__).resolve().parents[2] / "resources" / "sample" / "fibula.seg.nrrd"
+    result = runner.invoke(app, ["extract-ct", str(sample), "--out", str(tmp_path / "bone.vtp")])
+    assert result.exit_code == 0, result.output
+    mesh = read_mesh(tmp_path / "bone.vtp")
+    assert mesh.to_trimesh().is_watertight
+    reference = read_mesh(SHARED_DATA / "ultrabones100k-fibula" / "fibula.stl")
+    distance = np.abs(pv.PolyData(mesh.vertices).compute_implicit_distance(
+        reference.to_pyvista())["implicit_distance"])
+    assert np.percentile(distance, 95) < 0.4  # 0.8 mm voxels; measured 0.27 mm
+
+
+def _two_segment_file(path, empty_second=False):
+    from comreg_core.io import Segment, Segmentation, write_segmentation
+
+    layers = np.zeros((1, 20, 20, 20), np.uint8)
+    layers[0, 3:9, 3:9, 3:9] = 1
+    if not empty_second:
+        layers[0, 11:18, 11:18, 11:18] = 2
+    seg = Segmentation(layers, np.diag([0.5, 0.5, 0.5, 1.0]), "LPS",
+                       [Segment("tibia", 1), Segment("femur", 2)])
+    write_segmentation(seg, path)
+    return path
+
+
+def test_extract_ct_segment_choice(tmp_path):
+    path = _two_segment_file(tmp_path / "two.seg.nrrd")
+    out = tmp_path / "bone.stl"
+    result = runner.invoke(app, ["extract-ct", str(path), "--out", str(out)])
+    assert result.exit_code == 2 and "which one is the bone" in result.output
+    assert "'tibia'" in result.output and "'femur'" in result.output
+    assert not out.exists()
+    result = runner.invoke(app, ["extract-ct", str(path), "--out", str(out), "--segment", "femur"])
+    assert result.exit_code == 0, result.output
+    from comreg_core.io import read_mesh
+
+    mesh = read_mesh(out)
+    # voxels 11..17 at 0.5 mm: the surface runs half a voxel outside the centres, at 5.25 mm
+    assert_close(mesh.vertices.min(0), [5.25, 5.25, 5.25], atol=0.15, what="femur corner mm")
+    assert_close(mesh.vertices.max(0), [8.75, 8.75, 8.75], atol=0.15, what="femur corner mm")
+    result = runner.invoke(app, ["extract-ct", str(path), "--out", str(out), "--label", "7"])
+    assert result.exit_code == 2 and "No segment has label value 7" in result.output
+    result = runner.invoke(app, ["extract-ct", str(path), "--out", str(out), "--segment", "ulna"])
+    assert result.exit_code == 2 and "no segment named 'ulna'" in result.output
+
+
+def test_extract_ct_empty_segment_and_mesh_passthrough(tmp_path):
+    path = _two_segment_file(tmp_path / "two.seg.nrrd", empty_second=True)
+    result = runner.invoke(app, ["extract-ct", str(path), "--out", str(tmp_path / "o.stl"),
+                                 "--segment", "femur"])
+    assert result.exit_code == 2 and "has no voxels" in result.output
+    result = runner.invoke(app, ["extract-ct", str(FIBULA_STL), "--out", str(tmp_path / "f.ply")])
+    assert result.exit_code == 0 and "44194 triangles" in result.output
+
+
+def test_simulate_writes_reproducible_sweeps(tmp_path):
+    args = ["simulate", str(FIBULA_STL), "--count", "2", "--seed", "5"]
+    assert runner.invoke(app, [*args, "--out", str(tmp_path / "a")]).exit_code == 0
+    assert runner.invoke(app, [*args, "--out", str(tmp_path / "b")]).exit_code == 0
+    names = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert names == ["config.yaml", "sweep_0000.ply", "sweep_0000_poses.npy",
+                     "sweep_0000_slices.npy", "sweep_0001.ply", "sweep_0001_poses.npy",
+                     "sweep_0001_slices.npy"]
+    for name in names:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    result = runner.invoke(app, ["simulate", str(FIBULA_STL), "--out", str(tmp_path / "c"),
+                                 "--config", str(tmp_path / "none.yaml")])
+    assert result.exit_code == 2 and "does not exist" in result.output
