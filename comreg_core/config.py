@@ -115,8 +115,14 @@ def to_dict(config) -> dict[str, Any]:
     return plain(dataclasses.asdict(config))
 
 
-def load_config(cls: type[T], path: str | Path | None = None, overrides: dict | None = None) -> T:
-    """Defaults of ``cls``, updated from the YAML file at ``path`` then from ``overrides``."""
+def load_config(cls: type[T], path: str | Path | None = None, overrides: dict | None = None,
+                section: str | None = None) -> T:
+    """Defaults of ``cls``, updated from the YAML file at ``path`` then from ``overrides``.
+
+    With ``section``, a file holding a mapping with that key (e.g. a run's ``config.yaml`` with
+    ``simulation:`` beside other sections) contributes only that section; a file without the key
+    is taken as the section's own keys.
+    """
     import yaml
 
     from comreg_core.io._files import require_input_file
@@ -131,8 +137,10 @@ def load_config(cls: type[T], path: str | Path | None = None, overrides: dict | 
         if loaded is not None and not isinstance(loaded, dict):
             raise ConfigError(f"'{path}' must hold a mapping of config keys.", "")
         data = loaded or {}
-    merged = _deep_merge(data, overrides or {})
-    return from_dict(cls, merged)
+        if section is not None and section in data:
+            data = data[section] or {}
+    merged = deep_merge(data, overrides or {})
+    return from_dict(cls, merged, section or "")
 
 
 def write_config(config, path: str | Path) -> Path:
@@ -147,11 +155,12 @@ def write_config(config, path: str | Path) -> Path:
     return path
 
 
-def _deep_merge(base: dict, update: dict) -> dict:
+def deep_merge(base: dict, update: dict) -> dict:
+    """``base`` updated by ``update``, merging nested mappings key by key (no input changed)."""
     out = dict(base)
     for key, value in update.items():
         if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _deep_merge(out[key], value)
+            out[key] = deep_merge(out[key], value)
         else:
             out[key] = value
     return out

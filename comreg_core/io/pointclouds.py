@@ -191,12 +191,7 @@ def _write_ply(cloud: PointCloud, tmp: Path, binary: bool) -> None:
     header = (f"ply\nformat {fmt} 1.0\ncomment ComReg point cloud, millimetres\n"
               f"comment SPACE={cloud.space}\nelement vertex {len(cloud.points)}\n"
               "property double x\nproperty double y\nproperty double z\nend_header\n")
-    with open(tmp, "wb") as f:
-        f.write(header.encode("ascii"))
-        if binary:
-            f.write(cloud.points.astype("<f8").tobytes())
-        else:
-            np.savetxt(f, cloud.points, fmt="%.17g")
+    _write_header_and_xyz(tmp, header, cloud.points, binary)
 
 
 # --- PCD ----------------------------------------------------------------------------------------
@@ -308,12 +303,7 @@ def _write_pcd(cloud: PointCloud, tmp: Path, binary: bool) -> None:
               "VERSION 0.7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\n"
               f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
               f"DATA {'binary' if binary else 'ascii'}\n")
-    with open(tmp, "wb") as f:
-        f.write(header.encode("ascii"))
-        if binary:
-            f.write(cloud.points.astype("<f8").tobytes())
-        else:
-            np.savetxt(f, cloud.points, fmt="%.17g")
+    _write_header_and_xyz(tmp, header, cloud.points, binary)
 
 
 # --- shared helpers ---------------------------------------------------------------------------
@@ -341,6 +331,16 @@ def _read_binary_records(path: Path, start: int, dtype: np.dtype, count: int) ->
         raise CorruptFileError(path, f"expected {count} points ({dtype.itemsize * count} bytes), "
                                      f"found {len(data)} bytes: the file is truncated")
     return np.frombuffer(data, dtype=dtype, count=count)
+
+
+def _write_header_and_xyz(tmp: Path, header: str, points: np.ndarray, binary: bool) -> None:
+    """A text header, then ``(N, 3)`` points as little-endian float64 or full-precision text."""
+    with open(tmp, "wb") as f:
+        f.write(header.encode("ascii"))
+        if binary:
+            f.write(points.astype("<f8").tobytes())
+        else:
+            np.savetxt(f, points, fmt="%.17g")
 
 
 def _space_from_comments(lines: list[str]) -> str:

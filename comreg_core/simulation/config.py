@@ -216,29 +216,4 @@ def load_simulation_config(path: str | Path | None = None,
                            overrides: dict | None = None) -> SimulationConfig:
     """Defaults, updated from the YAML file at ``path`` (bare keys, or a run's ``config.yaml``
     with a ``simulation`` section), then from ``overrides``."""
-    if path is None:
-        return load_config(SimulationConfig, None, overrides)
-    import yaml
-
-    from comreg_core.io._files import require_input_file
-
-    path = require_input_file(path, "config file")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"'{path}' is not valid YAML ({exc}).", "Fix the syntax.") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"'{path}' must hold a mapping of config keys.", "")
-    if "simulation" in data:
-        data = data["simulation"] or {}
-    return from_dict(SimulationConfig, _merge(data, overrides or {}), "simulation")
-
-
-def _merge(base: dict, update: dict) -> dict:
-    out = dict(base)
-    for key, value in update.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
-        else:
-            out[key] = value
-    return out
+    return load_config(SimulationConfig, path, overrides, section="simulation")
