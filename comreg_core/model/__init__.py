@@ -1,0 +1,38 @@
+"""The ComReg network in pure PyTorch (CPU and CUDA, no compiled extensions).
+
+Modules: :mod:`.ops` (FPS, kNN, gather, Chamfer, quaternions), :mod:`.adapointr` (completion
+``f``), :mod:`.pose_head` (registration ``g``), :mod:`.diff_icp` (differentiable ICP),
+:mod:`.comreg` (the whole network), :mod:`.losses`, :mod:`.config` (``ModelConfig``, presets
+``paper`` and ``cpu``), :mod:`.normalization` (the CT-based normalised coordinates).
+"""
+
+from comreg_core.model.adapointr import AdaPoinTr, CompletionOutput
+from comreg_core.model.comreg import ComRegNet, ComRegOutput, TargetEncoding
+from comreg_core.model.config import (
+    MODEL_PRESETS,
+    CompletionConfig,
+    ICPConfig,
+    LossConfig,
+    ModelConfig,
+    PoseHeadConfig,
+    model_preset,
+)
+from comreg_core.model.diff_icp import ICPResult, differentiable_icp, weighted_procrustes
+from comreg_core.model.losses import (
+    LossTerms,
+    comreg_loss,
+    output_loss,
+    pose_loss,
+    rotation_angle,
+)
+from comreg_core.model.normalization import Normalization
+from comreg_core.model.ops import chamfer_l1, furthest_point_sample, gather_points, knn
+from comreg_core.model.pose_head import PoseHead
+
+__all__ = [
+    "AdaPoinTr", "CompletionOutput", "ComRegNet", "ComRegOutput", "TargetEncoding",
+    "MODEL_PRESETS", "CompletionConfig", "ICPConfig", "LossConfig", "ModelConfig",
+    "PoseHeadConfig", "model_preset", "ICPResult", "differentiable_icp", "weighted_procrustes",
+    "LossTerms", "comreg_loss", "output_loss", "pose_loss", "rotation_angle", "Normalization",
+    "chamfer_l1", "furthest_point_sample", "gather_points", "knn", "PoseHead",
+]

@@ -1,0 +1,219 @@
+"""Typed configuration of the ComReg network and its two presets, ``paper`` and ``cpu``.
+
+``ModelConfig`` has four sections: ``completion`` (AdaPoinTr), ``pose`` (the coarse registration
+MLP), ``icp`` (the differentiable ICP) and ``loss``. The defaults are the ``paper`` preset: the
+ComReg paper's numbers (20,000 points, sigma = 5e-3, K = 25, N_c = 4096, lambda_coarse = 1,
+lambda_fine = 0.5, rho = 0.1, a five-block 512-wide pose MLP) and AdaPoinTr's PCN sizes for
+everything the paper takes from AdaPoinTr (384-wide encoder of depth 6 and decoder of depth 8,
+6 heads, k = 8 graph attention in the first block, proxies 512 -> 256, 1024-d global feature).
+The ``cpu`` preset shrinks the completion network and the point counts; it was chosen by measuring
+forward + backward time at batch 4 on 2 CPU cores (see ``tests/benchmarks/bench_model.py``).
+
+All lengths (sigma) are in the network's normalised coordinates (see
+:mod:`comreg_core.model.normalization`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from comreg_core.config import ConfigError, deep_merge, from_dict, require
+
+
+@dataclass(frozen=True)
+class CompletionConfig:
+    """AdaPoinTr completion module ``f``.
+
+    Attributes:
+        input_points: clouds with more points are reduced to this many by FPS before ``f``.
+        center_num: point proxies after the first and second DGCNN down-sampling (FPS).
+        dgcnn_k: neighbours of the DGCNN edge convolutions.
+        encoder_dim, encoder_depth: width and number of blocks of the geometry-aware encoder.
+        decoder_dim, decoder_depth: the same for the decoder.
+        num_heads: attention heads (encoder and decoder).
+        mlp_ratio: hidden width of each block's MLP, as a multiple of its width.
+        graph_k: neighbours of the kNN graph attention.
+        graph_blocks: how many leading blocks (encoder, decoder self- and cross-attention) add
+            kNN graph attention to global attention (AdaPoinTr: 1, "attn-graph" then "attn").
+        global_feature_dim: width of the max-pooled global feature feeding the query generator.
+        mlp_hidden: hidden width of the query generator MLPs and the rebuild head's global feature.
+        num_query: queries (coarse centres C). The query generator predicts ``num_query`` centres
+            of missing regions, adds ``num_query // 2`` FPS centres of the input, and keeps the
+            ``num_query`` best ranked.
+        fold_grid: rows x columns of the 2-D folding seed: points per centre in the dense output.
+        fold_hidden: hidden width of the folding MLPs.
+    """
+
+    input_points: int = 20000
+    center_num: tuple[int, int] = (512, 256)
+    dgcnn_k: int = 16
+    encoder_dim: int = 384
+    encoder_depth: int = 6
+    decoder_dim: int = 384
+    decoder_depth: int = 8
+    num_heads: int = 6
+    mlp_ratio: float = 2.0
+    graph_k: int = 8
+    graph_blocks: int = 1
+    global_feature_dim: int = 1024
+    mlp_hidden: int = 1024
+    num_query: int = 500
+    fold_grid: tuple[int, int] = (5, 8)
+    fold_hidden: int = 256
+
+    def __post_init__(self) -> None:
+        p = "completion."
+        require(self.center_num[0] >= self.center_num[1] >= 1, p + "center_num",
+                "must be two decreasing positive proxy counts")
+        require(self.input_points >= self.center_num[0], p + "input_points",
+                "must be at least center_num[0]")
+        require(self.dgcnn_k >= 1 and self.dgcnn_k <= self.center_num[1], p + "dgcnn_k",
+                "must be between 1 and center_num[1]")
+        for name in ("encoder_dim", "decoder_dim"):
+            dim = getattr(self, name)
+            require(dim >= 1 and dim % self.num_heads == 0, p + name,
+                    f"must be a positive multiple of num_heads ({self.num_heads})")
+        require(self.num_heads >= 1, p + "num_heads", "must be at least 1")
+        require(self.encoder_depth >= 1 and self.decoder_depth >= 1, p + "encoder/decoder_depth",
+                "must be at least 1")
+        require(self.mlp_ratio > 0, p + "mlp_ratio", "must be positive")
+        require(self.num_query >= 2, p + "num_query", "must be at least 2")
+        require(1 <= self.graph_k <= min(self.center_num[1], self.num_query), p + "graph_k",
+                "must be between 1 and the number of proxies and of queries")
+        require(0 <= self.graph_blocks <= min(self.encoder_depth, self.decoder_depth),
+                p + "graph_blocks", "must be between 0 and the encoder and decoder depths")
+        require(self.global_feature_dim >= 1 and self.mlp_hidden % 8 == 0 and self.mlp_hidden > 0,
+                p + "global_feature_dim/mlp_hidden",
+                "must be positive (mlp_hidden a multiple of 8)")
+        require(self.fold_grid[0] >= 1 and self.fold_grid[1] >= 1, p + "fold_grid",
+                "must be two positive numbers")
+        require(self.fold_hidden >= 16 and self.fold_hidden % 16 == 0, p + "fold_hidden",
+                "must be a multiple of 16")
+
+    @property
+    def points_per_centre(self) -> int:
+        return self.fold_grid[0] * self.fold_grid[1]
+
+    @property
+    def dense_points(self) -> int:
+        """Size of the dense completion: ``num_query`` patches of ``points_per_centre`` points."""
+        return self.num_query * self.points_per_centre
+
+
+@dataclass(frozen=True)
+class PoseHeadConfig:
+    """Registration module ``g``: pooled per-query features of both clouds -> coarse pose.
+
+    Attributes:
+        features: ``"decoded"`` feeds ``H = M_D(Q, V)`` (the paper); ``"encoded"`` feeds ``V``
+            (the paper's "w/o completion" ablation).
+        token_dim: width of the shared per-token layer applied before pooling.
+        hidden_dim, num_blocks: the MLP: ``num_blocks`` x (Linear + GroupNorm + GELU).
+        norm_groups: GroupNorm groups in the MLP.
+    """
+
+    features: Literal["decoded", "encoded"] = "decoded"
+    token_dim: int = 512
+    hidden_dim: int = 512
+    num_blocks: int = 5
+    norm_groups: int = 8
+
+    def __post_init__(self) -> None:
+        require(self.token_dim >= 1, "pose.token_dim", "must be positive")
+        require(self.num_blocks >= 1, "pose.num_blocks", "must be at least 1")
+        require(self.norm_groups >= 1 and self.hidden_dim % self.norm_groups == 0,
+                "pose.hidden_dim", "must be a positive multiple of pose.norm_groups")
+
+
+@dataclass(frozen=True)
+class ICPConfig:
+    """Differentiable ICP refinement.
+
+    Attributes:
+        iterations: K.
+        num_points: N_c, points per cloud (FPS subset of source and target).
+        sigma: softness of the correspondences, normalised units.
+        neighbors: soft correspondences are restricted to this many nearest targets.
+        mode: ``"soft"`` (softmax-weighted correspondences) or ``"hard"`` (nearest neighbour).
+        trim_fraction: share of the worst residuals left out of each Procrustes step.
+    """
+
+    iterations: int = 25
+    num_points: int = 4096
+    sigma: float = 5e-3
+    neighbors: int = 32
+    mode: Literal["soft", "hard"] = "soft"
+    trim_fraction: float = 0.0
+
+    def __post_init__(self) -> None:
+        require(self.iterations >= 0, "icp.iterations", "must be 0 or more")
+        require(self.num_points >= 3, "icp.num_points", "must be at least 3")
+        require(self.sigma > 0, "icp.sigma", "must be positive")
+        require(self.neighbors >= 1, "icp.neighbors", "must be at least 1")
+        require(0.0 <= self.trim_fraction < 1.0, "icp.trim_fraction", "must be in [0, 1)")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Loss weights: ``L = L_completion + lambda_reg * L_registration`` with
+    ``L_registration = lambda_coarse * L_reg(coarse) + lambda_fine * L_reg(fine)`` and the
+    adaptive ``lambda_reg = rho * L_completion / L_registration`` (weight detached)."""
+
+    lambda_coarse: float = 1.0
+    lambda_fine: float = 0.5
+    rho: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("lambda_coarse", "lambda_fine", "rho"):
+            require(getattr(self, name) >= 0, f"loss.{name}", "must be 0 or more")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The whole network: completion, pose head, ICP, losses (defaults = ``paper`` preset)."""
+
+    completion: CompletionConfig = field(default_factory=CompletionConfig)
+    pose: PoseHeadConfig = field(default_factory=PoseHeadConfig)
+    icp: ICPConfig = field(default_factory=ICPConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+
+
+#: Differences of each preset from the defaults (which are the paper's values).
+#:
+#: ``cpu`` was chosen by timing one training step (forward + backward + full loss, batch 4, CT
+#: through ``f`` once per step) on 2 shared CPU cores, torch 2.13, 2 threads; minimum of 5 runs:
+#: this preset 0.53 s (6.7 M parameters); the same with ICP on 4096 points 0.85 s, with 4096
+#: input points 0.79 s, 256 queries 0.68 s, 32 ICP neighbours 0.72 s, a 256-wide depth-4
+#: transformer 0.66 s, depth 2 0.53 s, a 128-wide depth-2 net on 1024 points 0.38 s; the
+#: ``paper`` preset 8.2 s. ICP has no weights, so inference may use ``icp.num_points = 4096``
+#: with a model trained at 2048 (inference at batch 1: 0.08 s with 2048, 0.15 s with 4096).
+MODEL_PRESETS: dict[str, dict] = {
+    "paper": {},
+    "cpu": {
+        "completion": {
+            "input_points": 2048,
+            "center_num": [256, 128],
+            "encoder_dim": 192,
+            "encoder_depth": 3,
+            "decoder_dim": 192,
+            "decoder_depth": 3,
+            "num_heads": 6,
+            "global_feature_dim": 512,
+            "mlp_hidden": 512,
+            "num_query": 128,
+            "fold_grid": [4, 4],
+            "fold_hidden": 128,
+        },
+        "pose": {"token_dim": 256},
+        "icp": {"num_points": 2048, "neighbors": 16},
+    },
+}
+
+
+def model_preset(name: str = "paper", overrides: dict | None = None) -> ModelConfig:
+    """The named preset (``"paper"`` or ``"cpu"``), optionally updated by a nested dict."""
+    if name not in MODEL_PRESETS:
+        raise ConfigError(f"Unknown model preset '{name}'.",
+                          f"Use one of: {', '.join(MODEL_PRESETS)}.")
+    return from_dict(ModelConfig, deep_merge(MODEL_PRESETS[name], overrides or {}), "model")

@@ -1,0 +1,121 @@
+"""ComReg losses: completion (Chamfer on centres and dense points), pose, adaptive weighting.
+
+* ``L_sparse = CD(C, T^t)``, ``L_dense = CD(dense, T^t)`` with the L1 Chamfer distance of
+  :func:`comreg_core.model.ops.chamfer_l1`; ``L_completion = mean(L_sparse + L_dense)``.
+* ``L_reg(T_hat, T) = ||t_hat - t|| + angle(R_hat^T R)`` where the angle equals
+  ``arccos((tr(R_hat^T R) - 1) / 2)`` but is computed as ``atan2(sin, cos)`` so that value and
+  gradient stay finite at 0 and 180 degrees (see :func:`rotation_angle`).
+* ``L_registration = mean(lambda_coarse L_reg(coarse) + lambda_fine L_reg(fine))``.
+* ``L_final = L_completion + lambda_reg L_registration`` with
+  ``lambda_reg = rho L_completion / L_registration``, the weight detached (a number, not a path
+  for gradients).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, NamedTuple
+
+from torch import Tensor
+
+from comreg_core.model.config import LossConfig
+from comreg_core.model.ops import chamfer_l1, safe_norm
+
+if TYPE_CHECKING:
+    from comreg_core.model.comreg import ComRegOutput
+
+
+def rotation_angle(R_hat: Tensor, R: Tensor) -> Tensor:
+    """Angle of the relative rotation ``R_hat^T R`` in radians, in [0, pi].
+
+    ``cos = (tr(M) - 1) / 2`` and ``sin = ||vee(M - M^T)|| / 2`` for ``M = R_hat^T R``; the angle is
+    ``atan2(sin, cos)``. This equals ``arccos(cos)`` for rotations, but is accurate for small
+    angles and has finite gradients everywhere (arccos' is infinite at +-1; the norm uses
+    :func:`safe_norm`, whose gradient is 0 at the exact 0 and 180 degree points).
+
+    Args:
+        R_hat, R: ``(..., 3, 3)`` rotation matrices.
+
+    Returns:
+        ``(...)`` angles.
+    """
+    if R_hat.shape[-2:] != (3, 3) or R.shape[-2:] != (3, 3):
+        raise ValueError(f"need (..., 3, 3) rotations, got {tuple(R_hat.shape)}, {tuple(R.shape)}")
+    M = R_hat.transpose(-1, -2) @ R  # ... 3 3
+    cos = (M.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0  # ...
+    A = M - M.transpose(-1, -2)  # ... 3 3, = 2 sin(theta) [axis]_x
+    vee = A[..., [2, 0, 1], [1, 2, 0]]  # ... 3
+    sin = safe_norm(vee, dim=-1) / 2.0  # ...
+    return sin.atan2(cos)
+
+
+def pose_loss(T_hat: Tensor, T: Tensor) -> Tensor:
+    """``L_reg = ||t_hat - t|| + angle(R_hat^T R)`` per transform.
+
+    Args:
+        T_hat, T: ``(B, 4, 4)`` estimated and ground-truth rigid transforms.
+
+    Returns:
+        ``(B,)`` losses (translation in the transforms' length unit + rotation in radians).
+    """
+    if T_hat.shape != T.shape or T.shape[-2:] != (4, 4):
+        raise ValueError(f"need two (B, 4, 4) transforms, got {tuple(T_hat.shape)}, "
+                         f"{tuple(T.shape)}")
+    translation = safe_norm(T_hat[..., :3, 3] - T[..., :3, 3], dim=-1)
+    return translation + rotation_angle(T_hat[..., :3, :3], T[..., :3, :3])
+
+
+class LossTerms(NamedTuple):
+    """All loss terms, batch means (scalars). ``total`` is the one to back-propagate."""
+
+    total: Tensor
+    completion: Tensor
+    sparse: Tensor
+    dense: Tensor
+    registration: Tensor
+    reg_coarse: Tensor
+    reg_fine: Tensor
+    lambda_reg: Tensor
+
+
+def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transform: Tensor,
+                fine_transform: Tensor, gt_transform: Tensor,
+                config: LossConfig | None = None) -> LossTerms:
+    """The ComReg training objective.
+
+    Args:
+        centres: ``(B, Q, 3)`` predicted centres C of the source completion.
+        dense: ``(B, Nd, 3)`` dense completion.
+        gt_points: ``(B, M, 3)`` the complete cloud in the source frame, ``T^t = T . T``.
+        coarse_transform: ``(B, 4, 4)`` predicted ``T_coarse^-1`` (source -> CT).
+        fine_transform: ``(B, 4, 4)`` predicted ``T_fine^-1``.
+        gt_transform: ``(B, 4, 4)`` ground truth ``T^-1`` (source -> CT).
+        config: :class:`LossConfig` (lambda_coarse, lambda_fine, rho); None = the paper's.
+
+    Returns:
+        :class:`LossTerms`.
+    """
+    config = config or LossConfig()
+    sparse = chamfer_l1(centres, gt_points).mean()
+    dense_cd = chamfer_l1(dense, gt_points).mean()
+    completion = sparse + dense_cd
+    reg_coarse = pose_loss(coarse_transform, gt_transform).mean()
+    reg_fine = pose_loss(fine_transform, gt_transform).mean()
+    registration = config.lambda_coarse * reg_coarse + config.lambda_fine * reg_fine
+    lambda_reg = (config.rho * completion / registration.clamp_min(1e-12)).detach()
+    total = completion + lambda_reg * registration
+    return LossTerms(total, completion, sparse, dense_cd, registration, reg_coarse, reg_fine,
+                     lambda_reg)
+
+
+def output_loss(output: ComRegOutput, gt_points: Tensor, gt_transform: Tensor,
+                config: LossConfig | None = None) -> LossTerms:
+    """:func:`comreg_loss` of a :class:`~comreg_core.model.comreg.ComRegOutput`.
+
+    Args:
+        output: the network's output for sources ``S^t``.
+        gt_points: ``(B, M, 3)`` the complete CT cloud moved into each source frame (``T^t``).
+        gt_transform: ``(B, 4, 4)`` ground-truth ``T^-1`` (source -> CT).
+        config: loss weights.
+    """
+    return comreg_loss(output.completion.centres, output.completion.dense, gt_points,
+                       output.coarse_transform, output.fine_transform, gt_transform, config)
