@@ -1,0 +1,172 @@
+"""Baselines: Open3D RANSAC + ICP recovers a known pose of a fibula patch; the ICP pseudo ground
+truth converges from a near-perfect start; config and error handling."""
+
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from comreg_core.config import ConfigError
+from comreg_core.errors import ComRegError
+from comreg_core.evaluation import (BaselineConfig, IcpGtBaseline, RansacConfig,
+                                    SurfaceMatcher, baseline_config_from_dict, baseline_methods,
+                                    closest_points_on_triangles, evaluate, point_to_plane_icp,
+                                    require_open3d, rotation_error_deg, translation_error_mm)
+from comreg_core.transforms import apply_transform, invert_rigid
+from tests.evaluation.conftest import box_distance
+from tests.helpers import assert_close
+
+
+def _pose(rotvec_deg, t, about):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    T[:3, 3] = about - T[:3, :3] @ about + np.asarray(t, dtype=np.float64)
+    return T
+
+
+def _errors(T_est, T_true, points):
+    return (translation_error_mm(T_est, T_true, points.mean(axis=0)),
+            rotation_error_deg(T_est, T_true))
+
+
+# --- RANSAC + ICP (Open3D) ------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def ransac(fibula_surface):
+    pytest.importorskip("open3d")
+    return baseline_methods(["ransac"], fibula_surface, seed=0)["ransac"]
+
+
+def test_ransac_recovers_a_known_pose_of_a_fibula_patch(ransac, fibula_patch, fibula_surface):
+    # the patch moved by 60 deg about a skew axis through its centroid and 80 mm
+    T_us_ct = _pose(np.array([40.0, -25.0, 30.0]) * 60 / np.linalg.norm([40, -25, 30]),
+                    [30.0, -50.0, 50.0], fibula_patch.mean(axis=0))
+    moved = apply_transform(T_us_ct, fibula_patch)
+    truth = invert_rigid(T_us_ct)
+    ransac.reseed(0)
+    out = ransac(moved)
+    rte, rre = _errors(out.T_ct_us, truth, moved)
+    assert rte < 2.0 and rre < 2.0, f"RTE {rte:.2f} mm, RRE {rre:.2f} deg"
+    assert out.runtime_s > 0 and out.info["ransac_fitness"] > 0.5
+    # the same seed gives the same pose, up to Open3D's thread scheduling (its parallel RANSAC
+    # may keep another, equally good hypothesis; ICP then lands within ~0.01 mm)
+    ransac.reseed(0)
+    again = ransac(moved)
+    assert_close(_errors(again.T_ct_us, out.T_ct_us, moved), [0.0, 0.0], atol=0.05,
+                 what="same seed, same pose (mm, deg)")
+
+
+def test_ransac_through_the_harness(ransac, fibula_patch, fibula_surface):
+    result = evaluate({"ransac": ransac}, fibula_patch[::4], fibula_surface, trials=2, seed=5)
+    rows = result["trials"]
+    assert all(r["error"] is None for r in rows)
+    assert all(r["info"]["ransac_correspondences"] > 0 for r in rows)
+    assert result["summary"]["ransac"]["runtime_s"]["mean"] > 0
+
+
+def test_ransac_rejects_tiny_and_bad_clouds(ransac):
+    with pytest.raises(ComRegError, match="too few for RANSAC"):
+        ransac(np.array([[0.0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]]))
+    with pytest.raises(ComRegError, match="non-finite"):
+        ransac(np.array([[0.0, 0, np.nan]] * 10))
+    with pytest.raises(ComRegError, match="0 points"):
+        ransac(np.zeros((0, 3)))
+
+
+def test_missing_open3d_is_a_clear_error(monkeypatch, fibula_surface):
+    monkeypatch.setitem(sys.modules, "open3d", None)  # import open3d -> ImportError
+    with pytest.raises(ComRegError, match="pip install open3d"):
+        require_open3d()
+    with pytest.raises(ComRegError, match="needs Open3D"):
+        baseline_methods(["ransac"], fibula_surface)
+    # the pseudo ground truth does not need Open3D
+    assert "icp-gt" in baseline_methods(["icp-gt"], fibula_surface)
+
+
+# --- ICP pseudo ground truth ----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def matcher(fibula_surface):
+    return SurfaceMatcher(fibula_surface)
+
+
+def test_closest_points_match_vtk_distances(fibula_surface, matcher):
+    rng = np.random.default_rng(4)
+    points, _ = fibula_surface.samples(3000)
+    points = points + rng.normal(size=points.shape) * 1.0
+    q, n, d = matcher.closest(points, max_distance=20.0)
+    exact = fibula_surface.distance(points)
+    excess = d - exact
+    # always a real surface point, so never nearer than the exact closest point ...
+    assert excess.min() > -1e-9
+    assert_close(fibula_surface.distance(q), np.zeros(len(q)), atol=1e-6, what="on surface")
+    # ... and the closest one for almost every query, a hair farther for the others
+    assert (excess < 1e-6).mean() > 0.97 and excess.max() < 0.2
+    assert_close(np.linalg.norm(q - points, axis=1), d, atol=1e-9)
+    assert_close(np.linalg.norm(n, axis=1), np.ones(len(n)), atol=1e-9)
+
+
+def test_closest_point_on_a_triangle_in_every_region():
+    a, b, c = np.array([0.0, 0, 0]), np.array([4.0, 0, 0]), np.array([0.0, 3, 0])
+    cases = {(1.0, 1, 2): (1, 1, 0), (-1.0, -1, 0): (0, 0, 0), (5.0, -1, 1): (4, 0, 0),
+             (-1.0, 4, 0): (0, 3, 0), (2.0, -2, 0): (2, 0, 0), (-2.0, 1, 0): (0, 1, 0),
+             (4.0, 3, 0): tuple(np.array([4.0, 0, 0]) + np.array([-4.0, 3, 0]) * (
+                 np.dot([0.0, 3, 0], [-4.0, 3, 0]) / 25))}
+    for p, expected in cases.items():
+        got = closest_points_on_triangles(np.array([p]), a[None], b[None], c[None])[0]
+        assert_close(got, expected, atol=1e-12, what=f"closest point to {p}")
+
+
+@pytest.mark.parametrize("trial", range(3))
+def test_icp_gt_converges_from_1mm_1deg_on_clean_data(matcher, fibula_patch, trial):
+    rng = np.random.default_rng(trial)
+    axis, direction = rng.normal(size=3), rng.normal(size=3)
+    axis, direction = axis / np.linalg.norm(axis), direction / np.linalg.norm(direction)
+    points = fibula_patch[::2]
+    start = _pose(axis * 1.0, direction * 1.0, points.mean(axis=0))  # truth = identity
+    assert_close(_errors(start, np.eye(4), points), [1.0, 1.0], atol=1e-9)
+    T, info = point_to_plane_icp(points, matcher, start)
+    rte, rre = _errors(T, np.eye(4), points)
+    assert rte < 0.1 and rre < 0.1, f"RTE {rte:.4f} mm, RRE {rre:.4f} deg, {info}"
+    assert info["converged"] and info["inlier_fraction"] == 1.0
+
+
+def test_icp_gt_baseline_in_the_harness(fibula_surface, fibula_patch):
+    methods = baseline_methods(["icp-gt"], fibula_surface)
+    result = evaluate(methods, fibula_patch[::4], fibula_surface, trials=2, seed=0,
+                      perturbation="full")
+    s = result["summary"]["icp-gt"]
+    assert s["success_rate"] == 1.0 and s["RTE_mm"]["mean"] < 0.05
+
+
+def test_icp_on_the_box_stays_put(box_surface, box_cloud):
+    icp = IcpGtBaseline(box_surface)
+    out = icp(box_cloud, np.eye(4))
+    assert_close(box_distance(apply_transform(out.T_ct_us, box_cloud)).max(), 0.0, atol=1e-6)
+
+
+# --- config and names -----------------------------------------------------------------------------
+
+def test_config_from_dict_and_validation():
+    config = baseline_config_from_dict({"ransac": {"max_iterations": 1_000_000,
+                                                   "confidence": 0.99},
+                                        "icp_gt": {"max_distance_mm": 2}})
+    assert config.ransac.max_iterations == 1_000_000 and config.ransac.voxel_size_mm == 1.0
+    assert config.icp_gt.max_distance_mm == 2.0
+    assert BaselineConfig().ransac == RansacConfig()
+    with pytest.raises(ConfigError, match="Unknown config key.*'iterations'.*max_iterations"):
+        baseline_config_from_dict({"ransac": {"iterations": 5}})
+    with pytest.raises(ConfigError, match="confidence"):
+        baseline_config_from_dict({"ransac": {"confidence": 1.5}})
+    with pytest.raises(ConfigError, match="voxel_size_mm"):
+        baseline_config_from_dict({"ransac": {"voxel_size_mm": 0}})
+    with pytest.raises(ConfigError, match="point_to_plane"):
+        baseline_config_from_dict({"ransac": {"icp": "plane"}})
+    with pytest.raises(ConfigError, match="must be a number"):
+        baseline_config_from_dict({"icp_gt": {"max_distance_mm": "far"}})
+
+
+def test_unknown_baseline_names_are_listed(fibula_surface):
+    with pytest.raises(ComRegError, match="Unknown baseline method.*'comreg'.*ransac, icp-gt"):
+        baseline_methods(["icp-gt", "comreg"], fibula_surface)
