@@ -139,6 +139,61 @@ def simulate(
     typer.echo(f"wrote {len(paths)} sweep(s) and config.yaml to {out}")
 
 
+class CompoundMode(str, Enum):
+    mean = "mean"
+    max = "max"
+
+
+@app.command("extract-us")
+@_user_errors
+def extract_us(
+    sweep: Path = typer.Argument(
+        ..., help="Tracked US sweep: PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd, .seq.nrrd), a "
+        "frame folder (PNG frames + tracking.csv + calibration.json) or a 3D Slicer volume "
+        "sequence (.seq.nrrd)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output point cloud (.ply, .pcd, .xyz, "
+                             ".npy, ...), bone surface points in the tracking reference frame."),
+    calibration: Optional[Path] = typer.Option(
+        None, "--calibration", help="Image-to-probe calibration: a PLUS device-set XML "
+        "(ImageToProbe) or calibration.json for a frame folder."),
+    masks: Optional[Path] = typer.Option(
+        None, "--masks", help="Bone label masks instead of detecting the bone in the B-mode "
+        "frames: a folder of mask images named like the frames, a mask sequence or a label "
+        "volume."),
+    config: Optional[Path] = typer.Option(None, "--config", help="US extraction config YAML "
+                                          "(detector and denoising parameters)."),
+    compound: Optional[Path] = typer.Option(
+        None, "--compound", help="Also compound the frames into this 3D volume (.nrrd, .mha) to "
+        "look at."),
+    compound_spacing: float = typer.Option(0.5, min=0.01, help="Voxel size of --compound (mm)."),
+    compound_mode: CompoundMode = typer.Option(CompoundMode.mean, help="Voxel value of "
+                                               "--compound where frames overlap."),
+) -> None:
+    """Extract the bone surface seen by a tracked US sweep as a point cloud.
+
+    Reads the frames and their image-to-reference poses, finds the bone in every frame (from
+    --masks, or with the shadow-aware B-mode detector: a bright thin ridge with an acoustic shadow
+    below it), maps the bone pixels to millimetres in the tracking reference frame and removes
+    outliers (largest clusters, statistical outlier removal).
+    """
+    from comreg_core.io import write_volume
+    from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.surfaces.us import (compound_sweep, extract_us_to_file,
+                                         load_us_extraction_config)
+
+    settings = load_us_extraction_config(config)
+    tracked = read_tracked_sweep(sweep, calibration=calibration, reference=settings.reference)
+    with _progress_bar(len(tracked.frames), "detecting bone") as advance:
+        result = extract_us_to_file(tracked, out, masks=masks, config=settings,
+                                    progress=lambda done, total: advance(done))
+    typer.echo(f"wrote {result.summary()}")
+    if compound is not None:
+        volume = compound_sweep(tracked, compound_spacing, compound_mode.value)
+        write_volume(volume, compound)
+        typer.echo(f"wrote {compound}: compounded volume {' x '.join(map(str, volume.array.shape))}"
+                   f" voxels of {compound_spacing} mm")
+
+
 @app.command("info")
 @_user_errors
 def info(path: Path = typer.Argument(..., help="Any file ComReg reads.")) -> None:

@@ -5,6 +5,8 @@ writer is atomic (temporary file, then rename).
 - point clouds: :func:`read_points` / :func:`write_points` -> :class:`PointCloud`
 - volumes and label maps: :func:`read_volume` / :func:`write_volume` -> :class:`Volume`;
   :func:`read_segmentation` / :func:`write_segmentation` -> :class:`Segmentation`
+- tracked ultrasound sweeps: :func:`read_tracked_sweep` -> :class:`TrackedSweep` (PLUS sequences,
+  frame folders, 3D Slicer volume sequences)
 - rigid transforms: :func:`load_transform` / :func:`save_transform` (point-mapping ``T_to_from``),
   :func:`read_itk_transform` / :func:`write_itk_transform` (the raw ITK file content)
 """
@@ -19,6 +21,7 @@ from comreg_core.io._files import file_extension, require_input_file
 from comreg_core.io.meshes import MESH_EXTENSIONS, SurfaceMesh, read_mesh, write_mesh
 from comreg_core.io.pointclouds import (POINT_CLOUD_EXTENSIONS, PointCloud, read_points,
                                         write_points)
+from comreg_core.io.tracked_us import TrackedSweep, read_tracked_sweep
 from comreg_core.io.transform_files import (TRANSFORM_EXTENSIONS, ItkTransformFile,
                                             load_transform, read_itk_transform, save_transform,
                                             write_itk_transform)
@@ -29,7 +32,7 @@ from comreg_core.io.volumes import (SEGMENTATION_READ_EXTENSIONS, VOLUME_READ_EX
 __all__ = [
     "MESH_EXTENSIONS", "POINT_CLOUD_EXTENSIONS", "SEGMENTATION_READ_EXTENSIONS",
     "TRANSFORM_EXTENSIONS", "VOLUME_READ_EXTENSIONS", "ItkTransformFile", "PointCloud", "Segment",
-    "Segmentation", "SurfaceMesh", "Volume", "describe_file", "load_transform", "read_itk_transform",
+    "Segmentation", "SurfaceMesh", "TrackedSweep", "Volume", "read_tracked_sweep", "describe_file", "load_transform", "read_itk_transform",
     "read_mesh", "read_points", "read_segmentation", "read_volume", "save_transform",
     "write_itk_transform", "write_mesh", "write_points", "write_segmentation", "write_volume",
 ]

@@ -13,8 +13,6 @@ as the simulator's slice poses. Euler angles use scipy's ``from_euler('xyz', deg
 
 from __future__ import annotations
 
-import csv
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +20,6 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from comreg_core.errors import CorruptFileError
-from comreg_core.io._files import require_input_file
 from comreg_core.simulation.bone import BoneModel
 
 
@@ -42,48 +39,31 @@ class TrackedSweepPoses:
     depth_mm: float
 
 
-def _pose(translation, euler_xyz_deg) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("xyz", euler_xyz_deg, degrees=True).as_matrix()
-    T[:3, 3] = translation
-    return T
-
-
 def load_tracked_sweep_poses(folder: str | Path | None = None, *,
                              tracking_csv: str | Path | None = None,
                              calibration_json: str | Path | None = None) -> TrackedSweepPoses:
     """Read ``tracking.csv`` + ``calibration.json`` (UltraBones100k layout, see the data README)
-    from ``folder``, or from the two paths given."""
+    from ``folder``, or from the two paths given, with the one frame-folder reader
+    (:func:`comreg_core.io.tracked_us.read_frame_folder_tracking`)."""
+    from comreg_core.io.tracked_us import read_frame_folder_tracking
+
     if folder is not None:
         folder = Path(folder)
         tracking_csv = tracking_csv or folder / "tracking.csv"
         calibration_json = calibration_json or folder / "calibration.json"
-    tracking_csv = require_input_file(tracking_csv, "tracking file")
-    calibration_json = require_input_file(calibration_json, "calibration file")
-    try:
-        cal = json.loads(calibration_json.read_text(encoding="utf-8"))
-        sx, sy = (float(v) for v in cal["pixel_spacing_mm"])
-        cols, rows = (int(v) for v in cal["image_size_px"])
-        T_probe_image = _pose(cal["image_to_probe"]["translation_mm"],
-                              cal["image_to_probe"]["euler_xyz_deg"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise CorruptFileError(calibration_json, f"missing or bad calibration entry ({exc})") \
-            from None
-    try:
-        with open(tracking_csv, newline="", encoding="utf-8") as f:
-            rows_ = list(csv.DictReader(f))
-        stamps = np.array([float(r["timestamp"]) for r in rows_])
-        xyz = np.array([[float(r[k]) for k in ("x", "y", "z")] for r in rows_])
-        euler = np.array([[float(r[k]) for k in ("euler_x", "euler_y", "euler_z")]
-                          for r in rows_])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise CorruptFileError(tracking_csv, f"missing or bad tracking column ({exc})") from None
-    if len(stamps) == 0:
-        raise CorruptFileError(tracking_csv, "it has no frames")
-    T_ct_probe = np.repeat(np.eye(4)[None], len(stamps), axis=0)
-    T_ct_probe[:, :3, :3] = Rotation.from_euler("xyz", euler, degrees=True).as_matrix()
-    T_ct_probe[:, :3, 3] = xyz
-    return TrackedSweepPoses(T_ct_probe @ T_probe_image, stamps, cols * sx, rows * sy)
+    if tracking_csv is None or calibration_json is None:
+        raise TypeError("give the folder, or both tracking_csv and calibration_json")
+    track = read_frame_folder_tracking(tracking_csv, calibration_json)
+    if not track.valid.all():
+        raise CorruptFileError(tracking_csv, f"{int((~track.valid).sum())} rows have missing or "
+                                             "non-numeric pose values")
+    sx, sy = track.spacing
+    cols, rows = track.image_size
+    # The reader puts pixel centres at (c * sx, r * sy); this module's image frame puts them at
+    # ((c + 0.5) * sx, (r + 0.5) * sy), as calibration.json does.
+    shift = np.eye(4)
+    shift[:2, 3] = -0.5 * sx, -0.5 * sy
+    return TrackedSweepPoses(track.T_ref_image @ shift, track.timestamps_ms, cols * sx, rows * sy)
 
 
 def interpolate_poses(T: np.ndarray, factor: int) -> np.ndarray:

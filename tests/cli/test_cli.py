@@ -145,3 +145,31 @@ def test_simulate_writes_reproducible_sweeps(tmp_path):
     result = runner.invoke(app, ["simulate", str(FIBULA_STL), "--out", str(tmp_path / "c"),
                                  "--config", str(tmp_path / "none.yaml")])
     assert result.exit_code == 2 and "does not exist" in result.output
+
+
+def test_extract_us_on_the_real_fibula_sweep(tmp_path, shared_data):
+    """Real tracked B-mode frames -> bone points near the CT surface (CT and tracking share a frame)."""
+    import pyvista as pv
+
+    from comreg_core.io import read_mesh, read_points, read_volume
+
+    out = tmp_path / "us.ply"
+    result = runner.invoke(app, ["extract-us", str(shared_data / "ultrabones100k-fibula"),
+                                 "--out", str(out), "--compound", str(tmp_path / "us.nrrd"),
+                                 "--compound-spacing", "2"])
+    assert result.exit_code == 0, result.output
+    points = read_points(out).points
+    assert len(points) > 5000
+    distance = np.abs(pv.PolyData(points).compute_implicit_distance(
+        read_mesh(FIBULA_STL).to_pyvista())["implicit_distance"])
+    assert np.median(distance) <= 0.8 and np.percentile(distance, 90) <= 3.0
+    assert read_volume(tmp_path / "us.nrrd").array.max() > 100  # bright echoes compounded
+
+
+def test_extract_us_bad_inputs(tmp_path):
+    result = runner.invoke(app, ["extract-us", str(tmp_path / "nope"), "--out", str(tmp_path / "a.ply")])
+    assert result.exit_code == 2 and "does not exist" in result.output
+    (tmp_path / "frames").mkdir()
+    result = runner.invoke(app, ["extract-us", str(tmp_path / "frames"), "--out", str(tmp_path / "a.ply")])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert not (tmp_path / "a.ply").exists()
