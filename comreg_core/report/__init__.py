@@ -1,0 +1,29 @@
+"""Off-screen rendering of registration results: overlay screenshots and an HTML report.
+
+No Slicer, no Qt, no display needed. Typical use (all coordinates in the CT mesh's space, mm)::
+
+    from comreg_core.report import write_report
+    write_report(run_dir, ct_mesh=ct, us_before=us_points,
+                 us_after=apply_transform(T_ct_us, us_points), completion=completion_ct, metrics=metrics, inputs={"US sweep": path},
+                 seed=0, device="cpu")
+
+Before VTK makes its first render window, :func:`ensure_offscreen_rendering` checks in a
+subprocess which OpenGL backend works (EGL, then OSMesa, then VTK's default) and raises
+:class:`OpenGLUnavailableError` with install instructions if none does, so a missing OpenGL is a
+clear error, not a segfault. Modules: ``backend`` (that check), ``cameras`` (principal-axis view
+presets and framing), ``scenes`` (the overlays), ``html`` (the page), ``report`` (writing it).
+"""
+
+from comreg_core.report.backend import (OpenGLUnavailableError, RenderBackend,
+                                        ensure_offscreen_rendering, reset_backend_cache)
+from comreg_core.report.cameras import VIEW_NAMES, BoneFrame, CameraView, bone_frame, view_presets
+from comreg_core.report.report import IMAGES_DIR, REPORT_NAME, image_name, write_report
+from comreg_core.report.scenes import (DEFAULT_STYLE, SCENES, SceneData, SceneRenderer,
+                                       Screenshot, Style, render_scene, render_screenshots)
+
+__all__ = [
+    "BoneFrame", "CameraView", "DEFAULT_STYLE", "IMAGES_DIR", "OpenGLUnavailableError",
+    "REPORT_NAME", "RenderBackend", "SCENES", "SceneData", "SceneRenderer", "Screenshot", "Style",
+    "VIEW_NAMES", "bone_frame", "ensure_offscreen_rendering", "image_name", "render_scene",
+    "render_screenshots", "reset_backend_cache", "view_presets", "write_report",
+]

@@ -1,0 +1,301 @@
+"""``write_report``: screenshots of the overlay scenes and ``report.html`` in a run folder.
+
+Output (inside ``out_dir``, which may already hold the run's other files)::
+
+    report.html                      the page (inline CSS, no scripts, no external resources)
+    report_images/<scene>_<view>.png the screenshots it shows (relative links)
+
+Why relative image links and not base64 by default: the issue asks that the report "references
+existing images", the PNGs are useful on their own (README, slides, the Slicer module), the page
+stays small and opens fast, and a run folder is already the unit that is kept and shared. For a
+single file to e-mail, ``embed_images=True`` puts the PNGs into the page as ``data:`` URIs and
+writes no image folder.
+
+Writing is all or nothing: everything is made in a hidden staging folder inside ``out_dir`` and
+moved into place only when every screenshot and the page are done (``report_images/`` first,
+``report.html`` last). If anything fails (no OpenGL, bad input, a full disk, Ctrl-C) the staging
+folder is removed and an earlier report in ``out_dir`` is left exactly as it was.
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+import os
+import platform
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from comreg_core import __version__
+from comreg_core.io.meshes import SurfaceMesh, read_mesh
+from comreg_core.report.backend import ensure_offscreen_rendering
+from comreg_core.report.cameras import VIEW_NAMES
+from comreg_core.report.html import Figure, Section, build_html
+from comreg_core.report.scenes import (DEFAULT_STYLE, SLAB_MARGIN_MM, SceneData, Screenshot,
+                                       Style, render_screenshots)
+
+log = logging.getLogger(__name__)
+
+REPORT_NAME = "report.html"
+IMAGES_DIR = "report_images"
+
+#: ``progress(done, total)``: screenshots written so far.
+Progress = Callable[[int, int], None]
+
+
+def image_name(scene: str, view: str) -> str:
+    """File name of a screenshot inside ``report_images/``."""
+    return f"{scene}_{view}.png"
+
+
+def write_png(image: np.ndarray, path: Path) -> None:
+    """An ``(H, W, 3)`` uint8 image as PNG (Pillow; no metadata, so equal images give equal
+    files)."""
+    from PIL import Image
+
+    Image.fromarray(np.asarray(image, np.uint8)).save(path, format="PNG", optimize=False)
+
+
+def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
+                 us_before: np.ndarray | None = None, us_after: np.ndarray | None = None,
+                 completion: np.ndarray | None = None,
+                 metrics: Mapping[str, Any] | None = None,
+                 inputs: Mapping[str, Any] | None = None, seed: int | None = None,
+                 device: str | None = None, title: str | None = None,
+                 views: Sequence[str] = VIEW_NAMES, scenes: Sequence[str] | None = None,
+                 window_size: tuple[int, int] = (800, 800), embed_images: bool = False,
+                 lateral_side: str = "left", style: Style = DEFAULT_STYLE,
+                 progress: Progress | None = None) -> Path:
+    """Render the overlay screenshots and write ``report.html`` into ``out_dir``.
+
+    Args:
+        out_dir: the run folder (created if missing; other files in it are left alone).
+        ct_mesh: the CT bone surface (a :class:`~comreg_core.io.SurfaceMesh` or a mesh file).
+            Everything else is in its patient space (LPS or RAS, mm).
+        us_before: ``(N, 3)`` US bone points before registration, as received (initial pose).
+        us_after: ``(N, 3)`` the same points mapped into the CT by the estimated ``T_ct_us``.
+        completion: ``(M, 3)`` the completed bone in the CT frame (the network's completion under
+            the estimated transform), coloured by distance to the CT surface.
+        metrics: any JSON-like mapping (``RTE_mm``, ``RRE_deg``, ``CD_mm``, ``HD95_mm``,
+            ``runtime_s``, nested summaries, ...): one table row per leaf, units from the
+            ``_mm``/``_deg``/``_s`` suffixes.
+        inputs: what the run used (file paths, parameters), shown as given; point counts and the
+            CT mesh's file, size and space are added.
+        seed, device: shown in the "Run" table.
+        title: the page title (default "ComReg registration report").
+        views: camera presets (:data:`~comreg_core.report.cameras.VIEW_NAMES`).
+        scenes: scenes to render (default: all the inputs allow, see
+            :meth:`~comreg_core.report.scenes.SceneData.available_scenes`).
+        window_size: screenshot size in pixels ``(width, height)``.
+        embed_images: put the PNGs into the page as base64 ``data:`` URIs (one self-contained
+            file) instead of ``report_images/``.
+        lateral_side: "left" or "right": the side the lateral view looks from.
+        style: colours and sizes.
+        progress: ``progress(done, total)`` after each screenshot.
+
+    Returns:
+        The path of ``report.html``.
+
+    Raises:
+        OpenGLUnavailableError: no off-screen OpenGL; says what to install. Nothing is written.
+        InvalidGeometryError, InputFileNotFoundError, ...: bad inputs. Nothing is written.
+    """
+    out_dir = Path(out_dir)
+    if not isinstance(ct_mesh, SurfaceMesh):
+        ct_mesh = read_mesh(ct_mesh)
+    data = SceneData(ct_mesh, us_before, us_after, completion)
+    scenes = list(scenes) if scenes is not None else data.available_scenes()
+    views = list(views)
+    backend = ensure_offscreen_rendering()  # fail before making any folder
+    total = len(scenes) * len(views)
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".report.", suffix=".tmp", dir=out_dir))
+    try:
+        images_dir = staging / IMAGES_DIR
+        images_dir.mkdir()
+        shots: list[Screenshot] = []
+        sources: dict[tuple[str, str], str] = {}
+        started = time.perf_counter()
+        for shot in render_screenshots(data, scenes, views, window_size=window_size, style=style,
+                                       lateral_side=lateral_side):
+            name = image_name(shot.scene, shot.view)
+            write_png(shot.image, images_dir / name)
+            sources[(shot.scene, shot.view)] = (_data_uri(images_dir / name) if embed_images
+                                                else f"{IMAGES_DIR}/{name}")
+            shots.append(shot)
+            if progress is not None:
+                progress(len(shots), total)
+        render_s = time.perf_counter() - started
+        page = build_html(
+            title=title or "ComReg registration report",
+            sections=_sections(shots, sources, lateral_side, data),
+            metrics=metrics,
+            inputs=_inputs(inputs, data),
+            run=[("Seed", seed), ("Device", device)],
+            versions=_versions(backend, len(shots), render_s, window_size),
+            notes=_notes(data, lateral_side, style),
+            legend=_legend(data, style))
+        with open(staging / REPORT_NAME, "w", encoding="utf-8", newline="\n") as f:
+            f.write(page)
+        _publish(staging, out_dir, with_images=not embed_images)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    report = out_dir / REPORT_NAME
+    log.info("wrote %s (%d screenshots)", report, len(shots))
+    return report
+
+
+def _publish(staging: Path, out_dir: Path, *, with_images: bool) -> None:
+    """Move the finished report from ``staging`` into ``out_dir``: the image folder first (the
+    old one is moved aside and deleted only after the new one is in), the page last."""
+    if with_images:
+        target = out_dir / IMAGES_DIR
+        old = None
+        if target.exists():
+            old = Path(tempfile.mkdtemp(prefix=".report_images.old.", dir=out_dir))
+            os.replace(target, old / IMAGES_DIR)
+        try:
+            os.replace(staging / IMAGES_DIR, target)
+        except BaseException:
+            if old is not None:
+                os.replace(old / IMAGES_DIR, target)
+            raise
+        finally:
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+    os.replace(staging / REPORT_NAME, out_dir / REPORT_NAME)
+
+
+def _data_uri(path: Path) -> str:
+    return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+# --- page content --------------------------------------------------------------------------------
+
+_SCENE_TEXT = {
+    "registered": ("After registration",
+                   "The US bone points mapped into the CT by the estimated transform, on the CT "
+                   "bone surface. If the registration is right, the blue points lie on the bone "
+                   "surface in every view."),
+    "overlay": ("Before and after registration",
+                "Where the US points were before registration (as received, vermillion) and "
+                "where the registration put them (blue)."),
+    "completion": ("Completed bone",
+                   "The bone shape the network completed from the partial US surface, in the CT "
+                   "frame, coloured by each point's distance to the CT surface."),
+    "ct": ("CT bone surface", "The CT bone surface alone (no US points were given)."),
+}
+_VIEW_CAPTION = {
+    "anterior": "Anterior view: from the front, superior up, the patient's right on the image "
+                "left.",
+    "bone_axis": "Along the bone axis: from the inferior end looking superior, anterior up, the "
+                 "patient's left on the image right.",
+}
+
+
+def _caption(view: str, lateral_side: str, scene: str, data: SceneData) -> str:
+    if view == "lateral":
+        text = (f"Lateral view: from the patient's {lateral_side}, superior up, anterior on the "
+                f"image {lateral_side}.")
+    else:
+        text = _VIEW_CAPTION.get(view, view)
+    if view == "bone_axis" and scene in ("registered", "overlay") and data.us_after is not None:
+        text += (f" The CT is cut to the registered points' span along the bone axis "
+                 f"+-{SLAB_MARGIN_MM:g} mm.")
+    return text
+
+
+def _sections(shots: list[Screenshot], sources: dict, lateral_side: str,
+              data: SceneData) -> list[Section]:
+    sections: list[Section] = []
+    for scene in dict.fromkeys(s.scene for s in shots):
+        heading, text = _SCENE_TEXT.get(scene, (scene, ""))
+        figures = []
+        for shot in (s for s in shots if s.scene == scene):
+            height, width = shot.image.shape[:2]
+            figures.append(Figure(sources[(scene, shot.view)],
+                                  f"{heading}, {shot.view.replace('_', ' ')} view",
+                                  _caption(shot.view, lateral_side, scene, data), width, height))
+        sections.append(Section(heading, text, figures))
+    return sections
+
+
+def _legend(data: SceneData, style: Style) -> list[tuple[str, tuple[int, int, int]]]:
+    legend = [("CT bone surface", style.bone_rgb)]
+    if data.us_before is not None:
+        legend.append(("US points before registration", style.us_before_rgb))
+    if data.us_after is not None:
+        legend.append(("US points after registration", style.us_after_rgb))
+    return legend
+
+
+def _inputs(inputs: Mapping[str, Any] | None, data: SceneData) -> list[tuple[str, Any]]:
+    rows = [(str(k), v) for k, v in (inputs or {}).items()]
+    ct = data.ct
+    rows.append(("CT mesh", f"{ct.path}" if ct.path else "(in memory)"))
+    rows.append(("CT mesh size", f"{len(ct.vertices)} vertices, {len(ct.faces)} triangles, "
+                                 f"space {ct.space}"))
+    for label, points in (("US points before registration", data.us_before),
+                          ("US points after registration", data.us_after),
+                          ("Completion points", data.completion)):
+        rows.append((label, "none" if points is None else f"{len(points)} points"))
+    return rows
+
+
+def _package_version(name: str) -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _versions(backend, n_shots: int, render_s: float,
+              window_size: tuple[int, int]) -> list[tuple[str, Any]]:
+    import vtk
+
+    rows: list[tuple[str, Any]] = [
+        ("comreg", __version__),
+        ("python", f"{platform.python_version()} ({platform.python_implementation()})"),
+        ("vtk", vtk.vtkVersion.GetVTKVersion()),
+    ]
+    # Read from the package metadata: importing torch just for its version costs seconds.
+    for name in ("torch", "pyvista", "numpy"):
+        rows.append((name, _package_version(name) or "not installed"))
+    rows.append(("platform", platform.platform()))
+    rows.append(("off-screen rendering", backend.describe()))
+    rows.append(("screenshots", f"{n_shots} at {window_size[0]} x {window_size[1]} px in "
+                                f"{render_s:.1f} s"))
+    return rows
+
+
+def _notes(data: SceneData, lateral_side: str, style: Style) -> list[str]:
+    frame = data.frame
+    space = data.ct.space
+    lo, hi = style.distance_range_mm
+    axis_note = ("the first principal axis of the CT surface" if frame.long_axis_from_pca else
+                 "the patient's superior axis (the bone has no clear long axis)")
+    return [
+        f"Coordinates are the CT's patient space, {space} ("
+        + ("x to the patient's left, y posterior, z superior" if space == "LPS" else
+           "x to the patient's right, y anterior, z superior") + "), in millimetres.",
+        f"The views are built from the CT bone alone: the bone axis is {axis_note}, pointing "
+        "superior; the anterior and left directions are the patient's, made orthogonal to it. "
+        "They are principal-axis based, so for an oblique bone 'anterior' means 'from the front, "
+        "across the bone axis'. Letters at the image edges (R/L, A/P, S/I) name the patient "
+        "directions; the projection is parallel (no perspective), so distances on screen are "
+        "to scale within an image.",
+        f"The lateral view looks from the patient's {lateral_side}: that is the lateral side of "
+        f"a {lateral_side} limb and the medial side of the other.",
+        f"Completion colours: viridis from dark purple (0 mm, on the CT surface) to yellow "
+        f"({hi:g} mm or more); distances are to the nearest point of the CT surface "
+        f"(range {lo:g}-{hi:g} mm).",
+    ]
