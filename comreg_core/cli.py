@@ -194,6 +194,163 @@ def extract_us(
                    f" voxels of {compound_spacing} mm")
 
 
+class Preset(str, Enum):
+    cpu = "cpu"
+    paper = "paper"
+
+
+class Device(str, Enum):
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+@app.command("pretrain")
+@_user_errors
+def pretrain(
+    ct_mesh: Path = typer.Argument(..., help="The patient's CT bone mesh (mm), a closed surface."),
+    out: Path = typer.Option(..., "--out", "-o", help="Run folder (checkpoint, config.yaml, "
+                             "training_log.csv, CT fingerprint)."),
+    preset: Preset = typer.Option(Preset.cpu, help="Network size and schedule: 'cpu' (small, "
+                                  "fast on a laptop) or 'paper' (the paper's, for a GPU)."),
+    max_minutes: Optional[float] = typer.Option(None, "--max-minutes", min=0.1,
+                                                help="Time budget of this invocation."),
+    epochs: Optional[int] = typer.Option(None, "--epochs", min=1, help="Total epochs."),
+    resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its "
+                                "last checkpoint."),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Run seed (default 0)."),
+    device: Device = typer.Option(Device.auto, help="Where to train."),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML overrides of the preset "
+                                          "(sections model, simulation, data, training)."),
+) -> None:
+    """Pretrain ComReg for one patient on US sweeps simulated from their CT bone.
+
+    Each sample is a simulated sweep moved by a random rigid transform; the network learns shape
+    completion and the inverse transform end to end (paper, section 2). Checkpoints are written
+    atomically; a killed run continues with --resume.
+    """
+    from comreg_core.training import pretrain as run_pretraining
+
+    with _progress_bar(1000, "pretraining") as advance:
+        result = run_pretraining(
+            ct_mesh, out, preset=preset.value, config=config, max_minutes=max_minutes,
+            epochs=epochs, resume=resume, seed=seed, device=device.value,
+            progress=lambda done, total, info=None: advance(int(1000 * done / max(total, 1))))
+    validation = result.validation or {}
+    summary = ", ".join(f"{key} {value:.3g}" for key, value in validation.items()
+                        if key in ("val_RTE_mm_median", "val_RRE_deg_median", "val_success_rate"))
+    typer.echo(f"wrote {result.run_dir}: {result.epochs} epochs, {result.samples_seen} samples in "
+               f"{result.elapsed_s / 60:.1f} min on {result.device} (stopped: {result.stopped})"
+               + (f"; validation {summary}" if summary else ""))
+
+
+@app.command("register")
+@_user_errors
+def register(
+    run_dir: Path = typer.Argument(..., help="Run folder written by 'comreg pretrain'."),
+    us_points: Path = typer.Argument(..., help="US bone surface points (.ply, .pcd, .xyz, .npy, "
+                                     "...), e.g. from 'comreg extract-us'."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    device: Device = typer.Option(Device.auto, help="Where to run the network."),
+    seed: int = typer.Option(0, "--seed", min=0),
+    ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="The CT mesh, to check that the "
+                                           "run was trained for it."),
+) -> None:
+    """Register a US bone surface to the CT in one forward pass (completion, coarse pose, ICP).
+
+    Writes result.json (T_ct_us 4x4 in mm, the coarse transform, timings, residuals),
+    transform.tfm (ITK, LPS, as 3D Slicer reads it), registered_us.ply and completion_ct.ply in
+    the CT frame.
+    """
+    from comreg_core.inference import register_to_directory
+
+    result = register_to_directory(run_dir, us_points, out, device=device.value, seed=seed,
+                                   ct_mesh=ct_mesh)
+    typer.echo(f"wrote {out}: {result.n_points} points registered in {result.runtime_s:.2f} s on "
+               f"{result.device}; median residual {result.residuals['median']:.2f} mm")
+
+
+class Method(str, Enum):
+    comreg = "comreg"
+    ransac = "ransac"
+    icp_gt = "icp-gt"
+    all = "all"
+
+
+class Perturbation(str, Enum):
+    paper = "paper"
+    full = "full"
+
+
+@app.command("evaluate")
+@_user_errors
+def evaluate(
+    run_dir: Path = typer.Argument(..., help="Run folder written by 'comreg pretrain'."),
+    us_points: str = typer.Argument(..., help="US bone points file, or the word 'simulated' for "
+                                    "fresh simulated sweeps (seeds disjoint from training)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (metrics.json)."),
+    trials: int = typer.Option(100, "--trials", min=1, help="Random initial poses."),
+    seed: int = typer.Option(0, "--seed", min=0),
+    perturbation: Perturbation = typer.Option(Perturbation.paper, help="Initial poses: 'paper' "
+                                              "(one axis, +-90 deg, +-100 mm) or 'full' (any "
+                                              "rotation up to 180 deg, up to 500 mm)."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth T_ct_us (.tfm/.h5); "
+                                      "identity if omitted."),
+    method: Method = typer.Option(Method.comreg, help="What to evaluate ('all' = every method)."),
+    device: Device = typer.Option(Device.auto, help="Where to run the network."),
+) -> None:
+    """Measure registration accuracy from random initial poses: RTE, RRE, CD, HD95, success and
+    flip rates, runtime, for ComReg and the baselines (Open3D RANSAC+FPFH+ICP; ICP from the
+    ground truth), written to metrics.json."""
+    from comreg_core.evaluation.evaluate import evaluate as run_evaluation
+    from comreg_core.evaluation.evaluate import write_metrics
+    from comreg_core.io import load_transform, read_points
+    from comreg_core.training import run_ct_mesh
+
+    ct = run_ct_mesh(run_dir)
+    names = ["comreg", "ransac", "icp-gt"] if method is Method.all else [method.value]
+    methods = {}
+    if "comreg" in names:
+        from comreg_core.inference import Registrar
+
+        methods["comreg"] = Registrar.from_run(run_dir, device.value, ct_mesh=ct)
+    baselines = [name for name in names if name != "comreg"]
+    if baselines:
+        from comreg_core.evaluation.baselines import baseline_methods
+
+        methods.update(baseline_methods(baselines, ct, seed=seed))
+    clouds = "simulated" if us_points == "simulated" else \
+        read_points(us_points).in_space(ct.space).points
+    T_gt = load_transform(gt, space=ct.space) if gt is not None else None
+    with _progress_bar(trials, "evaluating") as advance:
+        result = run_evaluation(methods, clouds, ct, trials=trials, seed=seed,
+                                perturbation=perturbation.value, T_gt=T_gt,
+                                progress=lambda done, total: advance(done))
+    path = write_metrics(result, Path(out) / "metrics.json")
+    typer.echo(f"wrote {path}")
+    for name, summary in result["summary"].items():
+        typer.echo(f"  {name}: success {summary['success_rate']:.1%}, flips "
+                   f"{summary['flip_rate']:.1%}, median RTE {summary['RTE_mm']['median']:.2f} mm, "
+                   f"median RRE {summary['RRE_deg']['median']:.2f} deg, mean runtime "
+                   f"{summary['runtime_s']['mean']:.2f} s")
+
+
+@app.command("report")
+@_user_errors
+def report(
+    out_dir: Path = typer.Argument(..., help="Folder written by 'comreg register'."),
+    ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="CT mesh (default: the one the "
+                                           "run was trained on)."),
+    embed_images: bool = typer.Option(False, "--embed-images", help="One self-contained HTML."),
+) -> None:
+    """Render off-screen screenshots (CT mesh, US points before/after, completion coloured by
+    distance to the CT) and write report.html with the metrics, inputs, versions, seed, device."""
+    from comreg_core.report import write_report_for_registration
+
+    path = write_report_for_registration(out_dir, ct_mesh=ct_mesh, embed_images=embed_images)
+    typer.echo(f"wrote {path}")
+
+
 @app.command("info")
 @_user_errors
 def info(path: Path = typer.Argument(..., help="Any file ComReg reads.")) -> None:

@@ -299,3 +299,53 @@ def _notes(data: SceneData, lateral_side: str, style: Style) -> list[str]:
         f"({hi:g} mm or more); distances are to the nearest point of the CT surface "
         f"(range {lo:g}-{hi:g} mm).",
     ]
+
+
+def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | None = None,
+                                  embed_images: bool = False,
+                                  progress: Progress | None = None) -> Path:
+    """``comreg report OUT_DIR``: the report of a folder written by ``comreg register``.
+
+    Reads ``result.json`` (``T_ct_us``, timings, residuals, the run folder and US file it names),
+    the US points as given, ``completion_ct.ply`` and, if present, ``metrics.json``; the CT mesh is
+    ``ct_mesh`` or the run's own (its ``config.yaml``). Returns the path of ``report.html``.
+    """
+    import json
+
+    from comreg_core.errors import ComRegError
+    from comreg_core.io import read_mesh, read_points
+    from comreg_core.io._files import require_input_file
+    from comreg_core.transforms import apply_transform
+
+    out_dir = Path(out_dir)
+    result_path = require_input_file(out_dir / "result.json", "registration result")
+    try:
+        result = json.loads(result_path.read_text(encoding="utf-8"))
+        T_ct_us = np.asarray(result["T_ct_us"], dtype=np.float64)
+        run_dir, us_path = Path(result["run_dir"]), Path(result["us_points"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ComRegError(f"'{result_path}' is not a ComReg registration result ({exc}).",
+                          "Run 'comreg register' into this folder first.") from None
+    if ct_mesh is None:
+        from comreg_core.training import run_ct_mesh
+
+        ct = run_ct_mesh(run_dir)
+    else:
+        ct = read_mesh(ct_mesh)
+    us_points = read_points(us_path).in_space(ct.space).points
+    completion_path = out_dir / "completion_ct.ply"
+    completion = read_points(completion_path).in_space(ct.space).points \
+        if completion_path.is_file() else None
+    metrics: dict[str, Any] = {"runtime_s": result.get("runtime_s"),
+                               "timings_s": result.get("timings_s", {}),
+                               "residuals_mm": result.get("residuals_mm", {})}
+    metrics_path = out_dir / "metrics.json"
+    if metrics_path.is_file():
+        metrics["evaluation"] = json.loads(metrics_path.read_text(encoding="utf-8"))["summary"]
+    return write_report(
+        out_dir, ct_mesh=ct, us_before=us_points, us_after=apply_transform(T_ct_us, us_points),
+        completion=completion, metrics=metrics,
+        inputs={"run folder": str(run_dir), "US points": str(us_path),
+                "CT mesh": str(ct_mesh or f"stored in {run_dir}")},
+        seed=result.get("seed"), device=result.get("device"), embed_images=embed_images,
+        progress=progress)

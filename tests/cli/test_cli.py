@@ -173,3 +173,56 @@ def test_extract_us_bad_inputs(tmp_path):
     result = runner.invoke(app, ["extract-us", str(tmp_path / "frames"), "--out", str(tmp_path / "a.ply")])
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert not (tmp_path / "a.ply").exists()
+
+
+def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
+    """The tiny shared run through the CLI: register a surface patch, evaluate with ComReg and the
+    ICP-from-ground-truth baseline, then the report of the registration."""
+    import json
+
+    from comreg_core.io import (PointCloud, SurfaceMesh, load_transform, read_mesh, write_mesh,
+                                write_points)
+    from tests.training.tiny import TINY
+
+    import yaml
+
+    config = tmp_path / "tiny.yaml"
+    config.write_text(yaml.safe_dump(TINY))
+    run = tmp_path / "run"
+    result = runner.invoke(app, ["pretrain", str(FIBULA_STL), "--out", str(run), "--preset", "cpu",
+                                 "--epochs", "1", "--config", str(config), "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    assert "1 epochs" in result.output and (run / "checkpoint.pt").is_file()
+    result = runner.invoke(app, ["pretrain", str(FIBULA_STL), "--out", str(run)])
+    assert result.exit_code == 2 and "--resume" in result.output  # never overwrite a run
+
+    mesh = read_mesh(FIBULA_STL).to_trimesh()
+    points = mesh.sample(3000, seed=1)
+    patch = points[points[:, 2] > np.percentile(points[:, 2], 70)]  # the distal third
+    write_points(PointCloud(patch), tmp_path / "us.ply")
+    out = tmp_path / "reg"
+    result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out", str(out),
+                                 "--ct", str(FIBULA_STL)])
+    assert result.exit_code == 0, result.output
+    saved = json.loads((out / "result.json").read_text())
+    assert_close(load_transform(out / "transform.tfm"), np.asarray(saved["T_ct_us"]), atol=1e-9)
+    T = np.asarray(saved["T_ct_us"])
+    assert_close(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9, what="rigid")
+
+    other = tmp_path / "other.stl"  # another CT: the fibula moved by 5 mm
+    write_mesh(SurfaceMesh(mesh.vertices + 5.0, mesh.faces), other)
+    result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out",
+                                 str(tmp_path / "x"), "--ct", str(other)])
+    assert result.exit_code == 2 and "trained for another CT" in result.output
+
+    result = runner.invoke(app, ["evaluate", str(run), str(tmp_path / "us.ply"), "--out", str(out),
+                                 "--trials", "2", "--method", "icp-gt"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["summary"]["icp-gt"]["success_rate"] == 1.0
+    assert len(metrics["trials"]) == 2
+
+    result = runner.invoke(app, ["report", str(out)])
+    assert result.exit_code == 0, result.output
+    html = (out / "report.html").read_text()
+    assert "icp-gt" in html and "registered_anterior.png" in html

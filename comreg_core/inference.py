@@ -1,0 +1,323 @@
+"""One-pass registration with a pretrained ComReg run: ``Registrar`` and ``register_to_directory``.
+
+``Registrar.from_run(run_dir).register(us_points)``:
+
+1. checks the US cloud (``(N, 3)`` finite mm, enough points, not in metres), normalises it with
+   the *CT's* centre and scale (as in training);
+2. one forward pass: completion ``f`` -> coarse pose ``g`` -> differentiable ICP, against the CT
+   half encoded once per Registrar (cached);
+3. maps the estimate back to mm: ``T_ct_us`` (``T_ct_us @ p_us = p_ct``), the coarse estimate,
+   the completed bone in the CT frame, and residual statistics of the registered US points
+   (exact distances to the CT mesh surface).
+
+Timings per stage (seconds): ``preprocess`` (checks, normalisation, transfer), ``completion``
+(``f`` on the US cloud), ``coarse_pose`` (``g``), ``icp`` (FPS subset + ICP), ``postprocess``
+(back to mm, the completion), ``total`` (their sum, = ``runtime_s``), and ``residuals``
+(distance statistics; outside ``total``). On CUDA each stage ends with a synchronisation.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from comreg_core.errors import InvalidGeometryError
+from comreg_core.io._files import atomic_output
+from comreg_core.model.comreg import ComRegNet
+from comreg_core.model.diff_icp import differentiable_icp
+from comreg_core.model.normalization import Normalization
+from comreg_core.model.ops import subsample
+from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, ct_fingerprint,
+                                             load_checkpoint, mesh_fingerprint)
+from comreg_core.training.config import PretrainConfig, config_from_yaml
+from comreg_core.training.trainer import orthonormalize, resolve_device
+from comreg_core.transforms import apply_transform, as_points
+
+log = logging.getLogger(__name__)
+
+#: A US cloud whose largest bounding-box extent is below this (mm) is taken to be in metres.
+MIN_US_EXTENT_MM = 1.0
+#: Registered points within this distance (mm) of the CT surface count as inliers.
+INLIER_MM = 2.0
+
+
+@dataclass
+class RegistrationResult:
+    """The registration of one US cloud (mm, CT frame = the CT mesh's space).
+
+    Attributes:
+        T_ct_us: ``(4, 4)`` final estimate (after ICP): ``T_ct_us @ p_us = p_ct``.
+        T_ct_us_coarse: ``(4, 4)`` the pose head's estimate before ICP.
+        registered_points: ``(N, 3)`` the US points mapped by ``T_ct_us``.
+        completion_ct: ``(M, 3)`` the completed bone (network output in the US frame) mapped by
+            ``T_ct_us`` into the CT frame.
+        timings: seconds per stage (module docstring).
+        runtime_s: registration time (= ``timings["total"]``).
+        device: torch device used.
+        seed: the seed given to :meth:`Registrar.register` (torch's generator is seeded with it;
+            the eval-mode forward pass is deterministic anyway).
+        residuals: distances (mm) of ``registered_points`` to the CT surface: ``mean``,
+            ``median``, ``p90``, ``p95``, ``max``, ``rmse``, and ``inlier_fraction`` (share
+            within :data:`INLIER_MM`).
+        icp_rmse: the ICP's final weighted RMS residual (normalised units x CT scale = mm).
+        n_points: points in the US cloud.
+    """
+
+    T_ct_us: np.ndarray
+    T_ct_us_coarse: np.ndarray
+    registered_points: np.ndarray
+    completion_ct: np.ndarray
+    timings: dict[str, float]
+    runtime_s: float
+    device: str
+    seed: int
+    residuals: dict[str, float]
+    icp_rmse: float
+    n_points: int
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``result.json`` content (without file names)."""
+        return {
+            "T_ct_us": self.T_ct_us.tolist(), "T_ct_us_coarse": self.T_ct_us_coarse.tolist(),
+            "timings_s": self.timings, "runtime_s": self.runtime_s, "device": self.device,
+            "seed": self.seed, "n_points": self.n_points, "residuals_mm": self.residuals,
+            "icp_rmse_mm": self.icp_rmse,
+        }
+
+
+class Registrar:
+    """A pretrained ComReg network for one CT, ready to register US clouds.
+
+    Build with :meth:`from_run`. Calling the object registers (``registrar(points)``), so it can
+    be passed to :func:`comreg_core.evaluation.evaluate` as a method.
+
+    Args:
+        model: the network (its config decides the ICP point count).
+        ct_points: ``(M, 3)`` mm, the run's CT cloud.
+        normalization: the run's CT normalisation.
+        ct_vertices, ct_faces: the CT mesh (residual distances), or None to use the CT cloud.
+        fingerprint: the CT fingerprint (sha256) the model was trained for.
+        space: the CT's patient space ("LPS"/"RAS").
+        device: torch device.
+    """
+
+    def __init__(self, model: ComRegNet, ct_points: np.ndarray, normalization: Normalization,
+                 *, ct_vertices: np.ndarray | None = None, ct_faces: np.ndarray | None = None,
+                 fingerprint: str = "", space: str = "LPS", device: str | torch.device = "cpu",
+                 config: PretrainConfig | None = None):
+        self.device = resolve_device(device)
+        self.model = model.to(self.device).eval()
+        self.ct_points = as_points(ct_points, "CT points")
+        self.normalization = normalization
+        self.fingerprint = fingerprint
+        self.space = space
+        self.config = config
+        self._ct_vertices, self._ct_faces = ct_vertices, ct_faces
+        self._surface = None
+        self._encoding = None
+
+    @classmethod
+    def from_run(cls, run_dir: str | Path, device: str = "auto", *, ct_mesh=None,
+                 icp_points: int | None = None) -> Registrar:
+        """Load ``run_dir/checkpoint.pt`` (weights_only).
+
+        Args:
+            run_dir: a folder written by :func:`comreg_core.training.pretrain` (or the
+                checkpoint file itself).
+            device: ``"auto"``, ``"cpu"`` or ``"cuda"``.
+            ct_mesh: optional CT mesh (path or SurfaceMesh) to check against the run's CT
+                fingerprint.
+            icp_points: ICP points per cloud at inference (default: the trained value; ICP has
+                no weights, so e.g. 4096 with a model trained at 2048 is valid).
+
+        Raises:
+            CheckpointError: no/corrupt checkpoint; the checkpoint was trained for another CT
+                (``ct_mesh`` given and different, or the run's ``ct_fingerprint.json`` differs).
+        """
+        dev = resolve_device(device)
+        state = load_checkpoint(run_dir, map_location="cpu")
+        expected = state["ct_fingerprint"]
+        stored = ct_fingerprint(state["ct_vertices"].numpy(), state["ct_faces"].numpy())
+        check_fingerprint(expected, stored, " (its stored CT mesh)")
+        fp_file = Path(run_dir) / "ct_fingerprint.json" if Path(run_dir).is_dir() else None
+        if fp_file is not None and fp_file.is_file():
+            check_fingerprint(expected, json.loads(fp_file.read_text(encoding="utf-8")),
+                              f" in '{run_dir}' (ct_fingerprint.json)")
+        if ct_mesh is not None:
+            check_fingerprint(expected, mesh_fingerprint(ct_mesh), f" in '{run_dir}'")
+        cfg = config_from_yaml(state["config_yaml"], f"config stored in '{run_dir}'")
+        model_cfg = cfg.model
+        if icp_points is not None:
+            model_cfg = replace(model_cfg, icp=replace(model_cfg.icp, num_points=int(icp_points)))
+        model = ComRegNet(model_cfg)
+        model.load_state_dict(state["model"])
+        norm = Normalization(center=state["norm_center"].numpy(),
+                             scale=float(state["norm_scale"]))
+        return cls(model, state["ct_points"].numpy(), norm,
+                   ct_vertices=state["ct_vertices"].numpy(), ct_faces=state["ct_faces"].numpy(),
+                   fingerprint=expected, space=str(state.get("ct_space", "LPS")), device=dev,
+                   config=cfg)
+
+    # ------------------------------------------------------------------------------------------
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    @property
+    def encoding(self):
+        """The CT half of the network (computed once, cached)."""
+        if self._encoding is None:
+            ct = torch.from_numpy(self.normalization.points_to_model(self.ct_points)).float()
+            with torch.no_grad():
+                self._encoding = self.model.encode_target(ct[None].to(self.device))
+        return self._encoding
+
+    def check_points(self, points) -> np.ndarray:
+        """The US cloud as ``(N, 3)`` float64, or a clear :class:`InvalidGeometryError`."""
+        pts = as_points(points, "US points")
+        need = max(self.model.completion.min_points, 3)
+        if len(pts) < need:
+            raise InvalidGeometryError(
+                f"The US cloud has {len(pts)} points; this model needs at least {need}.",
+                "Extract a denser US bone surface (more frames, less denoising).")
+        extent = float((pts.max(0) - pts.min(0)).max())
+        if extent < MIN_US_EXTENT_MM:
+            raise InvalidGeometryError(
+                f"The US cloud spans only {extent:.3g} mm; its coordinates look like metres.",
+                "Convert the points to millimetres (multiply by 1000).")
+        if extent > 10.0 * self.normalization.scale:
+            raise InvalidGeometryError(
+                f"The US cloud spans {extent:.0f} mm, over 10 times the CT bone "
+                f"({self.normalization.scale:.0f} mm).",
+                "Check its units (millimetres) and that it shows this bone.")
+        return pts
+
+    def register(self, points, seed: int = 0) -> RegistrationResult:
+        """Register a US bone cloud ``(N, 3)`` (mm, in the CT's patient space) to the CT."""
+        t = {}
+        encoding = self.encoding  # cached CT half: not part of a registration's time
+        start = time.perf_counter()
+        pts = self.check_points(points)
+        torch.manual_seed(int(seed))
+        norm = self.normalization
+        model, cfg = self.model, self.model.config
+        src = torch.from_numpy(norm.points_to_model(pts)).float()[None].to(self.device)  # 1 N 3
+        self._sync()
+        t["preprocess"] = time.perf_counter() - start
+        with torch.no_grad():
+            mark = time.perf_counter()
+            completion = model.completion(subsample(src, cfg.completion.input_points, 0))
+            tokens, positions = model._tokens(completion)
+            self._sync()
+            t["completion"] = time.perf_counter() - mark
+            mark = time.perf_counter()
+            coarse, _, _ = model.pose_head(tokens, positions, encoding.tokens, encoding.positions)
+            self._sync()
+            t["coarse_pose"] = time.perf_counter() - mark
+            mark = time.perf_counter()
+            icp = differentiable_icp(subsample(src, cfg.icp.num_points, 0), encoding.icp_points,
+                                     coarse, iterations=cfg.icp.iterations, sigma=cfg.icp.sigma,
+                                     neighbors=cfg.icp.neighbors, mode=cfg.icp.mode,
+                                     trim_fraction=cfg.icp.trim_fraction)
+            self._sync()
+            t["icp"] = time.perf_counter() - mark
+        mark = time.perf_counter()
+        T = norm.transform_to_mm(orthonormalize(icp.transform[0].double().cpu().numpy()))
+        T_coarse = norm.transform_to_mm(orthonormalize(coarse[0].double().cpu().numpy()))
+        dense = completion.dense[0].double().cpu().numpy()
+        completion_ct = apply_transform(T, norm.points_to_mm(dense))
+        registered = apply_transform(T, pts)
+        t["postprocess"] = time.perf_counter() - mark
+        t["total"] = sum(t.values())
+        mark = time.perf_counter()
+        residuals = self.residuals(registered)
+        t["residuals"] = time.perf_counter() - mark
+        return RegistrationResult(
+            T_ct_us=T, T_ct_us_coarse=T_coarse, registered_points=registered,
+            completion_ct=completion_ct, timings=t, runtime_s=t["total"],
+            device=str(self.device), seed=int(seed), residuals=residuals,
+            icp_rmse=float(icp.rmse[0]) * norm.scale, n_points=len(pts),
+            info={"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(t),
+                  "residuals_mm": residuals})
+
+    __call__ = register
+
+    def residuals(self, registered: np.ndarray) -> dict[str, float]:
+        """Distance statistics (mm) of registered US points to the CT surface (the mesh when
+        known, else the CT cloud)."""
+        if self._surface is None:
+            if self._ct_vertices is not None:
+                from comreg_core.evaluation.metrics import SurfaceReference
+
+                self._surface = SurfaceReference((self._ct_vertices, self._ct_faces)).distance
+            else:
+                from scipy.spatial import cKDTree
+
+                tree = cKDTree(self.ct_points)
+                self._surface = lambda p: tree.query(p)[0]
+        d = np.asarray(self._surface(registered), dtype=np.float64)
+        return {"mean": float(d.mean()), "median": float(np.median(d)),
+                "p90": float(np.percentile(d, 90)), "p95": float(np.percentile(d, 95)),
+                "max": float(d.max()), "rmse": float(np.sqrt(np.mean(d ** 2))),
+                "inlier_fraction": float(np.mean(d <= INLIER_MM))}
+
+
+def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
+                          out_dir: str | Path, *, device: str = "auto", seed: int = 0,
+                          ct_mesh: str | Path | None = None, icp_points: int | None = None
+                          ) -> RegistrationResult:
+    """Register the US cloud in ``us_points_path`` with the run in ``run_dir``; write ``out_dir``.
+
+    Files (each written atomically; ``result.json`` last):
+
+    - ``transform.tfm``: ``T_ct_us`` as an ITK transform (LPS, ITK's resampling direction, as
+      3D Slicer writes it: :func:`comreg_core.io.save_transform`).
+    - ``registered_us.ply``: the US points mapped into the CT frame (CT space tag).
+    - ``completion_ct.ply``: the completed bone in the CT frame.
+    - ``config.yaml``: inputs and settings (run folder, US file, device, seed, ICP points).
+    - ``result.json``: ``T_ct_us``, ``T_ct_us_coarse`` (4x4 mm), ``timings_s`` (per stage),
+      ``runtime_s``, ``device``, ``seed``, ``n_points``, ``residuals_mm``, ``icp_rmse_mm``,
+      ``space``, ``ct_fingerprint``, ``run_dir``, ``us_points``, ``files``.
+
+    The US cloud is converted into the CT's patient space first (PLY/PCD ``SPACE=`` tag).
+    """
+    import yaml
+
+    from comreg_core.io.pointclouds import PointCloud, read_points, write_points
+    from comreg_core.io.transform_files import save_transform
+
+    registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points)
+    cloud = read_points(us_points_path).in_space(registrar.space)
+    result = registrar.register(cloud.points, seed=seed)
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise CheckpointError(f"'{out}' exists and is not a folder.", "Choose another --out.")
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"transform": "transform.tfm", "registered_us": "registered_us.ply",
+             "completion_ct": "completion_ct.ply", "config": "config.yaml"}
+    save_transform(result.T_ct_us, out / files["transform"], space=registrar.space)
+    write_points(PointCloud(result.registered_points, registrar.space),
+                 out / files["registered_us"])
+    write_points(PointCloud(result.completion_ct, registrar.space), out / files["completion_ct"])
+    settings = {"run_dir": str(run_dir), "us_points": str(us_points_path), "device": device,
+                "seed": int(seed), "icp_points": registrar.model.config.icp.num_points,
+                "ct_mesh": None if ct_mesh is None else str(ct_mesh)}
+    with atomic_output(out / files["config"]) as tmp:
+        tmp.write_text(yaml.safe_dump({"register": settings}, sort_keys=False), encoding="utf-8")
+    payload = {**result.to_json(), "space": registrar.space,
+               "ct_fingerprint": registrar.fingerprint, "run_dir": str(run_dir),
+               "us_points": str(us_points_path), "files": files}
+    with atomic_output(out / "result.json") as tmp:
+        tmp.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
+    log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
+             result.runtime_s, result.device, out)
+    return result

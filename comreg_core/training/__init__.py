@@ -1,0 +1,21 @@
+"""Per-patient pretraining: simulated training data, the trainer, checkpoints.
+
+``pretrain(ct_mesh, run_dir, preset="cpu")`` trains ComReg on simulated sweeps of one CT and
+writes a run folder (``config.yaml``, ``ct_fingerprint.json``, ``checkpoint.pt``,
+``training_log.csv``); :class:`comreg_core.inference.Registrar` loads it.
+"""
+
+from comreg_core.training.checkpoint import (CheckpointError, ct_fingerprint, load_checkpoint,
+                                             mesh_fingerprint, run_ct_mesh)
+from comreg_core.training.config import (PRETRAIN_PRESETS, DataConfig, PretrainConfig,
+                                         TrainingConfig, pretrain_preset)
+from comreg_core.training.data import (SampleStream, TrainingCT, make_sample, sample_loader,
+                                       validation_rng, validation_samples)
+from comreg_core.training.trainer import LOG_COLUMNS, TrainResult, pretrain, resolve_device
+
+__all__ = [
+    "CheckpointError", "ct_fingerprint", "load_checkpoint", "mesh_fingerprint", "run_ct_mesh",
+    "PRETRAIN_PRESETS", "DataConfig", "PretrainConfig", "TrainingConfig", "pretrain_preset",
+    "SampleStream", "TrainingCT", "make_sample", "sample_loader", "validation_rng",
+    "validation_samples", "LOG_COLUMNS", "TrainResult", "pretrain", "resolve_device",
+]

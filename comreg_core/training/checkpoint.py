@@ -1,0 +1,122 @@
+"""Checkpoints and the CT fingerprint of a pretraining run.
+
+A checkpoint (``RUN_DIR/checkpoint.pt``) is a dict of tensors, numbers and strings only (the
+config as YAML text), written atomically, loadable with ``torch.load(..., weights_only=True)``:
+
+``format`` ("comreg-checkpoint"), ``version``, ``config_yaml``, ``ct_fingerprint`` (sha256 hex),
+``ct_space``, ``ct_vertices`` / ``ct_faces`` (the mesh as read, mm), ``ct_points`` (``(M, 3)``
+float64 mm), ``norm_center`` (``(3,)`` float64 mm),
+``norm_scale`` (mm), ``model`` (state dict), ``optimizer_backbone``, ``optimizer_head``,
+``scheduler_backbone``, ``scheduler_head`` (state dicts), ``epoch`` (completed epochs), ``step``
+(steps done in the current epoch), ``samples_seen``, ``elapsed_s`` (training time so far),
+``epoch_sums`` (running loss sums of the current epoch), ``torch_rng`` (and ``cuda_rng`` when
+CUDA is used).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from comreg_core.errors import ComRegError
+from comreg_core.io._files import atomic_output
+
+CHECKPOINT_NAME = "checkpoint.pt"
+FINGERPRINT_NAME = "ct_fingerprint.json"
+CHECKPOINT_FORMAT = "comreg-checkpoint"
+CHECKPOINT_VERSION = 1
+
+
+class CheckpointError(ComRegError):
+    """A run folder or checkpoint is missing, unreadable, or was made for another CT."""
+
+
+def ct_fingerprint(vertices: np.ndarray, faces: np.ndarray) -> dict[str, Any]:
+    """Identity of a CT mesh: sha256 over its float64 vertices, int64 faces and bounding box
+    (little-endian, C order), plus the sizes and the bounding box (mm) for people to read."""
+    v = np.ascontiguousarray(vertices, dtype="<f8")
+    f = np.ascontiguousarray(faces, dtype="<i8")
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    h = hashlib.sha256()
+    for part in (np.array(v.shape, "<i8"), v, np.array(f.shape, "<i8"), f, lo, hi):
+        h.update(np.ascontiguousarray(part).tobytes())
+    return {"sha256": h.hexdigest(), "n_vertices": int(len(v)), "n_faces": int(len(f)),
+            "bbox_min_mm": lo.tolist(), "bbox_max_mm": hi.tolist()}
+
+
+def mesh_fingerprint(mesh) -> dict[str, Any]:
+    """:func:`ct_fingerprint` of a mesh path or :class:`~comreg_core.io.SurfaceMesh`, exactly as
+    read from the file (no repair or merging)."""
+    from comreg_core.io.meshes import SurfaceMesh, read_mesh
+
+    if not isinstance(mesh, SurfaceMesh):
+        mesh = read_mesh(mesh)
+    return ct_fingerprint(mesh.vertices, mesh.faces)
+
+
+def write_fingerprint(fingerprint: dict[str, Any], run_dir: Path) -> Path:
+    path = Path(run_dir) / FINGERPRINT_NAME
+    with atomic_output(path) as tmp:
+        tmp.write_text(json.dumps(fingerprint, indent=2) + "\n", encoding="utf-8")
+    return path
+
+
+def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
+    """Write ``state`` atomically (a killed write leaves the previous checkpoint intact)."""
+    state = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, **state}
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        torch.save(state, tmp)
+    return path
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"
+                    ) -> dict[str, Any]:
+    """Load a checkpoint with ``weights_only=True`` (never runs code from the file)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT_NAME
+    if not path.is_file():
+        raise CheckpointError(f"No checkpoint at '{path}'.",
+                              "Pass the folder written by 'comreg pretrain' (it holds "
+                              f"{CHECKPOINT_NAME}), or train one first.")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # unpickling errors of every kind: the file is not ours or broken
+        raise CheckpointError(f"Cannot read the checkpoint '{path}' ({type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0] if str(exc) else ''}).",
+                              "The file is corrupt, truncated or not a ComReg checkpoint; "
+                              "train again or resume from an intact run.") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"'{path}' is not a ComReg checkpoint.",
+                              "Pass the checkpoint written by 'comreg pretrain'.")
+    if int(state.get("version", 0)) > CHECKPOINT_VERSION:
+        raise CheckpointError(f"'{path}' was written by a newer ComReg (checkpoint version "
+                              f"{state['version']}).", "Update ComReg.")
+    return state
+
+
+def check_fingerprint(expected: str, actual: dict[str, Any] | str, where: str = "") -> None:
+    """Raise :class:`CheckpointError` unless the CT fingerprints match."""
+    sha = actual if isinstance(actual, str) else actual["sha256"]
+    if sha != expected:
+        raise CheckpointError(
+            f"The checkpoint{where} was trained for another CT (CT fingerprint {expected[:12]}… "
+            f"!= {sha[:12]}… of the given mesh).",
+            "Register against the CT the model was pretrained on, or pretrain a model for this "
+            "CT with 'comreg pretrain'.")
+
+
+def run_ct_mesh(run_dir: str | Path):
+    """The CT bone mesh a run was trained on, from its checkpoint (a :class:`SurfaceMesh` in the
+    CT's patient space): the run stays usable even if the original mesh file moved."""
+    from comreg_core.io.meshes import SurfaceMesh
+
+    state = load_checkpoint(run_dir)
+    return SurfaceMesh(state["ct_vertices"].numpy(), state["ct_faces"].numpy(),
+                       str(state.get("ct_space", "LPS")))

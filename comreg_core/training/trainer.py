@@ -1,0 +1,474 @@
+"""Per-patient pretraining of the ComReg network on simulated sweeps of one CT.
+
+``pretrain(ct_mesh, run_dir)`` writes into ``run_dir``:
+
+* ``config.yaml``: the :class:`~comreg_core.training.config.PretrainConfig` (seed included);
+  ``pretrain_preset(...)`` + this file reproduce the run.
+* ``ct_fingerprint.json``: sha256 of the mesh's vertices, faces and bounding box (+ sizes, bbox).
+* ``checkpoint.pt``: the latest checkpoint (:mod:`.checkpoint`), written atomically at the end
+  of every ``training.checkpoint_epochs`` epochs, at least every ``training.checkpoint_minutes``
+  minutes (also mid-epoch), and when the run stops. A killed run resumed with ``resume=True``
+  continues from it (same data stream, optimiser, scheduler and RNG state) and loses at most one
+  checkpoint interval.
+* ``training_log.csv``: one row per epoch (:data:`LOG_COLUMNS`): losses (epoch means), learning
+  rates, times, and validation errors on the fixed held-out set when validated. Row ``epoch 0``
+  is the untrained network's validation.
+
+Validation: ``training.validation_sweeps`` held-out samples (their own seed namespace, see
+:mod:`.data`), registered with the network in eval mode (CT half encoded once). RTE (mm, at the
+centroid of the moved US cloud) and RRE (deg) as in :mod:`comreg_core.evaluation.metrics`, of
+the fine (after ICP) and the coarse estimate; success = RTE < 2 mm and RRE < 2 deg, flip = RRE >
+90 deg.
+
+Progress: ``progress(done, total, info)`` after every step, ``done``/``total`` in steps over all
+epochs, ``info`` a dict with ``epoch``, ``loss``, ``completion``, ``registration`` and, after an
+epoch's validation, ``val_RTE_mm`` / ``val_RRE_deg`` (medians).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from comreg_core.config import ConfigError, deep_merge, from_dict, to_dict
+from comreg_core.errors import ComRegError
+from comreg_core.evaluation.metrics import (FLIP_RRE_DEG, rotation_error_deg, is_success,
+                                            translation_error_mm)
+from comreg_core.io._files import atomic_output, require_input_file
+from comreg_core.model.comreg import ComRegNet
+from comreg_core.model.losses import output_loss
+from comreg_core.model.normalization import Normalization
+from comreg_core.training.checkpoint import (CHECKPOINT_NAME, CheckpointError,
+                                             check_fingerprint, load_checkpoint,
+                                             mesh_fingerprint, save_checkpoint,
+                                             write_fingerprint)
+from comreg_core.training.config import (PretrainConfig, config_from_yaml, config_to_yaml,
+                                         load_overrides, pretrain_preset)
+from comreg_core.training.data import (Sample, SampleStream, TrainingCT, sample_loader,
+                                       validation_samples)
+from comreg_core.transforms import invert_rigid
+
+log = logging.getLogger(__name__)
+
+LOG_NAME = "training_log.csv"
+CONFIG_NAME = "config.yaml"
+#: Columns of ``training_log.csv`` (losses are epoch means; ``val_*`` empty when not validated).
+LOG_COLUMNS = (
+    "epoch", "samples", "time_s", "epoch_s", "lr_backbone", "lr_head", "loss", "completion",
+    "sparse", "dense", "registration", "reg_coarse", "reg_fine", "skipped_steps",
+    "val_RTE_mm_median", "val_RRE_deg_median", "val_RTE_mm_mean", "val_RRE_deg_mean",
+    "val_coarse_RTE_mm_median", "val_coarse_RRE_deg_median", "val_success_rate",
+    "val_flip_rate", "val_loss", "val_completion", "val_s",
+)
+_LOSS_TERMS = ("total", "completion", "sparse", "dense", "registration", "reg_coarse",
+               "reg_fine")
+
+Progress = Callable[[int, int, dict[str, Any]], None]
+
+
+@dataclass
+class TrainResult:
+    """What :func:`pretrain` did.
+
+    Attributes:
+        run_dir, checkpoint, log_csv: the run folder, its checkpoint and epoch log.
+        epochs: completed epochs (in total, over all resumed invocations).
+        samples_seen: training samples consumed in total.
+        elapsed_s: training time in total (all invocations).
+        stopped: ``"epochs"`` (all epochs done) or ``"time"`` (budget spent).
+        device: the torch device used.
+        losses: epoch-mean losses of the last completed epoch (empty if none).
+        validation: the last validation (``val_*`` keys of :data:`LOG_COLUMNS`), or None.
+        initial_error: validation-set errors of doing nothing (identity): median RTE/RRE.
+    """
+
+    run_dir: Path
+    checkpoint: Path
+    log_csv: Path
+    epochs: int
+    samples_seen: int
+    elapsed_s: float
+    stopped: str
+    device: str
+    losses: dict[str, float] = field(default_factory=dict)
+    validation: dict[str, float] | None = None
+    initial_error: dict[str, float] = field(default_factory=dict)
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """``"auto"``/None -> CUDA if available else CPU; ``"cuda"`` without CUDA is an error."""
+    if isinstance(device, torch.device):
+        return device
+    name = (device or "auto").lower()
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ConfigError("CUDA was requested but no CUDA device is available.",
+                              "Use --device cpu or --device auto.")
+        return torch.device(name)
+    if name == "cpu":
+        return torch.device("cpu")
+    raise ConfigError(f"Unknown device '{device}'.", "Use auto, cpu or cuda.")
+
+
+def build_optimizers(model: ComRegNet, training) -> tuple[list, list]:
+    """AdamW on the completion backbone, Adam on the registration head, each with a LambdaLR
+    multiplying its learning rate by ``lr_decay`` every ``lr_decay_epochs`` epochs."""
+    backbone = list(model.completion.parameters())
+    head = list(model.pose_head.parameters())
+    assert len(backbone) + len(head) == len(list(model.parameters())), "unassigned parameters"
+    opt_b = torch.optim.AdamW(backbone, lr=training.lr_backbone,
+                              weight_decay=training.weight_decay_backbone)
+    opt_h = torch.optim.Adam(head, lr=training.lr_head)
+    decay, every = training.lr_decay, training.lr_decay_epochs
+
+    def factor(epoch: int) -> float:
+        return decay ** (epoch // every)
+
+    scheds = [torch.optim.lr_scheduler.LambdaLR(o, factor) for o in (opt_b, opt_h)]
+    return [opt_b, opt_h], scheds
+
+
+def _pose_errors(T_est_n: np.ndarray, sample: Sample, norm: Normalization) -> tuple[float, float]:
+    T_est = norm.transform_to_mm(orthonormalize(T_est_n))
+    truth = invert_rigid(sample.T_us_ct_mm)
+    at = norm.points_to_mm(sample.source).mean(axis=0)
+    return translation_error_mm(T_est, truth, at), rotation_error_deg(T_est, truth)
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """A float32-computed rigid matrix as float64 with its rotation projected onto SO(3)."""
+    T = np.asarray(T, dtype=np.float64).copy()
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    if np.linalg.det(U @ Vt) < 0:
+        U[:, -1] *= -1
+    T[:3, :3] = U @ Vt
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
+def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
+             norm: Normalization, batch_size: int = 8, loss=None) -> dict[str, float]:
+    """Register the validation samples; the ``val_*`` figures of :data:`LOG_COLUMNS`
+    (``val_loss`` / ``val_completion``: the training objective and its completion term, means
+    over the samples, in eval mode)."""
+    was_training = model.training
+    model.eval()
+    fine, coarse = [], []
+    loss_sum = completion_sum = 0.0
+    start = time.perf_counter()
+    device = ct_points_n.device
+    try:
+        with torch.no_grad():
+            encoding = model.encode_target(ct_points_n[None])
+            for i in range(0, len(samples), batch_size):
+                chunk = samples[i:i + batch_size]
+                src = torch.from_numpy(np.stack([s.source for s in chunk])).float().to(device)
+                out = model(src, encoding)
+                gt_points = torch.from_numpy(np.stack([s.gt_points for s in chunk])).float()
+                gt_transform = torch.from_numpy(np.stack([s.gt_transform for s in chunk])).float()
+                terms = output_loss(out, gt_points.to(device), gt_transform.to(device), loss)
+                loss_sum += float(terms.total) * len(chunk)
+                completion_sum += float(terms.completion) * len(chunk)
+                fine += list(out.fine_transform.double().cpu().numpy())
+                coarse += list(out.coarse_transform.double().cpu().numpy())
+    finally:
+        model.train(was_training)
+    fe = np.array([_pose_errors(T, s, norm) for T, s in zip(fine, samples)])
+    ce = np.array([_pose_errors(T, s, norm) for T, s in zip(coarse, samples)])
+    return {
+        "val_RTE_mm_median": float(np.median(fe[:, 0])),
+        "val_RRE_deg_median": float(np.median(fe[:, 1])),
+        "val_RTE_mm_mean": float(fe[:, 0].mean()),
+        "val_RRE_deg_mean": float(fe[:, 1].mean()),
+        "val_coarse_RTE_mm_median": float(np.median(ce[:, 0])),
+        "val_coarse_RRE_deg_median": float(np.median(ce[:, 1])),
+        "val_success_rate": float(np.mean([is_success(t, r) for t, r in fe])),
+        "val_flip_rate": float(np.mean(fe[:, 1] > FLIP_RRE_DEG)),
+        "val_loss": loss_sum / len(samples),
+        "val_completion": completion_sum / len(samples),
+        "val_s": time.perf_counter() - start,
+    }
+
+
+def identity_errors(samples: list[Sample], norm: Normalization) -> dict[str, float]:
+    """Validation errors of doing nothing (the initial misalignment): medians and means."""
+    e = np.array([_pose_errors(np.eye(4), s, norm) for s in samples])
+    return {"RTE_mm_median": float(np.median(e[:, 0])), "RRE_deg_median": float(np.median(e[:, 1])),
+            "RTE_mm_mean": float(e[:, 0].mean()), "RRE_deg_mean": float(e[:, 1].mean())}
+
+
+def _fmt(value) -> str:
+    if value is None or value == "":
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+class _EpochLog:
+    """``training_log.csv``, appended one row per epoch and flushed."""
+
+    def __init__(self, path: Path, keep_until_epoch: int | None):
+        self.path = path
+        rows: list[dict] = []
+        if keep_until_epoch is not None and path.is_file():
+            with path.open(newline="", encoding="utf-8") as f:
+                rows = [r for r in csv.DictReader(f) if int(r["epoch"]) <= keep_until_epoch]
+        with atomic_output(path) as tmp:
+            with tmp.open("w", newline="", encoding="utf-8") as f:
+                writer = csv.DictWriter(f, LOG_COLUMNS)
+                writer.writeheader()
+                writer.writerows(rows)
+
+    def write(self, row: dict[str, Any]) -> None:
+        with self.path.open("a", newline="", encoding="utf-8") as f:
+            csv.DictWriter(f, LOG_COLUMNS).writerow({k: _fmt(row.get(k)) for k in LOG_COLUMNS})
+
+
+def _prepare_config(ct_mesh: Path, run_dir: Path, preset: str, config, seed, resume: bool
+                    ) -> tuple[PretrainConfig, dict | None]:
+    ckpt_path = run_dir / CHECKPOINT_NAME
+    if resume:
+        if not ckpt_path.is_file():
+            raise CheckpointError(f"Cannot resume: '{run_dir}' holds no {CHECKPOINT_NAME}.",
+                                  "Start a new run without --resume, or pass the folder of an "
+                                  "interrupted run.")
+        state = load_checkpoint(ckpt_path)
+        cfg = config_from_yaml(state["config_yaml"], f"config stored in '{ckpt_path}'")
+        if seed is not None and seed != cfg.seed:
+            raise ConfigError(f"The run was started with seed {cfg.seed}, not {seed}.",
+                              "Leave --seed out when resuming (or pass the same seed).")
+        return cfg, state
+    if ckpt_path.exists():
+        raise CheckpointError(f"'{run_dir}' already holds a training run ({CHECKPOINT_NAME}).",
+                              "Pass --resume to continue it, or choose an empty --out folder.")
+    overrides = load_overrides(config)
+    extra: dict[str, Any] = {"ct_mesh": str(ct_mesh)}
+    if seed is not None:
+        extra["seed"] = int(seed)
+    return pretrain_preset(preset, deep_merge(overrides, extra)), None
+
+
+def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "paper",
+             config: dict | str | Path | None = None, max_minutes: float | None = None,
+             epochs: int | None = None, resume: bool = False, seed: int | None = None,
+             device: str | None = None, progress: Progress | None = None) -> TrainResult:
+    """Pretrain ComReg for one CT on simulated sweeps; see the module docstring.
+
+    Args:
+        ct_mesh_path: the CT bone mesh (mm), closed surface.
+        run_dir: output folder (created); must not hold a run unless ``resume``.
+        preset: ``"paper"`` or ``"cpu"`` (ignored when resuming: the run's config is used).
+        config: nested overrides of the preset (dict or YAML file with sections ``model``,
+            ``simulation``, ``data``, ``training``).
+        max_minutes: time budget of this invocation (overrides ``training.max_minutes``).
+        epochs: total epochs (overrides ``training.epochs``; when resuming, may extend the run).
+        resume: continue the run in ``run_dir`` from its checkpoint.
+        seed: run seed (default 0; when resuming it must match the run's).
+        device: ``"auto"``, ``"cpu"`` or ``"cuda"`` (overrides ``training.device``).
+        progress: ``progress(done_steps, total_steps, info)`` callback.
+
+    Raises:
+        InputFileNotFoundError, CorruptFileError, InvalidGeometryError: unusable CT mesh.
+        ConfigError: invalid settings. CheckpointError: resume problems, CT mismatch on resume.
+    """
+    ct_mesh_path = require_input_file(ct_mesh_path, "CT mesh file")
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ComRegError(f"'{run_dir}' exists and is not a folder.", "Choose another --out.")
+    from comreg_core.io.meshes import read_mesh
+
+    mesh = read_mesh(ct_mesh_path)
+    fingerprint = mesh_fingerprint(mesh)
+    cfg, state = _prepare_config(ct_mesh_path, run_dir, preset, config, seed, resume)
+    if state is not None:
+        check_fingerprint(state["ct_fingerprint"], fingerprint, f" in '{run_dir}'")
+    training_overrides: dict[str, Any] = {}
+    if epochs is not None:
+        training_overrides["epochs"] = int(epochs)
+    if max_minutes is not None:
+        training_overrides["max_minutes"] = float(max_minutes)
+    if device is not None:
+        training_overrides["device"] = device
+    if training_overrides:
+        cfg = replace(cfg, training=from_dict(type(cfg.training), deep_merge(
+            to_dict(cfg.training), training_overrides), "training"))
+    tc = cfg.training
+    dev = resolve_device(tc.device)
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_output(run_dir / CONFIG_NAME) as tmp:
+        tmp.write_text(config_to_yaml(cfg), encoding="utf-8")
+    write_fingerprint(fingerprint, run_dir)
+
+    torch.manual_seed(cfg.seed)
+    ct = TrainingCT.from_mesh(mesh.vertices, mesh.faces, cfg.data.ct_points, cfg.seed)
+    norm = ct.normalization
+    model = ComRegNet(cfg.model).to(dev)
+    model.train()
+    optimizers, schedulers = build_optimizers(model, tc)
+    epoch = step = samples_seen = 0
+    elapsed = 0.0
+    sums: dict[str, float] = {}
+    if state is not None:
+        model.load_state_dict(state["model"])
+        for opt, key in zip(optimizers, ("optimizer_backbone", "optimizer_head")):
+            opt.load_state_dict(state[key])
+        for sch, key in zip(schedulers, ("scheduler_backbone", "scheduler_head")):
+            sch.load_state_dict(state[key])
+        epoch, step = int(state["epoch"]), int(state["step"])
+        samples_seen, elapsed = int(state["samples_seen"]), float(state["elapsed_s"])
+        sums = {k: float(v) for k, v in state["epoch_sums"].items()}
+        torch.set_rng_state(state["torch_rng"])
+        if dev.type == "cuda" and "cuda_rng" in state:
+            torch.cuda.set_rng_state(state["cuda_rng"], dev)
+        ct.points = state["ct_points"].numpy()  # the run's own cloud, bit for bit
+        log.info("Resuming '%s' at epoch %d, step %d (%d samples, %.1f min)", run_dir, epoch,
+                 step, samples_seen, elapsed / 60)
+    ct_points_n = torch.from_numpy(norm.points_to_model(ct.points)).float().to(dev)  # M 3
+
+    steps_per_epoch = tc.samples_per_epoch // tc.batch_size
+    total_steps = tc.epochs * steps_per_epoch
+    val_set = validation_samples(ct, cfg.simulation, cfg.data.pose, cfg.seed,
+                                 tc.validation_sweeps) if tc.validation_every else []
+    initial = identity_errors(val_set, norm) if val_set else {}
+    if initial:
+        log.info("Validation set: %d sweeps, initial misalignment median RTE %.1f mm, RRE "
+                 "%.1f deg", len(val_set), initial["RTE_mm_median"], initial["RRE_deg_median"])
+    epoch_log = _EpochLog(run_dir / LOG_NAME, epoch if state is not None else None)
+    ckpt_path = run_dir / CHECKPOINT_NAME
+
+    def checkpoint() -> None:
+        payload = {
+            "config_yaml": config_to_yaml(cfg), "ct_fingerprint": fingerprint["sha256"],
+            "ct_space": mesh.space,
+            "ct_vertices": torch.from_numpy(np.asarray(mesh.vertices, dtype=np.float64)),
+            "ct_faces": torch.from_numpy(np.asarray(mesh.faces, dtype=np.int64)),
+            "ct_points": torch.from_numpy(np.asarray(ct.points, dtype=np.float64)),
+            "norm_center": torch.from_numpy(np.asarray(norm.center, dtype=np.float64)),
+            "norm_scale": float(norm.scale), "model": model.state_dict(),
+            "optimizer_backbone": optimizers[0].state_dict(),
+            "optimizer_head": optimizers[1].state_dict(),
+            "scheduler_backbone": schedulers[0].state_dict(),
+            "scheduler_head": schedulers[1].state_dict(),
+            "epoch": epoch, "step": step, "samples_seen": samples_seen,
+            "elapsed_s": elapsed_now(), "epoch_sums": dict(sums),
+            "torch_rng": torch.get_rng_state(),
+        }
+        if dev.type == "cuda":
+            payload["cuda_rng"] = torch.cuda.get_rng_state(dev)
+        save_checkpoint(payload, ckpt_path)
+        log.debug("Checkpoint at epoch %d step %d", epoch, step)
+
+    t0 = time.monotonic()
+
+    def elapsed_now() -> float:
+        return elapsed + (time.monotonic() - t0)
+
+    budget_s = tc.max_minutes * 60.0 if tc.max_minutes > 0 else math.inf
+    last_validation: dict[str, float] | None = None
+    last_losses: dict[str, float] = {}
+    if state is None:
+        row: dict[str, Any] = {"epoch": 0, "samples": 0, "time_s": 0.0,
+                               "lr_backbone": tc.lr_backbone, "lr_head": tc.lr_head}
+        if val_set:
+            last_validation = validate(model, ct_points_n, val_set, norm, loss=cfg.model.loss)
+            row.update(last_validation)
+        epoch_log.write(row)
+        checkpoint()
+
+    stopped = "epochs"
+    last_ckpt = time.monotonic()
+    epoch_start = time.monotonic()
+    loader = batches = None
+    if epoch < tc.epochs:
+        stream = SampleStream(ct, cfg.simulation, cfg.data.pose, cfg.seed, tc.batch_size,
+                              start=samples_seen)
+        workers = cfg.data.workers if cfg.data.workers is not None else int(dev.type == "cuda")
+        loader = sample_loader(stream, workers, cfg.data.prefetch_batches,
+                               pin_memory=dev.type == "cuda")
+        batches = iter(loader)
+    try:
+        while epoch < tc.epochs:
+            if time.monotonic() - t0 >= budget_s:
+                stopped = "time"
+                break
+            batch = next(batches)
+            source = batch["source"].to(dev, non_blocking=True)
+            gt_points = batch["gt_points"].to(dev, non_blocking=True)
+            gt_transform = batch["gt_transform"].to(dev, non_blocking=True)
+            for opt in optimizers:
+                opt.zero_grad(set_to_none=True)
+            out = model(source, ct_points_n[None])
+            terms = output_loss(out, gt_points, gt_transform, cfg.model.loss)
+            if torch.isfinite(terms.total):
+                terms.total.backward()
+                if tc.grad_clip > 0:
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip)
+                for opt in optimizers:
+                    opt.step()
+                for name in _LOSS_TERMS:
+                    sums[name] = sums.get(name, 0.0) + float(getattr(terms, name).detach())
+                sums["steps"] = sums.get("steps", 0.0) + 1
+            else:
+                log.warning("Non-finite loss at epoch %d step %d; step skipped", epoch, step)
+                sums["skipped"] = sums.get("skipped", 0.0) + 1
+            step += 1
+            samples_seen += tc.batch_size
+            info: dict[str, Any] = {"epoch": epoch + 1, "loss": float(terms.total.detach()),
+                                    "completion": float(terms.completion.detach()),
+                                    "registration": float(terms.registration.detach())}
+            if step == steps_per_epoch:
+                epoch += 1
+                step = 0
+                lrs = [s.get_last_lr()[0] for s in schedulers]
+                for s in schedulers:
+                    s.step()
+                n = max(sums.get("steps", 0.0), 1.0)
+                last_losses = {k: sums.get(k, 0.0) / n for k in _LOSS_TERMS}
+                row = {"epoch": epoch, "samples": samples_seen, "time_s": elapsed_now(),
+                       "epoch_s": time.monotonic() - epoch_start, "lr_backbone": lrs[0],
+                       "lr_head": lrs[1], "loss": last_losses["total"],
+                       **{k: last_losses[k] for k in _LOSS_TERMS[1:]},
+                       "skipped_steps": int(sums.get("skipped", 0))}
+                if val_set and epoch % tc.validation_every == 0:
+                    last_validation = validate(model, ct_points_n, val_set, norm,
+                                               loss=cfg.model.loss)
+                    row.update(last_validation)
+                    info["val_RTE_mm"] = last_validation["val_RTE_mm_median"]
+                    info["val_RRE_deg"] = last_validation["val_RRE_deg_median"]
+                epoch_log.write(row)
+                log.info("epoch %d: loss %.4f (completion %.4f, registration %.4f)%s", epoch,
+                         last_losses["total"], last_losses["completion"],
+                         last_losses["registration"],
+                         "" if "val_RTE_mm" not in info else
+                         f"; validation median RTE {info['val_RTE_mm']:.2f} mm, RRE "
+                         f"{info['val_RRE_deg']:.2f} deg")
+                sums = {}
+                epoch_start = time.monotonic()
+                if epoch % tc.checkpoint_epochs == 0 or epoch == tc.epochs:
+                    checkpoint()
+                    last_ckpt = time.monotonic()
+            if time.monotonic() - last_ckpt >= tc.checkpoint_minutes * 60.0:
+                checkpoint()
+                last_ckpt = time.monotonic()
+            if progress is not None:
+                progress(epoch * steps_per_epoch + step, total_steps, info)
+    finally:
+        batches = loader = None  # shuts the data workers down
+    checkpoint()
+    log.info("Training stopped (%s) after %d epochs, %d samples, %.1f min", stopped, epoch,
+             samples_seen, elapsed_now() / 60)
+    return TrainResult(run_dir, ckpt_path, run_dir / LOG_NAME, epoch, samples_seen,
+                       elapsed_now(), stopped, str(dev), last_losses, last_validation, initial)

@@ -1,0 +1,144 @@
+"""Registration with a pretrained run: Registrar, result files, CT fingerprint, input checks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from comreg_core.errors import InvalidGeometryError
+from comreg_core.inference import Registrar, register_to_directory
+from comreg_core.io import load_transform, read_points
+from comreg_core.io.meshes import SurfaceMesh, write_mesh
+from comreg_core.io.pointclouds import PointCloud, write_points
+from comreg_core.training import CheckpointError
+from comreg_core.training.data import validation_samples
+from comreg_core.transforms import apply_transform, check_rigid
+from tests.helpers import FIBULA_STL, assert_close
+from tests.training.tiny import tiny_run
+
+TIMING_KEYS = {"preprocess", "completion", "coarse_pose", "icp", "postprocess", "total",
+               "residuals"}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    return tiny_run(tmp_path_factory)[1]
+
+
+@pytest.fixture(scope="module")
+def registrar(run):
+    return Registrar.from_run(run, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def us_cloud(registrar):
+    """A held-out simulated sweep (mm), moved by a paper-sampler pose."""
+    from comreg_core.training.data import TrainingCT
+
+    ct = TrainingCT(registrar._ct_vertices, registrar._ct_faces, registrar.ct_points,
+                    registrar.normalization)
+    s = validation_samples(ct, registrar.config.simulation, "paper", 123, 1)[0]
+    return registrar.normalization.points_to_mm(s.source)
+
+
+def test_register_returns_a_rigid_transform_and_consistent_outputs(registrar, us_cloud):
+    res = registrar.register(us_cloud, seed=0)
+    T = check_rigid(res.T_ct_us)
+    assert_close(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0, abs=1e-12)
+    check_rigid(res.T_ct_us_coarse)
+    assert_close(res.registered_points, apply_transform(T, us_cloud), atol=1e-9)
+    assert res.completion_ct.shape == (registrar.model.config.completion.dense_points, 3)
+    assert set(res.timings) == TIMING_KEYS and res.runtime_s == res.timings["total"]
+    assert res.device == "cpu" and res.n_points == len(us_cloud)
+    assert set(res.residuals) == {"mean", "median", "p90", "p95", "max", "rmse",
+                                  "inlier_fraction"}
+    assert 0 <= res.residuals["median"] <= res.residuals["p95"] <= res.residuals["max"]
+    # deterministic, and the CT half is encoded once
+    enc = registrar.encoding
+    again = registrar.register(us_cloud, seed=0)
+    assert registrar.encoding is enc
+    assert np.array_equal(again.T_ct_us, res.T_ct_us)
+
+
+def test_staged_forward_equals_the_network_forward(registrar, us_cloud):
+    res = registrar.register(us_cloud)
+    norm = registrar.normalization
+    src = torch.from_numpy(norm.points_to_model(us_cloud)).float()[None]
+    with torch.no_grad():
+        out = registrar.model(src, registrar.encoding)
+    assert_close(norm.transform_to_mm(out.fine_transform[0].double().numpy()), res.T_ct_us,
+                 atol=1e-3)
+    assert_close(norm.transform_to_mm(out.coarse_transform[0].double().numpy()),
+                 res.T_ct_us_coarse, atol=1e-3)
+
+
+def test_register_to_directory_writes_the_result_folder(run, registrar, us_cloud, tmp_path):
+    us_path = write_points(PointCloud(us_cloud, registrar.space), tmp_path / "us.ply")
+    out = tmp_path / "out"
+    res = register_to_directory(run, us_path, out, device="cpu", seed=7, ct_mesh=FIBULA_STL)
+    data = json.loads((out / "result.json").read_text())
+    for key in ("T_ct_us", "T_ct_us_coarse", "timings_s", "runtime_s", "device", "seed",
+                "residuals_mm", "n_points", "space", "ct_fingerprint", "files"):
+        assert key in data, key
+    assert data["seed"] == 7 and data["device"] == "cpu" and data["n_points"] == len(us_cloud)
+    assert set(data["timings_s"]) == TIMING_KEYS
+    assert_close(np.array(data["T_ct_us"]), res.T_ct_us, atol=0)
+    assert_close(load_transform(out / "transform.tfm", space=registrar.space), res.T_ct_us,
+                 atol=1e-9)
+    registered = read_points(out / "registered_us.ply")
+    assert_close(registered.points, apply_transform(res.T_ct_us, us_cloud), atol=1e-3)
+    assert len(read_points(out / "completion_ct.ply").points) == len(res.completion_ct)
+    assert (out / "config.yaml").is_file()
+    assert not list(out.glob(".*tmp*"))
+
+
+def test_ct_fingerprint_mismatch_is_a_clear_error(run, tmp_path):
+    import trimesh
+
+    capsule = trimesh.creation.capsule(height=60.0, radius=10.0)
+    other = write_mesh(SurfaceMesh(np.asarray(capsule.vertices), np.asarray(capsule.faces)),
+                       tmp_path / "other.stl")
+    with pytest.raises(CheckpointError, match="trained for another CT"):
+        Registrar.from_run(run, device="cpu", ct_mesh=other)
+    Registrar.from_run(run, device="cpu", ct_mesh=FIBULA_STL)  # the right CT passes
+
+
+def test_missing_or_corrupt_checkpoint(tmp_path):
+    with pytest.raises(CheckpointError, match="No checkpoint"):
+        Registrar.from_run(tmp_path)
+    (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="Cannot read"):
+        Registrar.from_run(tmp_path)
+    torch.save({"format": "something else"}, tmp_path / "checkpoint.pt")
+    with pytest.raises(CheckpointError, match="not a ComReg checkpoint"):
+        Registrar.from_run(tmp_path)
+
+
+@pytest.mark.parametrize("case, match", [
+    ("few", "needs at least"),
+    ("nan", "non-finite"),
+    ("metres", "metres"),
+    ("shape", "expected \\(N, 3\\)"),
+    ("huge", "over 10 times"),
+])
+def test_bad_inputs(registrar, us_cloud, case, match):
+    pts = {"few": us_cloud[:10], "metres": us_cloud / 1000.0, "shape": us_cloud[:, :2],
+           "huge": us_cloud * 100.0}.get(case)
+    if case == "nan":
+        pts = us_cloud.copy()
+        pts[3, 1] = np.nan
+    with pytest.raises(InvalidGeometryError, match=match):
+        registrar.register(pts)
+
+
+def test_device_cuda_without_cuda_is_a_clear_error(run):
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is available here")
+    from comreg_core.config import ConfigError
+
+    with pytest.raises(ConfigError, match="CUDA"):
+        Registrar.from_run(run, device="cuda")
