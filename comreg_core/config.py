@@ -123,24 +123,34 @@ def load_config(cls: type[T], path: str | Path | None = None, overrides: dict | 
     ``simulation:`` beside other sections) contributes only that section; a file without the key
     is taken as the section's own keys.
     """
-    import yaml
-
-    from comreg_core.io._files import require_input_file
-
     data: dict[str, Any] = {}
     if path is not None:
-        path = require_input_file(path, "config file")
-        try:
-            loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"'{path}' is not valid YAML ({exc}).", "Fix the syntax.") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"'{path}' must hold a mapping of config keys.", "")
-        data = loaded or {}
+        data = read_yaml_mapping(path)
         if section is not None and section in data:
             data = data[section] or {}
     merged = deep_merge(data, overrides or {})
     return from_dict(cls, merged, section or "")
+
+
+def parse_yaml_mapping(text: str, where: str) -> dict[str, Any]:
+    """The mapping in YAML ``text`` (empty text -> ``{}``); ``where`` names it in errors."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{where} is not valid YAML ({exc}).", "Fix the syntax.") from None
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"{where} must hold a mapping of config keys.", "")
+    return data or {}
+
+
+def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
+    """The mapping in the YAML file at ``path`` (checked to exist)."""
+    from comreg_core.io._files import require_input_file
+
+    path = require_input_file(path, "config file")
+    return parse_yaml_mapping(path.read_text(encoding="utf-8"), f"'{path}'")
 
 
 def write_config(config, path: str | Path) -> Path:

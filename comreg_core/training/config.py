@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from comreg_core.config import ConfigError, deep_merge, from_dict, require, to_dict
+from comreg_core.config import (ConfigError, deep_merge, from_dict, parse_yaml_mapping,
+                                read_yaml_mapping, require, to_dict)
 from comreg_core.model.config import MODEL_PRESETS, ModelConfig
 from comreg_core.simulation.config import SimulationConfig
 
@@ -176,14 +177,7 @@ def config_to_yaml(config: PretrainConfig) -> str:
 
 
 def config_from_yaml(text: str, where: str = "config") -> PretrainConfig:
-    import yaml
-
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"The {where} is not valid YAML ({exc}).", "Fix the syntax.") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"The {where} must hold a mapping of config keys.", "")
+    data = parse_yaml_mapping(text, f"The {where}")
     return from_dict(PretrainConfig, data, "")
 
 
@@ -193,15 +187,4 @@ def load_overrides(config: dict | str | Path | None) -> dict:
         return {}
     if isinstance(config, dict):
         return config
-    import yaml
-
-    from comreg_core.io._files import require_input_file
-
-    path = require_input_file(config, "config file")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"'{path}' is not valid YAML ({exc}).", "Fix the syntax.") from None
-    if data is not None and not isinstance(data, dict):
-        raise ConfigError(f"'{path}' must hold a mapping of config keys.", "")
-    return data or {}
+    return read_yaml_mapping(config)
