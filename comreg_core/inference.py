@@ -37,8 +37,8 @@ from comreg_core.model.ops import subsample
 from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, ct_fingerprint,
                                              load_checkpoint, mesh_fingerprint)
 from comreg_core.training.config import PretrainConfig, config_from_yaml
-from comreg_core.training.trainer import orthonormalize, resolve_device
-from comreg_core.transforms import apply_transform, as_points
+from comreg_core.training.trainer import resolve_device
+from comreg_core.transforms import apply_transform, as_points, orthonormalize
 
 log = logging.getLogger(__name__)
 

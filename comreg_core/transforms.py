@@ -73,6 +73,18 @@ def invert_rigid(T: np.ndarray) -> np.ndarray:
     return inv
 
 
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """``T`` as float64 with its 3x3 part projected onto SO(3) (SVD, reflection fixed) and its
+    last row ``0 0 0 1``: removes float32 drift from a computed rigid transform."""
+    T = np.asarray(T, dtype=np.float64).copy()
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    if np.linalg.det(U @ Vt) < 0:
+        U[:, -1] *= -1
+    T[:3, :3] = U @ Vt
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
 def check_rigid(T: np.ndarray, atol: float = 1e-4) -> np.ndarray:
     """Return ``T`` as float64 if it is a finite rigid ``(4, 4)`` matrix, else raise."""
     T = check_affine(T)

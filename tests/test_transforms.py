@@ -6,7 +6,8 @@ from scipy.spatial.transform import Rotation
 
 from comreg_core.errors import InvalidGeometryError, InvalidTransformError
 from comreg_core.transforms import (T_RAS_LPS, apply_transform, as_points, check_rigid,
-                                    check_space, invert_rigid, space_change)
+                                    check_space, invert_rigid, orthonormalize,
+                                    space_change)
 from tests.helpers import assert_close, random_rigid
 
 
@@ -42,3 +43,14 @@ def test_bad_transforms_and_points():
         as_points(np.zeros((4, 2)))
     with pytest.raises(InvalidGeometryError, match="non-finite"):
         as_points([[0, 0, np.nan]])
+
+
+def test_orthonormalize_removes_float32_drift():
+    rng = np.random.default_rng(5)
+    T = random_rigid(rng)
+    drifted = T.astype(np.float32).astype(np.float64) + rng.normal(0, 1e-6, (4, 4)) * [1, 1, 1, 1]
+    fixed = orthonormalize(drifted)
+    assert_close(fixed[:3, :3].T @ fixed[:3, :3], np.eye(3), atol=1e-12)
+    assert_close(fixed[3], [0, 0, 0, 1])
+    assert_close(fixed, T, atol=1e-4)
+    assert np.linalg.det(fixed[:3, :3]) > 0

@@ -38,7 +38,7 @@ from comreg_core.config import from_dict, require
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.evaluation.metrics import as_surface
 from comreg_core.evaluation.outputs import RegistrationOutput
-from comreg_core.transforms import apply_transform, as_points, check_rigid
+from comreg_core.transforms import apply_transform, as_points, check_rigid, orthonormalize
 
 #: Baselines :func:`baseline_methods` can build, by name.
 BASELINES = ("ransac", "icp-gt")
@@ -245,19 +245,7 @@ class RansacIcpBaseline:
             "icp_fitness": float(icp.fitness), "icp_inlier_rmse_mm": float(icp.inlier_rmse),
             "icp_used": use_icp, "source_down_points": len(source_down.points),
             "ransac_s": t_ransac - t0, "icp_s": runtime - (t_ransac - t0)}
-        return RegistrationOutput(check_rigid(_orthonormalize(T)), runtime, None, info)
-
-
-def _orthonormalize(T: np.ndarray) -> np.ndarray:
-    """Project the rotation part onto SO(3) (SVD), removing float drift."""
-    T = np.array(T, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    T[:3, :3] = R
-    return T
+        return RegistrationOutput(check_rigid(orthonormalize(T)), runtime, None, info)
 
 
 # --- point-to-plane ICP (numpy/scipy) ------------------------------------------------------------
@@ -393,7 +381,7 @@ def point_to_plane_icp(source: np.ndarray, target: SurfaceMatcher, T_init: np.nd
         if np.linalg.norm(x[:3]) * extent + np.linalg.norm(x[3:]) < tolerance_mm:
             info["converged"] = True
             break
-    return _orthonormalize(T), info
+    return orthonormalize(T), info
 
 
 class IcpGtBaseline:

@@ -55,7 +55,7 @@ from comreg_core.training.config import (PretrainConfig, config_from_yaml, confi
                                          load_overrides, pretrain_preset)
 from comreg_core.training.data import (Sample, SampleStream, TrainingCT, sample_loader,
                                        validation_samples)
-from comreg_core.transforms import invert_rigid
+from comreg_core.transforms import invert_rigid, orthonormalize
 
 log = logging.getLogger(__name__)
 
@@ -144,17 +144,6 @@ def _pose_errors(T_est_n: np.ndarray, sample: Sample, norm: Normalization) -> tu
     truth = invert_rigid(sample.T_us_ct_mm)
     at = norm.points_to_mm(sample.source).mean(axis=0)
     return translation_error_mm(T_est, truth, at), rotation_error_deg(T_est, truth)
-
-
-def orthonormalize(T: np.ndarray) -> np.ndarray:
-    """A float32-computed rigid matrix as float64 with its rotation projected onto SO(3)."""
-    T = np.asarray(T, dtype=np.float64).copy()
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    if np.linalg.det(U @ Vt) < 0:
-        U[:, -1] *= -1
-    T[:3, :3] = U @ Vt
-    T[3] = (0.0, 0.0, 0.0, 1.0)
-    return T
 
 
 def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
