@@ -7,6 +7,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from comreg_core.config import ConfigError
 from comreg_core.model.config import LossConfig
 from comreg_core.model.losses import comreg_loss, pose_loss, rotation_angle
 from comreg_core.model.ops import chamfer_l1, make_transform, quaternion_to_matrix
@@ -80,7 +81,7 @@ def test_comreg_loss_terms_and_adaptive_weight():
     fine.requires_grad_(True)
     gt = make_transform(quaternion_to_matrix(torch.randn(2, 4, generator=g)),
                         torch.randn(2, 3, generator=g))
-    cfg = LossConfig()
+    cfg = LossConfig(fine_gate_deg=180.0)  # the paper's loss, every sample's fine term
     terms = comreg_loss(centres, dense, gt_points, coarse, fine, gt, cfg)
     sparse = chamfer_l1(centres, gt_points).mean()
     dense_cd = chamfer_l1(dense, gt_points).mean()
@@ -101,5 +102,25 @@ def test_comreg_loss_terms_and_adaptive_weight():
     # lambda_fine = 0 removes the fine term's gradient (the paper's ablation)
     fine.grad = None
     comreg_loss(centres, dense, gt_points, coarse, fine, gt,
-                LossConfig(lambda_fine=0.0)).total.backward()
+                LossConfig(lambda_fine=0.0, fine_gate_deg=180.0)).total.backward()
     assert float(fine.grad.abs().max()) == 0.0
+
+
+def test_fine_gate_keeps_only_samples_whose_coarse_pose_is_near():
+
+    gt = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    coarse = gt.clone()
+    # coarse rotation errors 10, 29 and 31 degrees about z; fine poses 1 unit off in x
+    for i, deg in enumerate((10.0, 29.0, 31.0)):
+        coarse[i, :3, :3] = torch.from_numpy(Rotation.from_euler("z", deg, degrees=True).as_matrix())
+    fine = gt.clone()
+    fine[:, 0, 3] = 1.0
+    fine.requires_grad_(True)
+    points = torch.zeros(3, 4, 3, dtype=torch.float64)
+    terms = comreg_loss(points, points, points, coarse, fine, gt, LossConfig(fine_gate_deg=30.0))
+    # two of three samples have a fine loss of 1 (translation), the third counts 0
+    assert_close(terms.reg_fine.detach(), torch.tensor(2.0 / 3.0, dtype=torch.float64))
+    terms.reg_fine.backward()
+    assert float(fine.grad[2].abs().max()) == 0.0 and float(fine.grad[0].abs().max()) > 0
+    with pytest.raises(ConfigError, match="fine_gate_deg"):
+        LossConfig(fine_gate_deg=0.0)
