@@ -6,7 +6,7 @@
   ``arccos((tr(R_hat^T R) - 1) / 2)`` but is computed as ``atan2(sin, cos)`` so that value and
   gradient stay finite at 0 and 180 degrees (see :func:`rotation_angle`).
 * ``L_registration = mean(lambda_coarse L_reg(coarse) + lambda_fine L_reg(fine))``, the fine
-  term gated per sample by the coarse rotation error (``LossConfig.fine_gate_deg``).
+  term gated per sample by the coarse pose error (``LossConfig.fine_gate_*``).
 * ``L_final = L_completion + lambda_reg L_registration`` with
   ``lambda_reg = rho L_completion / L_registration``, the weight detached (a number, not a path
   for gradients).
@@ -103,10 +103,12 @@ def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transf
     completion = sparse + dense_cd
     reg_coarse = pose_loss(coarse_transform, gt_transform).mean()
     fine = pose_loss(fine_transform, gt_transform)  # B
-    if config.fine_gate_deg < 180.0:
+    if config.fine_gated:
         with torch.no_grad():
             coarse_angle = rotation_angle(coarse_transform[..., :3, :3], gt_transform[..., :3, :3])
-            in_basin = coarse_angle < math.radians(config.fine_gate_deg)
+            coarse_shift = (coarse_transform[..., :3, 3] - gt_transform[..., :3, 3]).norm(dim=-1)
+            in_basin = ((coarse_angle < math.radians(config.fine_gate_deg))
+                        & (coarse_shift < config.fine_gate_translation))
         fine = torch.where(in_basin, fine, torch.zeros_like(fine))
     reg_fine = fine.mean()
     registration = config.lambda_coarse * reg_coarse + config.lambda_fine * reg_fine

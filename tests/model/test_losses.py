@@ -81,7 +81,7 @@ def test_comreg_loss_terms_and_adaptive_weight():
     fine.requires_grad_(True)
     gt = make_transform(quaternion_to_matrix(torch.randn(2, 4, generator=g)),
                         torch.randn(2, 3, generator=g))
-    cfg = LossConfig(fine_gate_deg=180.0)  # the paper's loss, every sample's fine term
+    cfg = LossConfig(fine_gate_deg=180.0, fine_gate_translation=math.inf)  # the paper's
     terms = comreg_loss(centres, dense, gt_points, coarse, fine, gt, cfg)
     sparse = chamfer_l1(centres, gt_points).mean()
     dense_cd = chamfer_l1(dense, gt_points).mean()
@@ -102,25 +102,31 @@ def test_comreg_loss_terms_and_adaptive_weight():
     # lambda_fine = 0 removes the fine term's gradient (the paper's ablation)
     fine.grad = None
     comreg_loss(centres, dense, gt_points, coarse, fine, gt,
-                LossConfig(lambda_fine=0.0, fine_gate_deg=180.0)).total.backward()
+                LossConfig(lambda_fine=0.0)).total.backward()
     assert float(fine.grad.abs().max()) == 0.0
 
 
 def test_fine_gate_keeps_only_samples_whose_coarse_pose_is_near():
-
-    gt = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    gt = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
     coarse = gt.clone()
-    # coarse rotation errors 10, 29 and 31 degrees about z; fine poses 1 unit off in x
-    for i, deg in enumerate((10.0, 29.0, 31.0)):
+    # coarse errors: 5 deg, 9 deg, 11 deg about z; 5 deg and 0.03 translation
+    for i, deg in enumerate((5.0, 9.0, 11.0, 5.0)):
         coarse[i, :3, :3] = torch.from_numpy(Rotation.from_euler("z", deg, degrees=True).as_matrix())
+    coarse[3, 1, 3] = 0.03
     fine = gt.clone()
     fine[:, 0, 3] = 1.0
     fine.requires_grad_(True)
-    points = torch.zeros(3, 4, 3, dtype=torch.float64)
-    terms = comreg_loss(points, points, points, coarse, fine, gt, LossConfig(fine_gate_deg=30.0))
-    # two of three samples have a fine loss of 1 (translation), the third counts 0
-    assert_close(terms.reg_fine.detach(), torch.tensor(2.0 / 3.0, dtype=torch.float64))
+    points = torch.zeros(4, 4, 3, dtype=torch.float64)
+    cfg = LossConfig(fine_gate_deg=10.0, fine_gate_translation=0.025)
+    terms = comreg_loss(points, points, points, coarse, fine, gt, cfg)
+    # two of four samples are near enough: their fine loss is 1 (translation), the others 0
+    assert_close(terms.reg_fine.detach(), torch.tensor(0.5, dtype=torch.float64))
     terms.reg_fine.backward()
-    assert float(fine.grad[2].abs().max()) == 0.0 and float(fine.grad[0].abs().max()) > 0
+    assert [float(g.abs().max()) > 0 for g in fine.grad] == [True, True, False, False]
+    ungated = comreg_loss(points, points, points, coarse, fine, gt,
+                          LossConfig(fine_gate_deg=180.0, fine_gate_translation=math.inf))
+    assert_close(ungated.reg_fine.detach(), torch.tensor(1.0, dtype=torch.float64))
     with pytest.raises(ConfigError, match="fine_gate_deg"):
         LossConfig(fine_gate_deg=0.0)
+    with pytest.raises(ConfigError, match="fine_gate_translation"):
+        LossConfig(fine_gate_translation=-1.0)
