@@ -1,0 +1,160 @@
+"""Small test data with a known transform and the checks on it, shared by the module's in-Slicer
+self test (``ComRegTest``) and the headless pytest suite (``tests/plugin``).
+
+:func:`buildSyntheticCase` makes, from the bundled sample CT segmentation
+(``resources/sample/fibula.seg.nrrd``) only, a US bone point cloud with a known ``T_ct_us``: it
+extracts the CT bone surface, simulates one freehand US sweep of it (ray casting, first hits,
+the paper's perturbations) and moves the points into a "US frame" by the inverse of a fixed rigid
+transform. The checks compare the scene's transform node with that ground truth in millimetres
+and degrees (scipy's ``Rotation`` as the independent reference) and compare two scenes node by
+node.
+"""
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from comreg_core.transforms import T_RAS_LPS, apply_transform, invert_rigid
+
+#: The bundled sample CT segmentation (CC BY 4.0 fibula, see resources/).
+SAMPLE_SEGMENTATION = Path(__file__).resolve().parents[1] / "resources" / "sample" / \
+    "fibula.seg.nrrd"
+#: Rotation (xyz Euler angles, degrees) and translation (mm) of the ground truth ``T_ct_us``.
+KNOWN_EULER_DEG = (20.0, -35.0, 50.0)
+KNOWN_TRANSLATION_MM = (30.0, -20.0, 15.0)
+#: Registration must land within these of the ground truth.
+MAX_TRANSLATION_ERROR_MM = 2.0
+MAX_ROTATION_ERROR_DEG = 2.0
+
+
+@dataclass
+class SyntheticCase:
+    """A CT segmentation and US points with a known transform (LPS, mm).
+
+    Attributes:
+        segmentationPath: the CT segmentation file.
+        usPointsPath: the US points (``.ply`` tagged LPS) in the US frame.
+        T_ct_us: ``(4, 4)`` ground truth, LPS: ``T_ct_us @ p_us = p_ct``.
+        ctMesh: the CT bone surface (:class:`comreg_core.io.SurfaceMesh`, LPS).
+        usPointsCT: ``(N, 3)`` the simulated points in the CT frame (LPS).
+        usPoints: ``(N, 3)`` the same points in the US frame (what the file holds).
+    """
+
+    segmentationPath: Path
+    usPointsPath: Path
+    T_ct_us: np.ndarray
+    ctMesh: object
+    usPointsCT: np.ndarray
+    usPoints: np.ndarray
+
+
+def knownTransform(center=None) -> np.ndarray:
+    """The ground-truth ``T_ct_us`` (rotation about ``center``, then the translation)."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", KNOWN_EULER_DEG, degrees=True).as_matrix()
+    c = np.zeros(3) if center is None else np.asarray(center, dtype=np.float64)
+    T[:3, 3] = c - T[:3, :3] @ c + np.asarray(KNOWN_TRANSLATION_MM)
+    return T
+
+
+def buildSyntheticCase(workDir, segmentation=SAMPLE_SEGMENTATION, seed: int = 0,
+                       nPoints: int = 20000) -> SyntheticCase:
+    """Write the US points of one simulated sweep, moved by the known transform, to ``workDir``.
+
+    Raises ComRegError (from comreg_core) when the segmentation is missing or unusable.
+    """
+    from comreg_core.io import read_segmentation
+    from comreg_core.io.pointclouds import PointCloud, write_points
+    from comreg_core.simulation import BoneModel, SimulationConfig, simulate_sweep
+    from comreg_core.surfaces.ct import extract_bone_surface
+
+    seg = read_segmentation(segmentation)
+    mesh = extract_bone_surface(seg, segment=seg.segments[0]).in_space("LPS")
+    bone = BoneModel(mesh)
+    sweep = simulate_sweep(bone, SimulationConfig(n_points=nPoints), np.random.default_rng(seed))
+    T_ct_us = knownTransform(bone.centre)
+    usPoints = apply_transform(invert_rigid(T_ct_us), sweep.points)
+    path = write_points(PointCloud(usPoints, "LPS"), Path(workDir) / "us_points.ply")
+    return SyntheticCase(Path(segmentation), path, T_ct_us, mesh, sweep.points, usPoints)
+
+
+def poseErrors(T_estimated: np.ndarray, T_true: np.ndarray, points=None) -> dict:
+    """Errors of an estimate against the truth (both ``T_ct_us``, same space).
+
+    Returns ``translation_mm`` (``|t_est - t_true|``), ``rotation_deg`` (angle of
+    ``R_est R_true^T``, by scipy) and, with ``points`` (US frame), ``mean_point_mm`` /
+    ``max_point_mm`` (distances between the points mapped by the two transforms)."""
+    from scipy.spatial.transform import Rotation
+
+    T_estimated = np.asarray(T_estimated, dtype=np.float64)
+    T_true = np.asarray(T_true, dtype=np.float64)
+    errors = {
+        "translation_mm": float(np.linalg.norm(T_estimated[:3, 3] - T_true[:3, 3])),
+        "rotation_deg": float(np.degrees(Rotation.from_matrix(
+            T_estimated[:3, :3] @ T_true[:3, :3].T).magnitude())),
+    }
+    if points is not None:
+        d = np.linalg.norm(apply_transform(T_estimated, points) - apply_transform(T_true, points),
+                           axis=1)
+        errors["mean_point_mm"] = float(d.mean())
+        errors["max_point_mm"] = float(d.max())
+    return errors
+
+
+def transformNodeErrors(transformNode, case: SyntheticCase) -> dict:
+    """:func:`poseErrors` of a US->CT transform node (to parent, RAS) against ``case``: the node
+    matrix is taken to LPS by ``T_RAS_LPS`` on both sides."""
+    from comreg_plugin.logic import transformToParentRAS
+
+    T_lps = T_RAS_LPS @ transformToParentRAS(transformNode) @ T_RAS_LPS
+    return poseErrors(T_lps, case.T_ct_us, case.usPoints)
+
+
+def checkRegistrationAccuracy(transformNode, case: SyntheticCase) -> dict:
+    """Assert the transform node is within 2 mm and 2 degrees of the truth; returns the errors."""
+    errors = transformNodeErrors(transformNode, case)
+    if not (errors["translation_mm"] < MAX_TRANSLATION_ERROR_MM
+            and errors["rotation_deg"] < MAX_ROTATION_ERROR_DEG
+            and errors["max_point_mm"] < MAX_TRANSLATION_ERROR_MM):
+        raise AssertionError(f"Registration error beyond {MAX_TRANSLATION_ERROR_MM} mm / "
+                             f"{MAX_ROTATION_ERROR_DEG} deg: {errors}")
+    return errors
+
+
+def sceneSummary(scene) -> dict:
+    """``{node name: class name}`` of the nodes a user sees (not hidden), for comparisons."""
+    summary = {}
+    for i in range(scene.GetNumberOfNodes()):
+        node = scene.GetNthNode(i)
+        if node.GetHideFromEditors() or node.IsA("vtkMRMLSubjectHierarchyNode"):
+            continue
+        summary[node.GetName()] = node.GetClassName()
+    return summary
+
+
+def checkScenesMatch(original, reloaded, atol: float = 1e-6) -> None:
+    """Assert two scenes hold the same visible nodes (names and classes), the same linear
+    transforms (to-parent matrices within ``atol``), the same point counts per model and the
+    same transform parents."""
+    from comreg_plugin.logic import transformToParentRAS
+
+    a, b = sceneSummary(original), sceneSummary(reloaded)
+    if a != b:
+        raise AssertionError(f"The reloaded scene differs: {a} != {b}")
+    for name, cls in a.items():
+        n1, n2 = original.GetFirstNodeByName(name), reloaded.GetFirstNodeByName(name)
+        if cls == "vtkMRMLLinearTransformNode":
+            diff = np.abs(transformToParentRAS(n1) - transformToParentRAS(n2)).max()
+            if diff > atol:
+                raise AssertionError(f"Transform '{name}' changed by {diff:.3g} on reload")
+        if n1.IsA("vtkMRMLModelNode"):
+            c1, c2 = (n.GetPolyData().GetNumberOfPoints() for n in (n1, n2))
+            if c1 != c2:
+                raise AssertionError(f"Model '{name}' has {c2} points after reload, not {c1}")
+        if n1.IsA("vtkMRMLTransformableNode"):
+            p1, p2 = n1.GetParentTransformNode(), n2.GetParentTransformNode()
+            if (p1 and p1.GetName()) != (p2 and p2.GetName()):
+                raise AssertionError(f"'{name}' is under a different transform after reload")
