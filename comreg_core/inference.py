@@ -10,10 +10,20 @@
    the completed bone in the CT frame, and residual statistics of the registered US points
    (exact distances to the CT mesh surface).
 
+4. unless turned off, the test-time **hypotheses** stage (:mod:`comreg_core.hypotheses`): the
+   network's pose, its symmetric alternatives about the completed bone's principal axes, the
+   coarse pose and the principal-axes solve of the completion vs the CT, each refined (one
+   batched ICP) and scored by the trimmed distance of the US points to the CT; the best is kept
+   and its margin over the runner-up gives ``confidence`` and the ``ambiguous`` flag. It is on
+   by default; ``hypotheses=False`` (``comreg register --no-hypotheses``) is the paper's plain
+   pipeline, bit for bit.
+
 Timings per stage (seconds): ``preprocess`` (checks, normalisation, transfer), ``completion``
-(``f`` on the US cloud), ``coarse_pose`` (``g``), ``icp`` (FPS subset + ICP), ``postprocess``
-(back to mm, the completion), ``total`` (their sum, = ``runtime_s``), and ``residuals``
-(distance statistics; outside ``total``). On CUDA each stage ends with a synchronisation.
+(``f`` on the US cloud), ``coarse_pose`` (``g``), ``icp`` (FPS subset + ICP), ``hypotheses``
+(0.0 when off), ``postprocess`` (back to mm, the completion), ``total`` (their sum, =
+``runtime_s``), and ``residuals`` (distance statistics; outside ``total``). On CUDA each stage
+ends with a synchronisation. Preparing the CT side (its encoding, the hypotheses' dense CT
+cloud) happens once per Registrar, outside the timings.
 """
 
 from __future__ import annotations
@@ -29,6 +39,8 @@ import numpy as np
 import torch
 
 from comreg_core.errors import InvalidGeometryError
+from comreg_core.hypotheses import (HypothesisConfig, HypothesisResult, HypothesisTarget,
+                                    as_hypothesis_config, search_hypotheses)
 from comreg_core.io._files import atomic_output
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.diff_icp import differentiable_icp
@@ -66,8 +78,17 @@ class RegistrationResult:
         residuals: distances (mm) of ``registered_points`` to the CT surface: ``mean``,
             ``median``, ``p90``, ``p95``, ``max``, ``rmse``, and ``inlier_fraction`` (share
             within :data:`INLIER_MM`).
-        icp_rmse: the ICP's final weighted RMS residual (normalised units x CT scale = mm).
+        icp_rmse: the final RMS residual (mm) of the ICP that produced ``T_ct_us``: the
+            network's (weighted, normalised units x CT scale), or with hypotheses the chosen
+            hypothesis' point-to-plane residual.
         n_points: points in the US cloud.
+        hypotheses: the :class:`~comreg_core.hypotheses.HypothesisResult` (chosen hypothesis,
+            every score, runner-up, gap, confidence, ambiguous), None when the stage was off.
+        info: JSON-able extras (what the evaluation harness records per trial): the coarse
+            pose, timings, residuals, ``hypotheses`` (the block of :meth:`to_json`, None when
+            off) and, when the stage ran, ``ambiguous`` and ``confidence``.
+
+    ``confidence`` and ``ambiguous`` (properties) are those of ``hypotheses``, None when off.
     """
 
     T_ct_us: np.ndarray
@@ -81,15 +102,31 @@ class RegistrationResult:
     residuals: dict[str, float]
     icp_rmse: float
     n_points: int
+    hypotheses: HypothesisResult | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def confidence(self) -> float | None:
+        """:attr:`HypothesisResult.confidence` in [0, 1]; None without the hypotheses stage."""
+        return None if self.hypotheses is None else self.hypotheses.confidence
+
+    @property
+    def ambiguous(self) -> bool | None:
+        """:attr:`HypothesisResult.ambiguous`; None without the hypotheses stage."""
+        return None if self.hypotheses is None else self.hypotheses.ambiguous
+
     def to_json(self) -> dict[str, Any]:
-        """The ``result.json`` content (without file names)."""
+        """The ``result.json`` content (without file names). ``confidence`` and ``ambiguous``
+        are at the top level (null when the hypotheses stage was off); ``hypotheses`` holds the
+        details (null when off): ``chosen``, ``runner_up``, ``score_mm``, ``score_gap_mm``,
+        ``confidence``, ``ambiguous``, ``scores_mm`` (every hypothesis)."""
         return {
             "T_ct_us": self.T_ct_us.tolist(), "T_ct_us_coarse": self.T_ct_us_coarse.tolist(),
             "timings_s": self.timings, "runtime_s": self.runtime_s, "device": self.device,
             "seed": self.seed, "n_points": self.n_points, "residuals_mm": self.residuals,
-            "icp_rmse_mm": self.icp_rmse,
+            "icp_rmse_mm": self.icp_rmse, "confidence": self.confidence,
+            "ambiguous": self.ambiguous,
+            "hypotheses": None if self.hypotheses is None else self.hypotheses.to_json(),
         }
 
 
@@ -107,12 +144,17 @@ class Registrar:
         fingerprint: the CT fingerprint (sha256) the model was trained for.
         space: the CT's patient space ("LPS"/"RAS").
         device: torch device.
+        config: the run's training config (kept for reference).
+        hypotheses: the test-time hypotheses stage: None or True = on with the defaults of
+            :class:`~comreg_core.hypotheses.HypothesisConfig`, False = off (the paper's plain
+            pipeline), or a ``HypothesisConfig`` (its ``enabled`` decides).
     """
 
     def __init__(self, model: ComRegNet, ct_points: np.ndarray, normalization: Normalization,
                  *, ct_vertices: np.ndarray | None = None, ct_faces: np.ndarray | None = None,
                  fingerprint: str = "", space: str = "LPS", device: str | torch.device = "cpu",
-                 config: PretrainConfig | None = None):
+                 config: PretrainConfig | None = None,
+                 hypotheses: HypothesisConfig | bool | None = None):
         self.device = resolve_device(device)
         self.model = model.to(self.device).eval()
         self.ct_points = as_points(ct_points, "CT points")
@@ -121,12 +163,15 @@ class Registrar:
         self.space = space
         self.config = config
         self._ct_vertices, self._ct_faces = ct_vertices, ct_faces
+        self.hypothesis_config = as_hypothesis_config(hypotheses)
         self._surface = None
         self._encoding = None
+        self._targets: dict[int, HypothesisTarget] = {}
 
     @classmethod
     def from_run(cls, run_dir: str | Path, device: str = "auto", *, ct_mesh=None,
-                 icp_points: int | None = None) -> Registrar:
+                 icp_points: int | None = None,
+                 hypotheses: HypothesisConfig | bool | None = None) -> Registrar:
         """Load ``run_dir/checkpoint.pt`` (weights_only).
 
         Args:
@@ -137,6 +182,9 @@ class Registrar:
                 fingerprint.
             icp_points: ICP points per cloud at inference (default: the trained value; ICP has
                 no weights, so e.g. 4096 with a model trained at 2048 is valid).
+            hypotheses: the hypotheses stage (see the class): None/True = on (defaults), False
+                = off, or a :class:`~comreg_core.hypotheses.HypothesisConfig`. Not part of the
+                run: the network is the same either way.
 
         Raises:
             CheckpointError: no/corrupt checkpoint; the checkpoint was trained for another CT
@@ -164,7 +212,7 @@ class Registrar:
         return cls(model, state["ct_points"].numpy(), norm,
                    ct_vertices=state["ct_vertices"].numpy(), ct_faces=state["ct_faces"].numpy(),
                    fingerprint=expected, space=str(state.get("ct_space", "LPS")), device=dev,
-                   config=cfg)
+                   config=cfg, hypotheses=hypotheses)
 
     # ------------------------------------------------------------------------------------------
 
@@ -180,6 +228,20 @@ class Registrar:
             with torch.no_grad():
                 self._encoding = self.model.encode_target(ct[None].to(self.device))
         return self._encoding
+
+    def hypothesis_target(self, n_points: int) -> HypothesisTarget:
+        """The CT side of the hypotheses stage: ``n_points`` area-uniform samples of the CT mesh
+        (the run's CT cloud when no mesh is known), with the network's normalisation (built
+        once per size, cached)."""
+        if n_points not in self._targets:
+            if self._ct_vertices is not None:
+                self._targets[n_points] = HypothesisTarget.from_mesh(
+                    (self._ct_vertices, self._ct_faces), n_points,
+                    normalization=self.normalization, device=self.device)
+            else:
+                self._targets[n_points] = HypothesisTarget(self.ct_points, self.normalization,
+                                                           self.device)
+        return self._targets[n_points]
 
     def check_points(self, points) -> np.ndarray:
         """The US cloud as ``(N, 3)`` float64, or a clear :class:`InvalidGeometryError`."""
@@ -201,10 +263,21 @@ class Registrar:
                 "Check its units (millimetres) and that it shows this bone.")
         return pts
 
-    def register(self, points, seed: int = 0) -> RegistrationResult:
-        """Register a US bone cloud ``(N, 3)`` (mm, in the CT's patient space) to the CT."""
+    def register(self, points, seed: int = 0, *,
+                 hypotheses: HypothesisConfig | bool | None = None) -> RegistrationResult:
+        """Register a US bone cloud ``(N, 3)`` (mm, in the CT's patient space) to the CT.
+
+        Args:
+            points: the US bone points.
+            seed: seeds torch's generator (the forward pass is deterministic anyway).
+            hypotheses: this call's hypotheses setting (True/False/a config); None = the
+                Registrar's (:attr:`hypothesis_config`).
+        """
+        hyp_cfg = (self.hypothesis_config if hypotheses is None
+                   else as_hypothesis_config(hypotheses))
         t = {}
         encoding = self.encoding  # cached CT half: not part of a registration's time
+        target = self.hypothesis_target(hyp_cfg.target_points) if hyp_cfg.enabled else None
         start = time.perf_counter()
         pts = self.check_points(points)
         torch.manual_seed(int(seed))
@@ -233,21 +306,34 @@ class Registrar:
         mark = time.perf_counter()
         T = norm.transform_to_mm(orthonormalize(icp.transform[0].double().cpu().numpy()))
         T_coarse = norm.transform_to_mm(orthonormalize(coarse[0].double().cpu().numpy()))
-        dense = completion.dense[0].double().cpu().numpy()
-        completion_ct = apply_transform(T, norm.points_to_mm(dense))
-        registered = apply_transform(T, pts)
+        dense = norm.points_to_mm(completion.dense[0].double().cpu().numpy())  # US frame, mm
+        icp_rmse = float(icp.rmse[0]) * norm.scale
         t["postprocess"] = time.perf_counter() - mark
+        hyp, t["hypotheses"] = None, 0.0
+        if hyp_cfg.enabled:
+            mark = time.perf_counter()
+            hyp = search_hypotheses(pts, T, target, dense, hyp_cfg, T_coarse=T_coarse)
+            T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
+            self._sync()
+            t["hypotheses"] = time.perf_counter() - mark
+        mark = time.perf_counter()
+        completion_ct = apply_transform(T, dense)
+        registered = apply_transform(T, pts)
+        t["postprocess"] += time.perf_counter() - mark
         t["total"] = sum(t.values())
         mark = time.perf_counter()
         residuals = self.residuals(registered)
         t["residuals"] = time.perf_counter() - mark
+        info = {"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(t),
+                "residuals_mm": residuals,
+                "hypotheses": None if hyp is None else hyp.to_json()}
+        if hyp is not None:  # the flag where other consumers (the plugin) look for it
+            info.update(ambiguous=hyp.ambiguous, confidence=hyp.confidence)
         return RegistrationResult(
             T_ct_us=T, T_ct_us_coarse=T_coarse, registered_points=registered,
             completion_ct=completion_ct, timings=t, runtime_s=t["total"],
             device=str(self.device), seed=int(seed), residuals=residuals,
-            icp_rmse=float(icp.rmse[0]) * norm.scale, n_points=len(pts),
-            info={"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(t),
-                  "residuals_mm": residuals})
+            icp_rmse=icp_rmse, n_points=len(pts), hypotheses=hyp, info=info)
 
     __call__ = register
 
@@ -273,7 +359,8 @@ class Registrar:
 
 def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
                           out_dir: str | Path, *, device: str = "auto", seed: int = 0,
-                          ct_mesh: str | Path | None = None, icp_points: int | None = None
+                          ct_mesh: str | Path | None = None, icp_points: int | None = None,
+                          hypotheses: HypothesisConfig | bool | None = None
                           ) -> RegistrationResult:
     """Register the US cloud in ``us_points_path`` with the run in ``run_dir``; write ``out_dir``.
 
@@ -283,19 +370,24 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
       3D Slicer writes it: :func:`comreg_core.io.save_transform`).
     - ``registered_us.ply``: the US points mapped into the CT frame (CT space tag).
     - ``completion_ct.ply``: the completed bone in the CT frame.
-    - ``config.yaml``: inputs and settings (run folder, US file, device, seed, ICP points).
+    - ``config.yaml``: inputs and settings (run folder, US file, device, seed, ICP points, the
+      hypotheses settings).
     - ``result.json``: ``T_ct_us``, ``T_ct_us_coarse`` (4x4 mm), ``timings_s`` (per stage),
       ``runtime_s``, ``device``, ``seed``, ``n_points``, ``residuals_mm``, ``icp_rmse_mm``,
-      ``space``, ``ct_fingerprint``, ``run_dir``, ``us_points``, ``files``.
+      ``confidence``, ``ambiguous`` and ``hypotheses`` (:meth:`RegistrationResult.to_json`;
+      null with ``hypotheses=False``), ``space``, ``ct_fingerprint``, ``run_dir``,
+      ``us_points``, ``files``.
 
     The US cloud is converted into the CT's patient space first (PLY/PCD ``SPACE=`` tag).
     """
     import yaml
 
+    from comreg_core.config import to_dict
     from comreg_core.io.pointclouds import PointCloud, read_points, write_points
     from comreg_core.io.transform_files import save_transform
 
-    registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points)
+    registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
+                                   hypotheses=hypotheses)
     cloud = read_points(us_points_path).in_space(registrar.space)
     result = registrar.register(cloud.points, seed=seed)
     out = Path(out_dir)
@@ -310,7 +402,8 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
     write_points(PointCloud(result.completion_ct, registrar.space), out / files["completion_ct"])
     settings = {"run_dir": str(run_dir), "us_points": str(us_points_path), "device": device,
                 "seed": int(seed), "icp_points": registrar.model.config.icp.num_points,
-                "ct_mesh": None if ct_mesh is None else str(ct_mesh)}
+                "ct_mesh": None if ct_mesh is None else str(ct_mesh),
+                "hypotheses": to_dict(registrar.hypothesis_config)}
     with atomic_output(out / files["config"]) as tmp:
         tmp.write_text(yaml.safe_dump({"register": settings}, sort_keys=False), encoding="utf-8")
     payload = {**result.to_json(), "space": registrar.space,
@@ -320,4 +413,9 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
         tmp.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
     log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
              result.runtime_s, result.device, out)
+    if result.ambiguous:
+        log.warning("Ambiguous registration: hypothesis '%s' fits the US points within %.2f mm "
+                    "of '%s' (confidence %.2f); check the result visually.",
+                    result.hypotheses.runner_up, result.hypotheses.score_gap_mm,
+                    result.hypotheses.chosen, result.confidence)
     return result

@@ -19,8 +19,8 @@ from comreg_core.transforms import apply_transform, check_rigid
 from tests.helpers import FIBULA_STL, assert_close
 from tests.training.tiny import tiny_run
 
-TIMING_KEYS = {"preprocess", "completion", "coarse_pose", "icp", "postprocess", "total",
-               "residuals"}
+TIMING_KEYS = {"preprocess", "completion", "coarse_pose", "icp", "hypotheses", "postprocess",
+               "total", "residuals"}
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +65,7 @@ def test_register_returns_a_rigid_transform_and_consistent_outputs(registrar, us
 
 
 def test_staged_forward_equals_the_network_forward(registrar, us_cloud):
-    res = registrar.register(us_cloud)
+    res = registrar.register(us_cloud, hypotheses=False)  # the paper's plain pipeline
     norm = registrar.normalization
     src = torch.from_numpy(norm.points_to_model(us_cloud)).float()[None]
     with torch.no_grad():
@@ -76,14 +76,55 @@ def test_staged_forward_equals_the_network_forward(registrar, us_cloud):
                  res.T_ct_us_coarse, atol=1e-3)
 
 
+def test_hypotheses_stage_is_on_by_default_and_recorded(registrar, us_cloud):
+    res = registrar.register(us_cloud)
+    hyp = res.hypotheses
+    assert registrar.hypothesis_config.enabled and hyp is not None
+    assert res.timings["hypotheses"] > 0 and res.runtime_s == res.timings["total"]
+    assert_close(res.T_ct_us, hyp.T_ct_us, atol=0)
+    assert_close(res.registered_points, apply_transform(res.T_ct_us, us_cloud), atol=1e-9)
+    # the network pose, the coarse pose, its alternatives and the principal-axes solves
+    assert {"network", "coarse", "network+flip", "pca+++"} <= set(hyp.scores)
+    assert hyp.scores[hyp.chosen] == min(hyp.scores.values())
+    assert res.confidence == hyp.confidence and res.ambiguous == hyp.ambiguous
+    assert res.icp_rmse == hyp.best.icp_rmse_mm
+    data = json.loads(json.dumps(res.to_json(), allow_nan=False))
+    assert data["ambiguous"] == hyp.ambiguous and data["confidence"] == hyp.confidence
+    assert data["hypotheses"]["chosen"] == hyp.chosen
+    assert set(data["hypotheses"]["scores_mm"]) == set(hyp.scores)
+    assert res.info["hypotheses"] == hyp.to_json()
+    assert res.info["ambiguous"] == hyp.ambiguous and res.info["confidence"] == hyp.confidence
+
+
+def test_hypotheses_off_is_the_plain_pipeline(run, registrar, us_cloud):
+    plain = Registrar.from_run(run, device="cpu", hypotheses=False)
+    assert not plain.hypothesis_config.enabled
+    a = plain.register(us_cloud, seed=3)
+    b = registrar.register(us_cloud, seed=3, hypotheses=False)
+    for res in (a, b):
+        assert res.hypotheses is None and res.confidence is None and res.ambiguous is None
+        assert res.timings["hypotheses"] == 0.0
+        data = res.to_json()
+        assert data["ambiguous"] is None and data["hypotheses"] is None
+        assert "ambiguous" not in res.info and res.info["hypotheses"] is None
+    assert np.array_equal(a.T_ct_us, b.T_ct_us) and np.array_equal(a.completion_ct,
+                                                                   b.completion_ct)
+    assert a.icp_rmse == b.icp_rmse
+    # and the plain Registrar can still run the stage for one call
+    assert plain.register(us_cloud, hypotheses=True).hypotheses is not None
+
+
 def test_register_to_directory_writes_the_result_folder(run, registrar, us_cloud, tmp_path):
     us_path = write_points(PointCloud(us_cloud, registrar.space), tmp_path / "us.ply")
     out = tmp_path / "out"
     res = register_to_directory(run, us_path, out, device="cpu", seed=7, ct_mesh=FIBULA_STL)
     data = json.loads((out / "result.json").read_text())
     for key in ("T_ct_us", "T_ct_us_coarse", "timings_s", "runtime_s", "device", "seed",
-                "residuals_mm", "n_points", "space", "ct_fingerprint", "files"):
+                "residuals_mm", "n_points", "space", "ct_fingerprint", "files", "confidence",
+                "ambiguous", "hypotheses"):
         assert key in data, key
+    assert data["ambiguous"] == res.ambiguous and data["hypotheses"]["chosen"] == \
+        res.hypotheses.chosen
     assert data["seed"] == 7 and data["device"] == "cpu" and data["n_points"] == len(us_cloud)
     assert set(data["timings_s"]) == TIMING_KEYS
     assert_close(np.array(data["T_ct_us"]), res.T_ct_us, atol=0)
@@ -92,8 +133,16 @@ def test_register_to_directory_writes_the_result_folder(run, registrar, us_cloud
     registered = read_points(out / "registered_us.ply")
     assert_close(registered.points, apply_transform(res.T_ct_us, us_cloud), atol=1e-3)
     assert len(read_points(out / "completion_ct.ply").points) == len(res.completion_ct)
-    assert (out / "config.yaml").is_file()
+    import yaml
+
+    settings = yaml.safe_load((out / "config.yaml").read_text())["register"]
+    assert settings["hypotheses"]["enabled"] is True
     assert not list(out.glob(".*tmp*"))
+    plain = register_to_directory(run, us_path, tmp_path / "plain", device="cpu",
+                                  hypotheses=False)
+    data = json.loads((tmp_path / "plain" / "result.json").read_text())
+    assert data["ambiguous"] is None and data["hypotheses"] is None
+    assert plain.hypotheses is None
 
 
 def test_ct_fingerprint_mismatch_is_a_clear_error(run, tmp_path):

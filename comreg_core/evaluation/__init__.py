@@ -5,6 +5,8 @@
   ground truth ``icp-gt`` (numpy/scipy), :class:`BaselineConfig`.
 - :mod:`.evaluate`: :func:`evaluate` (random initial poses -> methods -> ``metrics.json`` dict),
   :func:`write_metrics`, :func:`simulated_us_clouds` (seeds disjoint from training).
+- :mod:`.methods`: the methods by name (``comreg`` with the hypotheses stage, ``comreg-plain``
+  without it, the baselines, ``all``): :func:`registration_methods`.
 
 Typical use::
 
@@ -21,6 +23,8 @@ from comreg_core.evaluation.baselines import (BASELINES, BaselineConfig, IcpGtBa
 from comreg_core.evaluation.evaluate import (EVALUATION_SEED_NAMESPACE, PERTURBATIONS,
                                              evaluate, evaluation_rng, simulated_us_clouds,
                                              summarize, write_metrics)
+from comreg_core.evaluation.methods import (COMREG_METHODS, METHODS, method_names,
+                                            registration_methods)
 from comreg_core.evaluation.metrics import (FLIP_RRE_DEG, SUCCESS_RRE_DEG, SUCCESS_RTE_MM,
                                             SurfaceReference, as_surface, chamfer_l1,
                                             completion_metrics, hd95, is_flip, is_success,
@@ -37,5 +41,6 @@ __all__ = [
     "SUCCESS_RRE_DEG", "SUCCESS_RTE_MM", "SurfaceReference", "as_surface", "chamfer_l1",
     "completion_metrics", "hd95", "is_flip", "is_success", "nearest_distances",
     "registration_metrics", "rotation_error_deg", "translation_error_mm",
-    "RegistrationOutput", "as_registration_output",
+    "RegistrationOutput", "as_registration_output", "COMREG_METHODS", "METHODS", "method_names",
+    "registration_methods",
 ]

@@ -21,14 +21,19 @@ identity unless given):
                  "CD_mm": .., "HD95_mm": .., "completion_CD_mm": null, "completion_HD95_mm": null,
                  "runtime_s": .., "wall_s": .., "success": true, "flip": false,
                  "initial_RTE_mm": .., "initial_RRE_deg": .., "T_ct_us": [[..] x4],
-                 "T_ct_us_gt": [[..] x4], "error": null, "info": {..}}, ...],
+                 "T_ct_us_gt": [[..] x4], "confidence": null, "ambiguous": null, "error": null,
+                 "info": {..}}, ...],
      "summary": {"<method>": {"RTE_mm": {"mean": .., "std": .., "median": ..}, "RRE_deg": {..},
                  "CD_mm": {..}, "HD95_mm": {..}, "completion_CD_mm": {..},
                  "completion_HD95_mm": {..}, "runtime_s": {..}, "success_rate": ..,
-                 "flip_rate": .., "trials": .., "failures": ..}}}
+                 "flip_rate": .., "ambiguous_rate": .., "unflagged_flip_rate": ..,
+                 "trials": .., "failures": ..}}}
 
 Rates are fractions in [0, 1] of *all* trials of the method (a failed trial is neither a success
-nor a flip). Statistics (numpy mean, population std with ``ddof=0``, median) are over the trials
+nor a flip). ``confidence`` and ``ambiguous`` are the method's own verdict on its result (ComReg
+with its hypotheses stage, :mod:`comreg_core.hypotheses`; null for methods without one);
+``ambiguous_rate`` is the share of trials flagged ambiguous and ``unflagged_flip_rate`` the share
+that are flips *not* flagged (silent flips), both null for a method that flags nothing. Statistics (numpy mean, population std with ``ddof=0``, median) are over the trials
 with a value; ``null`` where there is none (e.g. completion metrics of a method without a
 completion). A method that raises :class:`~comreg_core.errors.ComRegError` (or returns an
 unusable transform) fails that trial: its row has ``"error"`` and ``null`` metrics. Any other
@@ -235,7 +240,7 @@ def _trial(k, name, method, moved, truth, cloud_index, surface, initial, n_ct_sa
     row.update({m: None for m in ("RTE_mm", "RRE_deg", "CD_mm", "HD95_mm", "completion_CD_mm",
                                   "completion_HD95_mm", "runtime_s", "wall_s")})
     row.update(success=False, flip=False, **initial, T_ct_us=None, T_ct_us_gt=truth.tolist(),
-               error=None, info={})
+               confidence=None, ambiguous=None, error=None, info={})
     t0 = time.perf_counter()
     try:
         if getattr(method, "needs_ground_truth", False):
@@ -252,7 +257,7 @@ def _trial(k, name, method, moved, truth, cloud_index, surface, initial, n_ct_sa
     if out.completion is not None:
         row.update(completion_metrics(out.completion, truth, surface, n_ct_samples=n_ct_samples))
     row.update(runtime_s=out.runtime_s, wall_s=wall, T_ct_us=out.T_ct_us.tolist(),
-               info=_jsonable(out.info))
+               confidence=out.confidence, ambiguous=out.ambiguous, info=_jsonable(out.info))
     log.info("Trial %d %s: RTE %.2f mm, RRE %.2f deg, %.2f s", k, name, row["RTE_mm"],
              row["RRE_deg"], out.runtime_s)
     return row
@@ -276,6 +281,13 @@ def summarize(rows: list[dict[str, Any]], methods: list[str] | None = None) -> d
         n = len(mine)
         entry["success_rate"] = sum(bool(r["success"]) for r in mine) / n if n else None
         entry["flip_rate"] = sum(bool(r["flip"]) for r in mine) / n if n else None
+        flags = [r.get("ambiguous") for r in mine]
+        if n and any(f is not None for f in flags):
+            entry["ambiguous_rate"] = sum(bool(f) for f in flags) / n
+            entry["unflagged_flip_rate"] = sum(bool(r["flip"]) and not r.get("ambiguous")
+                                               for r in mine) / n
+        else:
+            entry["ambiguous_rate"] = entry["unflagged_flip_rate"] = None
         entry["trials"] = n
         entry["failures"] = sum(r["error"] is not None for r in mine)
         summary[name] = entry

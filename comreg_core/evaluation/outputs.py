@@ -24,12 +24,17 @@ class RegistrationOutput:
         completion: optional ``(M, 3)`` completed bone in the frame of the cloud the method
             received (the network's ``T_hat^t``), mm.
         info: method-specific extras (fitness values, iterations, ...), JSON-able.
+        confidence: the method's own confidence in [0, 1], None if it gives none (ComReg's
+            hypotheses stage: :mod:`comreg_core.hypotheses`).
+        ambiguous: whether the method flags its result as ambiguous, None if it cannot.
     """
 
     T_ct_us: np.ndarray
     runtime_s: float
     completion: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
+    confidence: float | None = None
+    ambiguous: bool | None = None
 
 
 def as_registration_output(result: Any, wall_s: float) -> RegistrationOutput:
@@ -38,7 +43,8 @@ def as_registration_output(result: Any, wall_s: float) -> RegistrationOutput:
     Accepted: a :class:`RegistrationOutput`; any object or mapping with ``T_ct_us`` and optionally
     ``runtime_s`` (else the measured ``wall_s``), ``completion`` (in the received cloud's frame)
     or ``completion_ct`` (in the CT frame under the method's own ``T_ct_us``; mapped back with its
-    inverse), and ``info``; or a bare ``(4, 4)`` array (runtime = ``wall_s``).
+    inverse), ``info``, ``confidence`` and ``ambiguous``; or a bare ``(4, 4)`` array (runtime =
+    ``wall_s``).
 
     Raises:
         InvalidTransformError: ``T_ct_us`` is not a finite rigid 4x4 matrix.
@@ -75,4 +81,7 @@ def as_registration_output(result: Any, wall_s: float) -> RegistrationOutput:
     if completion is not None and len(completion) == 0:
         completion = None
     info = get("info") or {}
-    return RegistrationOutput(T, runtime, completion, dict(info))
+    confidence, ambiguous = get("confidence"), get("ambiguous")
+    return RegistrationOutput(T, runtime, completion, dict(info),
+                              None if confidence is None else float(confidence),
+                              None if ambiguous is None else bool(ambiguous))

@@ -208,6 +208,23 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     assert_close(load_transform(out / "transform.tfm"), np.asarray(saved["T_ct_us"]), atol=1e-9)
     T = np.asarray(saved["T_ct_us"])
     assert_close(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9, what="rigid")
+    assert isinstance(saved["ambiguous"], bool) and "hypothesis '" in result.output
+    assert saved["hypotheses"]["chosen"] in saved["hypotheses"]["scores_mm"]
+    result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out",
+                                 str(tmp_path / "plain"), "--no-hypotheses"])
+    assert result.exit_code == 0, result.output
+    plain = json.loads((tmp_path / "plain" / "result.json").read_text())
+    assert plain["ambiguous"] is None and plain["hypotheses"] is None
+    assert plain["timings_s"]["hypotheses"] == 0.0
+    result = runner.invoke(app, ["evaluate", str(run), str(tmp_path / "us.ply"), "--out",
+                                 str(tmp_path / "both"), "--trials", "1", "--method", "comreg",
+                                 "--method", "comreg-plain", "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    both = json.loads((tmp_path / "both" / "metrics.json").read_text())
+    assert list(both["summary"]) == ["comreg", "comreg-plain"]
+    assert both["summary"]["comreg-plain"]["ambiguous_rate"] is None
+    assert both["summary"]["comreg"]["ambiguous_rate"] is not None
+    assert "flagged ambiguous" in result.output
 
     other = tmp_path / "other.stl"  # another CT: the fibula moved by 5 mm
     write_mesh(SurfaceMesh(mesh.vertices + 5.0, mesh.faces), other)

@@ -20,8 +20,8 @@ from tests.helpers import FIBULA_STL, assert_close, random_rigid
 NAMESPACE = 0x4556414C  # documented first spawn-key word of evaluation streams ("EVAL")
 STAT_KEYS = {"mean", "std", "median"}
 SUMMARY_KEYS = {"RTE_mm", "RRE_deg", "CD_mm", "HD95_mm", "completion_CD_mm",
-                "completion_HD95_mm", "runtime_s", "success_rate", "flip_rate", "trials",
-                "failures"}
+                "completion_HD95_mm", "runtime_s", "success_rate", "flip_rate", "ambiguous_rate",
+                "unflagged_flip_rate", "trials", "failures"}
 
 
 def _about(R_deg, centre):
@@ -317,3 +317,35 @@ def test_evaluate_on_simulated_sweeps(fibula_bone):
     assert s["success_rate"] == 1.0 and s["RTE_mm"]["mean"] < 1e-9
     # CD of the ground truth is the simulated false hits' share only: HD95 ~ 0
     assert s["HD95_mm"]["median"] < 1e-3
+
+
+def test_ambiguity_flags_are_recorded_and_summarised(box_mesh, box_surface, box_cloud):
+    """A method's own confidence/ambiguous verdict lands in its rows; the summary counts the
+    flagged trials and the flips that were *not* flagged (silent flips)."""
+    calls = {"n": 0}
+
+    def flagging(points, T_ct_us_gt):
+        # trials 0, 1: flipped (0 flagged, 1 silent); trial 2: right and flagged; 3: right
+        k = calls["n"]
+        calls["n"] += 1
+        c = apply_transform(T_ct_us_gt, points).mean(axis=0)
+        T = _about([180, 0, 0], c) @ T_ct_us_gt if k < 2 else T_ct_us_gt
+        return {"T_ct_us": T, "confidence": 0.9 if k in (1, 3) else 0.05,
+                "ambiguous": k in (0, 2)}
+
+    flagging.needs_ground_truth = True
+    result = evaluate({"flagging": flagging, "oracle": Oracle(box_surface)}, box_cloud,
+                      box_mesh, trials=4, seed=0)
+    rows = [r for r in result["trials"] if r["method"] == "flagging"]
+    assert [r["ambiguous"] for r in rows] == [True, False, True, False]
+    assert [r["confidence"] for r in rows] == [0.05, 0.9, 0.05, 0.9]
+    assert [r["flip"] for r in rows] == [True, True, False, False]
+    s = result["summary"]
+    assert s["flagging"]["ambiguous_rate"] == 0.5
+    assert s["flagging"]["unflagged_flip_rate"] == 0.25
+    assert s["flagging"]["flip_rate"] == 0.5
+    # a method without a verdict: null rates and null row fields
+    assert s["oracle"]["ambiguous_rate"] is None and s["oracle"]["unflagged_flip_rate"] is None
+    assert all(r["ambiguous"] is None and r["confidence"] is None
+               for r in result["trials"] if r["method"] == "oracle")
+    json.dumps(result, allow_nan=False)

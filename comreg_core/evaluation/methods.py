@@ -1,0 +1,78 @@
+"""Registration methods by name, as ``comreg evaluate --method`` offers them.
+
+- ``comreg``: the pretrained run with the test-time hypotheses stage (the default pipeline;
+  :mod:`comreg_core.hypotheses`);
+- ``comreg-plain``: the same network without it (the paper's plain pipeline);
+- ``ransac``, ``icp-gt``: the baselines (:mod:`.baselines`);
+- ``all``: every one of them.
+
+``comreg`` and ``comreg-plain`` share one loaded network (one
+:class:`~comreg_core.inference.Registrar`, its CT half encoded once); ``comreg-plain`` calls it
+with ``hypotheses=False``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable
+from typing import Any
+
+from comreg_core.errors import ComRegError
+from comreg_core.evaluation.baselines import BASELINES, BaselineConfig, baseline_methods
+
+COMREG_METHODS = ("comreg", "comreg-plain")
+#: Every method name, in the order ``all`` runs them.
+METHODS = COMREG_METHODS + BASELINES
+
+
+def method_names(names: str | Iterable[str]) -> list[str]:
+    """The requested names with ``all`` expanded and duplicates dropped, in the order given;
+    unknown names raise :class:`ComRegError` listing the known ones."""
+    names = [names] if isinstance(names, str) else list(names)
+    out: list[str] = []
+    for name in names:
+        for item in (METHODS if name == "all" else (name,)):
+            if item not in METHODS:
+                raise ComRegError(f"Unknown registration method '{item}'.",
+                                  f"Use one of: {', '.join(METHODS)}, all.")
+            if item not in out:
+                out.append(item)
+    if not out:
+        raise ComRegError("No registration method was chosen.",
+                          f"Use one or more of: {', '.join(METHODS)}, all.")
+    return out
+
+
+def registration_methods(names: str | Iterable[str], run_dir, ct_mesh, *, device: str = "auto",
+                         seed: int = 0, hypotheses=None,
+                         baseline_config: BaselineConfig | None = None) -> dict[str, Any]:
+    """``{name: method}`` for :func:`~comreg_core.evaluation.evaluate`.
+
+    Args:
+        names: method names (:data:`METHODS`, or ``all``).
+        run_dir: the pretrained run (needed for ``comreg`` / ``comreg-plain``).
+        ct_mesh: the CT surface (the baselines; a fingerprint check of the run).
+        device: where the network runs.
+        seed: the baselines' seed.
+        hypotheses: the ``comreg`` method's hypotheses settings (None = the defaults; see
+            :class:`~comreg_core.hypotheses.HypothesisConfig`).
+        baseline_config: the baselines' settings.
+    """
+    names = method_names(names)
+    methods: dict[str, Any] = {}
+    if any(name in COMREG_METHODS for name in names):
+        from comreg_core.hypotheses import as_hypothesis_config
+        from comreg_core.inference import Registrar
+
+        config = as_hypothesis_config(hypotheses)
+        if "comreg" in names and not config.enabled:
+            raise ComRegError("The 'comreg' method was asked for with its hypotheses stage off.",
+                              "Use the method 'comreg-plain' for the plain pipeline.")
+        registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, hypotheses=config)
+        plain = functools.partial(registrar.register, hypotheses=False)
+        comreg = {"comreg": registrar, "comreg-plain": plain}
+    baselines = [name for name in names if name in BASELINES]
+    built = baseline_methods(baselines, ct_mesh, baseline_config, seed=seed) if baselines else {}
+    for name in names:
+        methods[name] = comreg[name] if name in COMREG_METHODS else built[name]
+    return methods

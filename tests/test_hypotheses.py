@@ -1,0 +1,269 @@
+"""The test-time hypotheses stage on its own (no network): ambiguity flag, flip recovery, the
+score and confidence definitions, and the config checks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from comreg_core.config import ConfigError
+from comreg_core.evaluation.metrics import SurfaceReference
+from comreg_core.hypotheses import (HypothesisConfig, HypothesisTarget, as_hypothesis_config,
+                                    build_hypotheses, point_to_plane_icp_batch,
+                                    rotation_about, search_hypotheses)
+from comreg_core.transforms import apply_transform, invert_rigid
+from tests.helpers import FIBULA_STL, assert_close
+
+
+def _errors(T_est, T_true, points):
+    """(RTE mm at the centroid of ``points``, RRE deg by scipy's Rotation) of a T_ct_us."""
+    c = points.mean(axis=0)
+    rte = float(np.linalg.norm(apply_transform(T_est, c[None]) - apply_transform(T_true,
+                                                                                c[None])))
+    rre = float(np.degrees(Rotation.from_matrix(T_est[:3, :3].T @ T_true[:3, :3]).magnitude()))
+    return rte, rre
+
+
+def _rigid(rotvec_deg, translation) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    T[:3, 3] = translation
+    return T
+
+
+def _perturb(T, centre, degrees, mm, seed) -> np.ndarray:
+    """``T`` followed by a rotation of ``degrees`` about a random axis through ``centre`` and a
+    shift of ``mm`` in a random direction (CT frame)."""
+    rng = np.random.default_rng(seed)
+    axis, direction = rng.normal(size=3), rng.normal(size=3)
+    shift = np.eye(4)
+    shift[:3, 3] = direction / np.linalg.norm(direction) * mm
+    return shift @ rotation_about(centre, axis, math.radians(degrees)) @ T
+
+
+# --- the fibula: a distinctive patch ----------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def fibula_target(shared_data):
+    return HypothesisTarget.from_mesh(FIBULA_STL)
+
+
+@pytest.fixture(scope="module")
+def distal_patch(fibula_target):
+    """The fibula's distal end (the malleolus, at the +long-axis end): area-uniform CT surface
+    points (another seed than the target's) within 40 mm of the end along the long axis, moved
+    into a 'US frame' by a known transform. Returns (us_points, T_ct_us truth, CT points)."""
+    surface = SurfaceReference(FIBULA_STL, sample_seed=11)
+    points, _ = surface.samples(40_000)
+    axis = fibula_target.axes[:, 0]
+    along = (points - fibula_target.centre) @ axis
+    if abs(along.min()) > along.max():  # make +axis the distal end (the CT's +z side here)
+        along = -along
+    patch = points[along > along.max() - 40.0]
+    T_us_ct = _rigid([20.0, -35.0, 50.0], [30.0, -12.0, 80.0])
+    return apply_transform(T_us_ct, patch), invert_rigid(T_us_ct), patch
+
+
+def test_distal_patch_near_start_lands_and_is_not_ambiguous(fibula_target, distal_patch):
+    us, truth, ct_patch = distal_patch
+    assert 1000 < len(us) < 10_000
+    start = _perturb(truth, ct_patch.mean(axis=0), degrees=6.0, mm=4.0, seed=1)
+    assert _errors(start, truth, us)[1] > 5.0
+    result = search_hypotheses(us, start, fibula_target)
+    rte, rre = _errors(result.T_ct_us, truth, us)
+    assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen)
+    assert not result.ambiguous and result.confidence > 0.3, result.to_json()
+    assert result.runner_up is not None and result.score_gap_mm >= 0.2
+
+
+@pytest.mark.parametrize("short_axis", [1, 2])
+@pytest.mark.parametrize("with_completion", [False, True])
+def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_patch,
+                                                        short_axis, with_completion):
+    """A coarse pose flipped end to end (180 deg about a short axis through the bone centre,
+    plus a few degrees) is recovered, with or without a (perfect) completion."""
+    us, truth, ct_patch = distal_patch
+    flip = rotation_about(fibula_target.centre, fibula_target.axes[:, short_axis], math.pi)
+    start = flip @ _perturb(truth, ct_patch.mean(axis=0), degrees=4.0, mm=3.0, seed=2)
+    assert _errors(start, truth, us)[1] > 170.0
+    completion = None
+    if with_completion:
+        whole, _ = SurfaceReference(FIBULA_STL, sample_seed=5).samples(4000)
+        completion = apply_transform(invert_rigid(truth), whole)  # the bone in the US frame
+    result = search_hypotheses(us, start, fibula_target, completion)
+    rte, rre = _errors(result.T_ct_us, truth, us)
+    assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen, result.scores)
+    assert result.chosen != "network" and not result.ambiguous
+    if with_completion:
+        assert {"pca+++", "pca--+", "pca-+-", "pca+--"} <= set(result.scores)
+    # the unflipped network pose itself ends up far away and scores clearly worse
+    network = next(h for h in result.hypotheses if h.name == "network")
+    assert _errors(network.T_ct_us, truth, us)[1] > 90.0
+    assert network.score_mm > result.best.score_mm + 0.5
+
+
+def test_score_and_confidence_follow_their_definitions(fibula_target, distal_patch):
+    us, truth, ct_patch = distal_patch
+    config = HypothesisConfig(icp_points=1024)
+    start = _perturb(truth, ct_patch.mean(axis=0), degrees=3.0, mm=2.0, seed=3)
+    result = search_hypotheses(us, start, fibula_target, config=config)
+    # the score: trimmed mean distance to the tangent plane of the nearest CT point (scipy's
+    # KD-tree here) of the ICP subset of the US points (recomputed with the same FPS)
+    import torch
+
+    from comreg_core.model.ops import subsample
+
+    norm = fibula_target.normalization
+    sub = torch.from_numpy(norm.points_to_model(us)).float()[None]
+    sub_mm = norm.points_to_mm(subsample(sub, config.icp_points, 0)[0].double().numpy())
+    tree = cKDTree(fibula_target.points)
+    keep = len(sub_mm) - int(config.score_trim * len(sub_mm))
+    for h in result.hypotheses:
+        moved = apply_transform(h.T_ct_us, sub_mm)
+        idx = tree.query(moved)[1]
+        d = np.sort([abs(np.dot(p - fibula_target.points[i], fibula_target.normals[i]))
+                     for p, i in zip(moved, idx)])
+        assert_close(h.score_mm, d[:keep].mean(), rtol=1e-9, what=f"score of {h.name}")
+    # the choice, runner-up, gap and confidence
+    scores = result.scores
+    assert result.chosen == min(scores, key=scores.get)
+    best = result.best
+
+    def different(h):
+        rte, rre = _errors(h.T_ct_us, best.T_ct_us, us)
+        return rre > config.distinct_deg or rte > config.distinct_mm
+
+    distinct = [h for h in result.hypotheses if h.name != best.name and different(h)]
+    runner = min(distinct, key=lambda h: h.score_mm)
+    assert result.runner_up == runner.name
+    assert_close(result.score_gap_mm, runner.score_mm - best.score_mm, atol=1e-12)
+    assert_close(result.confidence, 1.0 - best.score_mm / runner.score_mm, atol=1e-12)
+    assert result.ambiguous == (result.score_gap_mm < config.ambiguity_gap_mm)
+    data = result.to_json()
+    assert data["scores_mm"] == scores and data["chosen"] == result.chosen
+    import json
+
+    json.dumps(data, allow_nan=False)
+
+
+# --- a symmetric shape: a cylinder ---------------------------------------------------------
+
+def test_cylinder_patch_is_flagged_ambiguous():
+    """CT = a closed cylinder (r 12 mm, 240 mm long); US = a quarter of its mantle, 80 mm long,
+    in the middle: turned about the axis or flipped end to end, it fits just as well."""
+    mesh = trimesh.creation.cylinder(radius=12.0, height=240.0, sections=128)
+    target = HypothesisTarget.from_mesh((np.asarray(mesh.vertices), np.asarray(mesh.faces)))
+    rng = np.random.default_rng(4)
+    theta, z = rng.uniform(0.0, np.pi / 2, 2000), rng.uniform(-40.0, 40.0, 2000)
+    patch = np.column_stack([12.0 * np.cos(theta), 12.0 * np.sin(theta), z])
+    T_us_ct = _rigid([-40.0, 10.0, 75.0], [100.0, 20.0, -50.0])
+    us, truth = apply_transform(T_us_ct, patch), invert_rigid(T_us_ct)
+    result = search_hypotheses(us, truth, target)
+    assert result.ambiguous, result.to_json()
+    assert result.runner_up is not None and result.score_gap_mm < 0.05
+    assert result.confidence < 0.2
+    # the runner-up is a genuinely different pose (e.g. turned about the axis), not a duplicate
+    runner = next(h for h in result.hypotheses if h.name == result.runner_up)
+    rte, rre = _errors(runner.T_ct_us, result.T_ct_us, us)
+    assert rre > 10.0 or rte > 5.0
+    # every hypothesis fits the cylinder (the patch lies on it in all of these poses)
+    assert max(result.scores.values()) < 0.05
+
+
+# --- hypotheses, refinement, options --------------------------------------------------------
+
+def test_the_hypotheses_built(fibula_target):
+    T = _rigid([10.0, 0.0, 0.0], [1.0, 2.0, 3.0])
+    starts = build_hypotheses(T, fibula_target, None, HypothesisConfig(shaft_rotations=4),
+                              T_coarse=np.eye(4))
+    assert list(starts)[0] == "network" and "coarse" in starts
+    assert len(starts) == 4 * 2 + 1  # dihedral group of 4 rotations x flips, + the coarse
+    assert_close(starts["network"], T, atol=0)
+    c, axes = fibula_target.centre, fibula_target.axes
+    # rot180 about the long axis = flip about a1 then about a2 (the Klein four-group)
+    flip2 = rotation_about(c, axes[:, 2], math.pi)
+    assert_close(starts["network+rot180"], flip2 @ starts["network+flip"], atol=1e-9)
+    for name, G in starts.items():
+        R = G[:3, :3]
+        assert_close(R.T @ R, np.eye(3), atol=1e-9, what=name)
+        assert np.linalg.det(R) > 0
+    only = build_hypotheses(T, fibula_target, None,
+                            HypothesisConfig(shaft_rotations=1, axis_flips=False,
+                                             include_coarse=False), T_coarse=np.eye(4))
+    assert list(only) == ["network"]
+    completion = fibula_target.points
+    full = build_hypotheses(T, fibula_target, completion, HypothesisConfig())
+    # the principal-axes solves of the CT cloud against itself: the identity is one of them
+    assert min(np.abs(full[n] - np.eye(4)).max() for n in ("pca+++", "pca--+", "pca-+-",
+                                                            "pca+--")) < 1e-6
+    # every rotation hypothesis has a centred copy: same rotation, the completion's centroid
+    # moved onto the CT's
+    rotations = [n for n in full if n.startswith("network") and not n.endswith("+centred")]
+    assert len(rotations) == 8 and all(f"{n}+centred" in full for n in rotations)
+    for name in rotations:
+        centred = full[f"{name}+centred"]
+        assert_close(centred[:3, :3], full[name][:3, :3], atol=1e-12)
+        assert_close(apply_transform(centred, completion).mean(axis=0), fibula_target.centre,
+                     atol=1e-9, what=f"centroid of {name}+centred")
+    assert len(full) == 8 + 8 + 4
+
+
+def test_point_to_plane_batch_converges_from_several_starts(fibula_target, distal_patch):
+    us, truth, ct_patch = distal_patch
+    starts = np.stack([truth] + [_perturb(truth, ct_patch.mean(0), 5.0, 3.0, s)
+                                 for s in range(3)])
+    refined, rmse = point_to_plane_icp_batch(us[::4], starts, fibula_target, iterations=50,
+                                             trim_fraction=0.1)
+    assert refined.shape == (4, 4, 4) and rmse.shape == (4,)
+    for T in refined:
+        rte, rre = _errors(T, truth, us)
+        assert rte < 0.5 and rre < 0.5, (rte, rre)
+    assert (rmse < 0.5).all()
+
+
+@pytest.mark.parametrize("mode", ["hard", "soft"])
+def test_point_to_point_modes_run(fibula_target, distal_patch, mode):
+    us, truth, _ = distal_patch
+    result = search_hypotheses(us, truth, fibula_target,
+                               config=HypothesisConfig(icp_mode=mode, icp_points=512,
+                                                       icp_iterations=5))
+    rte, rre = _errors(result.T_ct_us, truth, us)
+    assert rte < 3.0 and rre < 3.0 and math.isfinite(result.best.icp_rmse_mm)
+
+
+def test_target_from_points_estimates_normals():
+    """Without a mesh the normals come from local PCA: on a sphere they are radial."""
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(5000, 3))
+    v = 50.0 * v / np.linalg.norm(v, axis=1, keepdims=True)
+    target = HypothesisTarget(v)
+    cos = np.abs(np.einsum("ij,ij->i", target.normals, v / 50.0))
+    assert np.median(cos) > 0.99
+
+
+@pytest.mark.parametrize("key, value", [
+    ("shaft_rotations", 0), ("shaft_rotations", 37), ("icp_points", 2), ("target_points", 10),
+    ("icp_iterations", -1), ("icp_mode", "dense"), ("icp_sigma", 0.0), ("icp_neighbors", 0),
+    ("icp_trim", 1.0), ("score_trim", -0.1), ("distinct_deg", 0.0), ("distinct_mm", -1.0),
+    ("ambiguity_gap_mm", -0.5), ("icp_coarse_points", 3), ("icp_fine_iterations", -2),
+])
+def test_config_validation(key, value):
+    with pytest.raises(ConfigError, match=f"hypotheses.{key}"):
+        HypothesisConfig(**{key: value})
+
+
+def test_config_from_settings():
+    assert as_hypothesis_config(None) == HypothesisConfig()
+    assert as_hypothesis_config(True).enabled and not as_hypothesis_config(False).enabled
+    assert as_hypothesis_config({"shaft_rotations": 6}).shaft_rotations == 6
+    with pytest.raises(ConfigError, match="Unknown config key"):
+        as_hypothesis_config({"flips": True})
+    with pytest.raises(ConfigError, match="must be an integer"):
+        as_hypothesis_config({"shaft_rotations": "six"})
+    with pytest.raises(ConfigError, match="hypotheses setting"):
+        as_hypothesis_config(3)
