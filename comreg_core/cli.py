@@ -255,23 +255,37 @@ def register(
     seed: int = typer.Option(0, "--seed", min=0),
     ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="The CT mesh, to check that the "
                                            "run was trained for it."),
+    hypotheses: bool = typer.Option(True, "--hypotheses/--no-hypotheses", help="After the "
+                                    "network, also try the symmetric alternatives of its pose "
+                                    "(flipped end to end, turned about the shaft), keep the one "
+                                    "that fits the CT best and flag the result ambiguous when "
+                                    "another pose fits about as well. --no-hypotheses is the "
+                                    "paper's plain pipeline."),
 ) -> None:
-    """Register a US bone surface to the CT in one forward pass (completion, coarse pose, ICP).
+    """Register a US bone surface to the CT in one forward pass (completion, coarse pose, ICP),
+    then check the pose against its symmetric alternatives (unless --no-hypotheses).
 
-    Writes result.json (T_ct_us 4x4 in mm, the coarse transform, timings, residuals),
-    transform.tfm (ITK, LPS, as 3D Slicer reads it), registered_us.ply and completion_ct.ply in
-    the CT frame.
+    Writes result.json (T_ct_us 4x4 in mm, the coarse transform, timings, residuals, the
+    chosen hypothesis, confidence and the ambiguous flag), transform.tfm (ITK, LPS, as 3D Slicer
+    reads it), registered_us.ply and completion_ct.ply in the CT frame.
     """
     from comreg_core.inference import register_to_directory
 
     result = register_to_directory(run_dir, us_points, out, device=device.value, seed=seed,
-                                   ct_mesh=ct_mesh)
+                                   ct_mesh=ct_mesh, hypotheses=hypotheses)
     typer.echo(f"wrote {out}: {result.n_points} points registered in {result.runtime_s:.2f} s on "
                f"{result.device}; median residual {result.residuals['median']:.2f} mm")
+    if result.hypotheses is not None:
+        h = result.hypotheses
+        gap = "no competing pose" if h.score_gap_mm is None else \
+            f"next different pose ('{h.runner_up}') {h.score_gap_mm:.2f} mm worse"
+        typer.echo(f"hypothesis '{h.chosen}', {gap}; confidence {h.confidence:.2f}"
+                   + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
 
 
 class Method(str, Enum):
     comreg = "comreg"
+    comreg_plain = "comreg-plain"
     ransac = "ransac"
     icp_gt = "icp-gt"
     all = "all"
@@ -293,46 +307,46 @@ def evaluate(
     seed: int = typer.Option(0, "--seed", min=0),
     perturbation: Perturbation = typer.Option(Perturbation.paper, help="Initial poses: 'paper' "
                                               "(one axis, +-90 deg, +-100 mm) or 'full' (any "
-                                              "rotation up to 180 deg, up to 500 mm)."),
+                                              "rotation up to 180 deg, up to 500 mm; a run "
+                                              "trained with data.pose: full covers it)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth T_ct_us (.tfm/.h5); "
                                       "identity if omitted."),
-    method: Method = typer.Option(Method.comreg, help="What to evaluate ('all' = every method)."),
+    method: list[Method] = typer.Option(
+        [Method.comreg], "--method", help="What to evaluate; repeat to compare several in one "
+        "run: 'comreg' (with the hypotheses stage), 'comreg-plain' (the paper's pipeline, "
+        "without it), 'ransac', 'icp-gt', or 'all' (every method)."),
     device: Device = typer.Option(Device.auto, help="Where to run the network."),
 ) -> None:
     """Measure registration accuracy from random initial poses: RTE, RRE, CD, HD95, success and
-    flip rates, runtime, for ComReg and the baselines (Open3D RANSAC+FPFH+ICP; ICP from the
-    ground truth), written to metrics.json."""
+    flip rates, runtime (and, for ComReg, how often it flags its result ambiguous), for ComReg
+    with and without its hypotheses stage and the baselines (Open3D RANSAC+FPFH+ICP; ICP from
+    the ground truth), written to metrics.json."""
     from comreg_core.evaluation.evaluate import evaluate as run_evaluation
     from comreg_core.evaluation.evaluate import write_metrics
+    from comreg_core.evaluation.methods import method_names, registration_methods
     from comreg_core.io import load_transform, read_points
     from comreg_core.training import run_ct_mesh
 
     ct = run_ct_mesh(run_dir)
-    names = ["comreg", "ransac", "icp-gt"] if method is Method.all else [method.value]
-    methods = {}
-    if "comreg" in names:
-        from comreg_core.inference import Registrar
-
-        methods["comreg"] = Registrar.from_run(run_dir, device.value, ct_mesh=ct)
-    baselines = [name for name in names if name != "comreg"]
-    if baselines:
-        from comreg_core.evaluation.baselines import baseline_methods
-
-        methods.update(baseline_methods(baselines, ct, seed=seed))
+    names = method_names([m.value for m in method])
+    methods = registration_methods(names, run_dir, ct, device=device.value, seed=seed)
     clouds = "simulated" if us_points == "simulated" else \
         read_points(us_points).in_space(ct.space).points
     T_gt = load_transform(gt, space=ct.space) if gt is not None else None
-    with _progress_bar(trials, "evaluating") as advance:
+    with _progress_bar(trials * len(methods), "evaluating") as advance:
         result = run_evaluation(methods, clouds, ct, trials=trials, seed=seed,
                                 perturbation=perturbation.value, T_gt=T_gt,
                                 progress=lambda done, total: advance(done))
     path = write_metrics(result, Path(out) / "metrics.json")
     typer.echo(f"wrote {path}")
     for name, summary in result["summary"].items():
+        flagged = "" if summary["ambiguous_rate"] is None else (
+            f", flagged ambiguous {summary['ambiguous_rate']:.1%} (unflagged flips "
+            f"{summary['unflagged_flip_rate']:.1%})")
         typer.echo(f"  {name}: success {summary['success_rate']:.1%}, flips "
                    f"{summary['flip_rate']:.1%}, median RTE {summary['RTE_mm']['median']:.2f} mm, "
                    f"median RRE {summary['RRE_deg']['median']:.2f} deg, mean runtime "
-                   f"{summary['runtime_s']['mean']:.2f} s")
+                   f"{summary['runtime_s']['mean']:.2f} s{flagged}")
 
 
 @app.command("report")
@@ -349,6 +363,32 @@ def report(
 
     path = write_report_for_registration(out_dir, ct_mesh=ct_mesh, embed_images=embed_images)
     typer.echo(f"wrote {path}")
+
+
+@app.command("demo")
+@_user_errors
+def demo(
+    out: Path = typer.Option(Path("out/demo"), "--out", "-o", help="Output folder."),
+    device: Device = typer.Option(Device.auto, help="Where to run the network."),
+    trials: int = typer.Option(10, "--trials", min=0, help="Extra random starts evaluated into "
+                               "metrics.json."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the misalignment and trials."),
+    train_minutes: float = typer.Option(10.0, "--train-minutes", min=0.1, help="Pretraining "
+                                        "budget if the bundled model does not fit."),
+) -> None:
+    """Run the whole job on the bundled sample (a cadaver fibula, CC BY 4.0): extract the CT and
+    US bone surfaces, move the US points by a known misalignment, register them with the bundled
+    pretrained model, evaluate, and write an HTML report with screenshots."""
+    from comreg_core.demo import run_demo
+
+    result = run_demo(out, device=device.value, train_minutes=train_minutes, trials=trials,
+                      seed=seed, step=lambda line: typer.echo(f"- {line}"))
+    rates = "" if result.success_rate is None else (
+        f"; {trials} more starts: success {result.success_rate:.0%}, flips "
+        f"{result.flip_rate:.0%}")
+    typer.echo(f"registered {result.n_us_points} US points in {result.runtime_s:.2f} s: error "
+               f"{result.RTE_mm:.2f} mm, {result.RRE_deg:.2f} deg{rates}")
+    typer.echo(f"report: {result.report}")
 
 
 @app.command("info")

@@ -5,7 +5,8 @@ writes a run folder (``config.yaml``, ``ct_fingerprint.json``, ``checkpoint.pt``
 ``training_log.csv``); :class:`comreg_core.inference.Registrar` loads it.
 """
 
-from comreg_core.training.checkpoint import (CheckpointError, ct_fingerprint, load_checkpoint,
+from comreg_core.training.checkpoint import (CheckpointError, ct_fingerprint, export_model,
+                                             load_checkpoint,
                                              mesh_fingerprint, run_ct_mesh)
 from comreg_core.training.config import (PRETRAIN_PRESETS, DataConfig, PretrainConfig,
                                          TrainingConfig, pretrain_preset)
@@ -14,7 +15,7 @@ from comreg_core.training.data import (SampleStream, TrainingCT, make_sample, sa
 from comreg_core.training.trainer import LOG_COLUMNS, TrainResult, pretrain, resolve_device
 
 __all__ = [
-    "CheckpointError", "ct_fingerprint", "load_checkpoint", "mesh_fingerprint", "run_ct_mesh",
+    "CheckpointError", "ct_fingerprint", "export_model", "load_checkpoint", "mesh_fingerprint", "run_ct_mesh",
     "PRETRAIN_PRESETS", "DataConfig", "PretrainConfig", "TrainingConfig", "pretrain_preset",
     "SampleStream", "TrainingCT", "make_sample", "sample_loader", "validation_rng",
     "validation_samples", "LOG_COLUMNS", "TrainResult", "pretrain", "resolve_device",

@@ -120,3 +120,23 @@ def run_ct_mesh(run_dir: str | Path):
     state = load_checkpoint(run_dir)
     return SurfaceMesh(state["ct_vertices"].numpy(), state["ct_faces"].numpy(),
                        str(state.get("ct_space", "LPS")))
+
+
+#: Checkpoint entries a registration needs (no optimiser, scheduler or RNG state).
+MODEL_ENTRIES = ("config_yaml", "ct_fingerprint", "ct_space", "ct_vertices", "ct_faces",
+                 "ct_points", "norm_center", "norm_scale", "epoch", "samples_seen", "elapsed_s")
+
+
+def export_model(run_dir: str | Path, path: str | Path, *, half: bool = True) -> Path:
+    """Write a registration-only copy of a run's checkpoint (e.g. to ship a model).
+
+    Keeps the network weights (as float16 when ``half``: half the size, registration results
+    change by far less than a millimetre), the config, the CT mesh, cloud, fingerprint and
+    normalisation; leaves out the optimiser and scheduler state, so the copy cannot be resumed.
+    :meth:`comreg_core.inference.Registrar.from_run` loads it like a run folder.
+    """
+    state = load_checkpoint(run_dir)
+    slim = {key: state[key] for key in MODEL_ENTRIES if key in state}
+    slim["model"] = {name: (t.half() if half and t.is_floating_point() else t)
+                     for name, t in state["model"].items()}
+    return save_checkpoint(slim, path)

@@ -234,6 +234,10 @@ def _prepare_config(ct_mesh: Path, run_dir: Path, preset: str, config, seed, res
                                   "Start a new run without --resume, or pass the folder of an "
                                   "interrupted run.")
         state = load_checkpoint(ckpt_path)
+        if "optimizer_backbone" not in state:
+            raise CheckpointError(f"'{ckpt_path}' is an exported model (weights only); it cannot "
+                                  "be resumed.", "Resume the original run folder, or start a "
+                                  "new run.")
         cfg = config_from_yaml(state["config_yaml"], f"config stored in '{ckpt_path}'")
         if seed is not None and seed != cfg.seed:
             raise ConfigError(f"The run was started with seed {cfg.seed}, not {seed}.",

@@ -1,0 +1,191 @@
+"""``comreg demo``: the whole job on the bundled sample case, from files to a report.
+
+The sample (``resources/sample``, CC BY 4.0, UltraBones100k, Wu et al. 2025) is a cadaver fibula:
+``fibula.seg.nrrd`` (its CT bone as a 3D Slicer segmentation), ``sweep/`` (37 frames of its real
+tracked freehand sweep, see ``scripts/make_sample_sweep.py``) and ``fibula_cpu.pt`` (a ``cpu``
+preset model pretrained by this project on simulated sweeps of the surface extracted from that
+segmentation, see ``scripts/make_sample_checkpoint.py``). CT and tracking share one frame, so the
+true ``T_ct_us`` of the sweep is the identity (up to about 1 mm of tracking error).
+
+:func:`run_demo` writes into ``out_dir``:
+
+1. ``ct_bone.stl``: the CT bone surface extracted from the segmentation;
+2. ``us_points.ply``: the bone points found in the US frames (CT frame);
+3. ``us_points_moved.ply``: the same points moved by a known rigid misalignment (the paper's
+   perturbation: up to 90 deg about one axis and 100 mm, drawn from ``seed``), as if tracked in
+   another frame; ``T_ct_us_truth.tfm`` undoes it;
+4. ``registration/``: ``comreg register`` of the moved points (``result.json``, ``transform.tfm``,
+   ``registered_us.ply``, ``completion_ct.ply``), ``metrics.json`` (``comreg evaluate`` of
+   ``trials`` more random starts of the same cloud) and ``report.html`` with its screenshots.
+
+Without the bundled model, or when it does not fit the extracted surface (another VTK gives
+another mesh), a model is pretrained first into ``out_dir/run`` for ``train_minutes``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from comreg_core.errors import ComRegError
+from comreg_core.io._files import atomic_output
+
+log = logging.getLogger(__name__)
+
+#: The bundled sample case.
+SAMPLE_DIR = Path(__file__).resolve().parents[1] / "resources" / "sample"
+SAMPLE_SEGMENTATION = SAMPLE_DIR / "fibula.seg.nrrd"
+SAMPLE_SWEEP = SAMPLE_DIR / "sweep"
+SAMPLE_MODEL = SAMPLE_DIR / "fibula_cpu.pt"
+
+#: Called with a line saying what the demo does next.
+Step = Callable[[str], None]
+
+
+@dataclass
+class DemoResult:
+    """What :func:`run_demo` did.
+
+    Attributes:
+        out_dir: the demo folder; report: its ``registration/report.html``.
+        model: the checkpoint used (bundled or freshly trained).
+        trained: whether a model was trained in this run.
+        n_us_points: US bone points extracted from the sweep.
+        RTE_mm, RRE_deg: error of the registration shown in the report (known truth).
+        runtime_s: its registration time (s).
+        success_rate, flip_rate: over the ``trials`` extra random starts (None if 0 trials).
+    """
+
+    out_dir: Path
+    report: Path
+    model: Path
+    trained: bool
+    n_us_points: int
+    RTE_mm: float
+    RRE_deg: float
+    runtime_s: float
+    success_rate: float | None
+    flip_rate: float | None
+
+
+def _sample_files() -> None:
+    for path in (SAMPLE_SEGMENTATION, SAMPLE_SWEEP):
+        if not path.exists():
+            raise ComRegError(f"The bundled sample '{path}' is missing.",
+                              "Run the demo from a full checkout of ComReg (resources/sample).")
+
+
+def write_sample_ct_surface(path: str | Path) -> Path:
+    """Extract the sample's CT bone surface (default options) and write it to ``path``: the mesh
+    the bundled model was trained for (``scripts/make_sample_checkpoint.py`` uses it too)."""
+    from comreg_core.io import read_segmentation, write_mesh
+    from comreg_core.surfaces.ct import extract_bone_surface
+
+    _sample_files()
+    return write_mesh(extract_bone_surface(read_segmentation(SAMPLE_SEGMENTATION),
+                                           name="fibula"), path)
+
+
+def _model_for(ct_path: Path, out_dir: Path, device: str, train_minutes: float,
+               step: Step) -> tuple[Path, bool]:
+    """The bundled model if it was trained for this CT surface, else a freshly trained run."""
+    from comreg_core.io import read_mesh
+    from comreg_core.training import load_checkpoint, mesh_fingerprint, pretrain
+
+    fingerprint = mesh_fingerprint(read_mesh(ct_path))["sha256"]
+    if SAMPLE_MODEL.is_file():
+        if load_checkpoint(SAMPLE_MODEL)["ct_fingerprint"] == fingerprint:
+            return SAMPLE_MODEL, False
+        log.warning("The bundled model '%s' was trained for another CT surface (this VTK "
+                    "extracts a slightly different mesh); training a new one", SAMPLE_MODEL)
+    run_dir = out_dir / "run"
+    if (run_dir / "checkpoint.pt").is_file():
+        try:
+            if load_checkpoint(run_dir)["ct_fingerprint"] == fingerprint:
+                return run_dir, False
+        except ComRegError:
+            pass
+        raise ComRegError(f"'{run_dir}' holds a run for another CT or a broken checkpoint.",
+                          "Delete it or choose another --out.")
+    step(f"pretraining a cpu model for {train_minutes:g} min (no bundled model fits)")
+    pretrain(ct_path, run_dir, preset="cpu", max_minutes=train_minutes, device=device)
+    return run_dir, True
+
+
+def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
+             train_minutes: float = 10.0, trials: int = 10, seed: int = 0,
+             step: Step | None = None) -> DemoResult:
+    """Run the sample case end to end (module docstring); returns a :class:`DemoResult`.
+
+    Args:
+        out_dir: output folder (created; files in it are replaced).
+        device: ``"auto"``, ``"cpu"`` or ``"cuda"``.
+        train_minutes: time budget of the pretraining, if one is needed.
+        trials: extra random starts evaluated into ``metrics.json`` (0 = none).
+        seed: seed of the misalignment and of the trials.
+        step: called with a line before each stage (the CLI prints it).
+    """
+    from comreg_core.evaluation.evaluate import evaluate, write_metrics
+    from comreg_core.evaluation.metrics import registration_metrics
+    from comreg_core.inference import Registrar, register_to_directory
+    from comreg_core.io import PointCloud, read_mesh, save_transform, write_points
+    from comreg_core.report import write_report_for_registration
+    from comreg_core.simulation import sample_initial_pose
+    from comreg_core.surfaces.us import extract_us_to_file
+    from comreg_core.transforms import apply_transform, invert_rigid
+
+    step = step or (lambda line: log.info("%s", line))
+    _sample_files()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ComRegError(f"'{out}' exists and is not a folder.", "Choose another --out.")
+    out.mkdir(parents=True, exist_ok=True)
+
+    step(f"extracting the CT bone surface from {SAMPLE_SEGMENTATION.name}")
+    ct_path = write_sample_ct_surface(out / "ct_bone.stl")
+    ct = read_mesh(ct_path)  # as stored (STL keeps float32 vertices): the CT the model knows
+
+    step(f"finding the bone in the {SAMPLE_SWEEP.name} frames")
+    us = extract_us_to_file(SAMPLE_SWEEP, out / "us_points.ply")
+    us_points = PointCloud(us.points.points, "LPS").in_space(ct.space).points
+
+    model, trained = _model_for(ct_path, out, device, train_minutes, step)
+
+    rng = np.random.default_rng(seed)
+    T_moved_ct = sample_initial_pose(rng, "paper", center=us_points.mean(axis=0))
+    T_ct_us_truth = invert_rigid(T_moved_ct)
+    moved_path = write_points(PointCloud(apply_transform(T_moved_ct, us_points), ct.space),
+                              out / "us_points_moved.ply")
+    save_transform(T_ct_us_truth, out / "T_ct_us_truth.tfm", space=ct.space)
+
+    step("registering the moved US points to the CT (completion, coarse pose, ICP)")
+    registration_dir = out / "registration"
+    result = register_to_directory(model, moved_path, registration_dir, device=device,
+                                   seed=seed, ct_mesh=ct_path)
+    errors = registration_metrics(result.T_ct_us, T_ct_us_truth,
+                                  apply_transform(T_moved_ct, us_points), ct)
+    success_rate = flip_rate = None
+    if trials > 0:
+        step(f"evaluating {trials} more random starts")
+        registrar = Registrar.from_run(model, device, ct_mesh=ct)
+        metrics = evaluate({"comreg": registrar}, us_points, ct, trials=trials, seed=seed)
+        metrics["demo_registration"] = errors
+        write_metrics(metrics, registration_dir / "metrics.json")
+        success_rate = metrics["summary"]["comreg"]["success_rate"]
+        flip_rate = metrics["summary"]["comreg"]["flip_rate"]
+
+    step("rendering the report")
+    report = write_report_for_registration(registration_dir, ct_mesh=ct_path)
+    summary = {"RTE_mm": errors["RTE_mm"], "RRE_deg": errors["RRE_deg"],
+               "runtime_s": result.runtime_s, "model": str(model), "trained": trained,
+               "n_us_points": result.n_points, "success_rate": success_rate,
+               "flip_rate": flip_rate, "report": str(report)}
+    with atomic_output(out / "demo.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    return DemoResult(out, report, Path(model), trained, result.n_points, errors["RTE_mm"],
+                      errors["RRE_deg"], result.runtime_s, success_rate, flip_rate)

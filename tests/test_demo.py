@@ -1,0 +1,72 @@
+"""``comreg demo``: the bundled sample case end to end with the bundled model."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from comreg_core.demo import SAMPLE_MODEL, run_demo
+from comreg_core.evaluation.metrics import SurfaceReference
+from comreg_core.io import load_transform, read_mesh, read_points
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    steps: list[str] = []
+    result = run_demo(out, device="cpu", trials=2, seed=0, train_minutes=0.1, step=steps.append)
+    return result, out, steps
+
+
+def test_demo_uses_the_bundled_model_and_writes_every_file(demo):
+    result, out, steps = demo
+    assert not result.trained and result.model == SAMPLE_MODEL  # the bundled model fits
+    assert not any("pretraining" in line for line in steps)
+    for name in ("ct_bone.stl", "us_points.ply", "us_points_moved.ply", "T_ct_us_truth.tfm",
+                 "demo.json", "registration/result.json", "registration/transform.tfm",
+                 "registration/metrics.json", "registration/report.html"):
+        assert (out / name).is_file(), name
+    html = (out / "registration" / "report.html").read_text(encoding="utf-8")
+    images = list((out / "registration").rglob("*.png"))
+    assert len(images) >= 3 and all(p.name in html for p in images)
+    assert result.n_us_points > 2000  # 37 real frames -> 3,166 points here
+
+
+def test_demo_errors_match_an_independent_computation(demo):
+    result, out, _ = demo
+    registration = json.loads((out / "registration" / "result.json").read_text())
+    T_est = np.array(registration["T_ct_us"])
+    T_true = load_transform(out / "T_ct_us_truth.tfm")
+    moved = read_points(out / "us_points_moved.ply").points
+    c = moved.mean(axis=0)
+    rte = np.linalg.norm(T_est[:3, :3] @ c + T_est[:3, 3] - T_true[:3, :3] @ c - T_true[:3, 3])
+    rre = np.degrees(Rotation.from_matrix(T_est[:3, :3].T @ T_true[:3, :3]).magnitude())
+    assert result.RTE_mm == pytest.approx(rte, abs=1e-6)
+    assert result.RRE_deg == pytest.approx(rre, abs=1e-4)
+    summary = json.loads((out / "demo.json").read_text())
+    assert summary["RTE_mm"] == pytest.approx(rte, abs=1e-6)
+    metrics = json.loads((out / "registration" / "metrics.json").read_text())
+    assert len(metrics["trials"]) == 2
+
+
+def test_registered_us_points_lie_on_the_ct_bone(demo):
+    _, out, _ = demo
+    registered = read_points(out / "registration" / "registered_us.ply").points
+    distances = SurfaceReference(read_mesh(out / "ct_bone.stl")).distance(registered)
+    # the real sweep's points sit on the bone after registration (median, mm)
+    assert np.median(distances) < 1.0
+
+
+def test_demo_into_a_file_is_a_clear_error(tmp_path):
+    from typer.testing import CliRunner
+
+    from comreg_core.cli import app
+
+    target = tmp_path / "not_a_folder"
+    target.write_text("x")
+    out = CliRunner().invoke(app, ["demo", "--out", str(target)])
+    assert out.exit_code == 2 and "is not a folder" in out.output
+    assert target.read_text() == "x"
