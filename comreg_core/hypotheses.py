@@ -31,10 +31,12 @@ alternatives at test time, with no extra training data:
 2. **Refinement**: all hypotheses are refined together, in one batch, of an FPS subset of the
    US cloud (``icp_points``) against a dense cloud of the CT surface (``target_points``
    area-uniform samples with their triangles' normals). By default (``icp_mode="plane"``) with
-   the batched point-to-plane ICP :func:`point_to_plane_icp_batch`: first on a 512-point
-   subset, then on all ``icp_points`` for the hypotheses still within ``icp_fine_margin_mm``
-   of the best. Measured on simulated fibula sweeps from starts 15 deg / 10 mm off (flipped or
-   not), it lands 84-100% of them within 2 mm / 2 deg where the point-to-point
+   the batched point-to-plane ICP :func:`point_to_plane_icp_batch`, coarse to fine: the
+   ``icp_schedule`` stages on evenly strided subsets (128, then 512 US points, 30 iterations
+   each), then ``icp_iterations`` on all ``icp_points``; after each stage only the hypotheses
+   whose residual is within ``icp_margin_mm`` of the best go on. Measured on simulated fibula
+   sweeps from starts 15 deg / 10 mm off (flipped or not), it lands 84-100% of them within
+   2 mm / 2 deg where the point-to-point
    :func:`~comreg_core.model.diff_icp.differentiable_icp` (``"hard"`` / ``"soft"``, kept as
    options, run in one batched call in normalised units) lands 20-50% in the same or more time:
    along a shaft the surface slides under the points and point-to-point ICP crawls
@@ -119,13 +121,13 @@ class HypothesisConfig:
             ``"hard"`` / ``"soft"``: point-to-point
             :func:`~comreg_core.model.diff_icp.differentiable_icp` (nearest neighbour / soft
             correspondences) against the same CT cloud, kept for comparison.
-        icp_iterations: ICP iterations per hypothesis (all in one batch); for ``"plane"`` those
-            of its coarse stage on ``icp_coarse_points`` US points.
-        icp_coarse_points: ``"plane"``: US points of the coarse stage (0 = one stage).
-        icp_fine_iterations: ``"plane"``: iterations on all ``icp_points`` after it, for
-            the hypotheses whose coarse-stage residual (trimmed RMS, mm) is within
-            ``icp_fine_margin_mm`` of the best (the others are far behind: this only saves
-            time).
+        icp_iterations: ``"plane"``: iterations of its last stage, on all ``icp_points``;
+            ``"hard"`` / ``"soft"``: all iterations.
+        icp_schedule: ``"plane"``: the coarse stages before, ``(US points, iterations)`` each
+            (:func:`point_to_plane_icp_batch`).
+        icp_margin_mm: ``"plane"``: after each stage only the hypotheses whose residual
+            (trimmed RMS, mm) is within this of the best go on (the others are far behind;
+            this only saves time).
         icp_sigma: softness of ``"soft"`` correspondences, normalised units (CT extent = 1).
         icp_neighbors: candidates of a soft correspondence.
         icp_trim: share of the worst residuals left out of each ICP step.
@@ -147,10 +149,9 @@ class HypothesisConfig:
     icp_points: int = 2048
     target_points: int = 20_000
     icp_mode: Literal["plane", "hard", "soft"] = "plane"
-    icp_iterations: int = 50
-    icp_coarse_points: int = 512
-    icp_fine_iterations: int = 20
-    icp_fine_margin_mm: float = 1.0
+    icp_iterations: int = 20
+    icp_schedule: tuple[tuple[int, int], ...] = ((128, 30), (512, 30))
+    icp_margin_mm: float = 1.0
     icp_sigma: float = 5e-3
     icp_neighbors: int = 16
     icp_trim: float = 0.1
@@ -167,11 +168,10 @@ class HypothesisConfig:
         require(self.icp_points >= 3, "hypotheses.icp_points", "must be at least 3")
         require(self.target_points >= 100, "hypotheses.target_points", "must be at least 100")
         require(self.icp_iterations >= 0, "hypotheses.icp_iterations", "must be 0 or more")
-        require(self.icp_coarse_points == 0 or self.icp_coarse_points >= 6,
-                "hypotheses.icp_coarse_points", "must be 0 (off) or at least 6")
-        require(self.icp_fine_iterations >= 0, "hypotheses.icp_fine_iterations",
-                "must be 0 or more")
-        require(self.icp_fine_margin_mm > self.ambiguity_gap_mm, "hypotheses.icp_fine_margin_mm",
+        require(all(p >= 6 and it >= 0 for p, it in self.icp_schedule),
+                "hypotheses.icp_schedule", "needs at least 6 points and 0 or more iterations "
+                "per stage")
+        require(self.icp_margin_mm > self.ambiguity_gap_mm, "hypotheses.icp_margin_mm",
                 "must be above ambiguity_gap_mm")
         require(self.icp_mode in ("plane", "hard", "soft"), "hypotheses.icp_mode",
                 "must be 'plane', 'hard' or 'soft'")
@@ -313,10 +313,10 @@ def estimate_normals(points: np.ndarray, tree=None, k: int = 12) -> np.ndarray:
 
 
 def point_to_plane_icp_batch(source: np.ndarray, T_init: np.ndarray, target: HypothesisTarget,
-                             *, iterations: int = 50, fine_iterations: int = 20,
-                             coarse_points: int = 512, trim_fraction: float = 0.0,
-                             tolerance_mm: float = 0.01, fine_margin_mm: float | None = None
-                             ) -> tuple[np.ndarray, np.ndarray]:
+                             *, iterations: int = 20,
+                             schedule: tuple[tuple[int, int], ...] = ((128, 30), (512, 30)),
+                             margin_mm: float | None = None, trim_fraction: float = 0.0,
+                             tolerance_mm: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Batched rigid point-to-plane ICP (Gauss-Newton) of one source cloud from ``B`` starts.
 
     Each iteration matches every moved source point ``p_i`` to its nearest CT point ``q_i``
@@ -325,11 +325,13 @@ def point_to_plane_icp_batch(source: np.ndarray, T_init: np.ndarray, target: Hyp
     about the matched points' centroid (6x6 normal equations per start, with a tiny damping so
     that directions the surface does not constrain, e.g. sliding along a cylinder, get no
     update), then applies the exact rotation of the solved rotation vector. A start stops once
-    its update moves no source point by more than ``tolerance_mm``. Two resolutions: up to
-    ``iterations`` on an evenly strided subset of ``coarse_points`` source points (the long way
-    from a poor start is cheap there), then up to ``fine_iterations`` on all of them, for the
-    starts whose coarse-stage residual is within ``fine_margin_mm`` of the best one (all when
-    None); the others keep their coarse-stage pose and residual (they are far behind anyway).
+    its update moves no source point by more than ``tolerance_mm``.
+
+    Coarse to fine: first the ``schedule`` stages ``(points, iterations)`` on evenly strided
+    subsets of the source (the long way from a poor start is cheap there), then ``iterations``
+    on all points. After each stage only the starts whose residual is within ``margin_mm`` of
+    the best one go on (all when None); the others keep their pose and residual so far (they
+    are far behind: this only saves time).
 
     No gradient: this is the hypotheses' refinement, not a network layer (the network's ICP is
     :func:`~comreg_core.model.diff_icp.differentiable_icp`). Point-to-plane converges along a
@@ -340,30 +342,30 @@ def point_to_plane_icp_batch(source: np.ndarray, T_init: np.ndarray, target: Hyp
         source: ``(n, 3)`` mm, US points (US frame).
         T_init: ``(B, 4, 4)`` mm, start poses ``T_ct_us``.
         target: the CT side (points, normals, KD-tree).
-        iterations: iterations of the coarse stage (all of them when ``coarse_points`` is 0 or
-            not below ``n``).
-        fine_iterations: iterations on all points after the coarse stage.
-        fine_margin_mm: which starts get the fine stage (see above).
-        coarse_points: source points of the coarse stage.
+        iterations: iterations of the last stage, on all ``n`` points.
+        schedule: the stages before it; stages with ``points >= n`` are skipped.
+        margin_mm: which starts go on after a stage (see above).
         trim_fraction: in [0, 1).
         tolerance_mm: convergence threshold (largest point displacement of an update).
 
     Returns:
         ``(B, 4, 4)`` refined poses and ``(B,)`` RMS point-to-plane residual (mm) of the kept
-        points at the last matching.
+        points at the last matching of each start.
     """
     src = as_points(source, "source points")
     T = np.array(T_init, dtype=np.float64, copy=True)  # B 4 4
-    if 0 < coarse_points < len(src):
-        coarse = src[np.linspace(0, len(src) - 1, coarse_points).astype(np.int64)]
-        T, rmse = _point_to_plane(coarse, T, target, iterations, trim_fraction, tolerance_mm)
-        fine = np.ones(len(T), dtype=bool)
-        if fine_margin_mm is not None and np.isfinite(rmse).any():
-            fine = ~(rmse > np.nanmin(rmse) + fine_margin_mm)
-        T[fine], rmse[fine] = _point_to_plane(src, T[fine], target, fine_iterations,
-                                              trim_fraction, tolerance_mm)
-        return T, rmse
-    return _point_to_plane(src, T, target, iterations, trim_fraction, tolerance_mm)
+    rmse = np.full(len(T), np.nan)
+    stages = [(int(p), int(it)) for p, it in schedule if 0 < p < len(src)]
+    stages.append((len(src), int(iterations)))
+    going = np.ones(len(T), dtype=bool)
+    for i, (points, its) in enumerate(stages):
+        sub = src if points >= len(src) else \
+            src[np.linspace(0, len(src) - 1, points).astype(np.int64)]
+        T[going], rmse[going] = _point_to_plane(sub, T[going], target, its, trim_fraction,
+                                                tolerance_mm)
+        if margin_mm is not None and i < len(stages) - 1 and np.isfinite(rmse[going]).any():
+            going &= ~(rmse > np.nanmin(rmse[going]) + margin_mm)
+    return T, rmse
 
 
 def _point_to_plane(src: np.ndarray, T: np.ndarray, target: HypothesisTarget, iterations: int,
@@ -549,9 +551,8 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
     if cfg.icp_mode == "plane":
         refined, rmse = point_to_plane_icp_batch(
             subset_mm, np.stack([starts[n] for n in names]), target,
-            iterations=cfg.icp_iterations, fine_iterations=cfg.icp_fine_iterations,
-            coarse_points=cfg.icp_coarse_points, trim_fraction=cfg.icp_trim,
-            fine_margin_mm=cfg.icp_fine_margin_mm)
+            iterations=cfg.icp_iterations, schedule=cfg.icp_schedule,
+            margin_mm=cfg.icp_margin_mm, trim_fraction=cfg.icp_trim)
         finals = [orthonormalize(T) for T in refined]
     else:
         init = torch.from_numpy(np.stack([norm.transform_to_model(starts[n]) for n in names])

@@ -197,7 +197,9 @@ def test_the_hypotheses_built(fibula_target):
                                              include_coarse=False), T_coarse=np.eye(4))
     assert list(only) == ["network"]
     completion = fibula_target.points
-    full = build_hypotheses(T, fibula_target, completion, HypothesisConfig())
+    default = build_hypotheses(T, fibula_target, completion, HypothesisConfig())
+    assert not any(n.endswith("+centred") for n in default) and len(default) == 8 + 4
+    full = build_hypotheses(T, fibula_target, completion, HypothesisConfig(centred_copies=True))
     # the principal-axes solves of the CT cloud against itself: the identity is one of them
     assert min(np.abs(full[n] - np.eye(4)).max() for n in ("pca+++", "pca--+", "pca-+-",
                                                             "pca+--")) < 1e-6
@@ -211,6 +213,12 @@ def test_the_hypotheses_built(fibula_target):
         assert_close(apply_transform(centred, completion).mean(axis=0), fibula_target.centre,
                      atol=1e-9, what=f"centroid of {name}+centred")
     assert len(full) == 8 + 8 + 4
+    shifted = build_hypotheses(T, fibula_target, completion,
+                               HypothesisConfig(shaft_shifts_mm=(-20.0, 20.0)))
+    assert len(shifted) == 8 * 3 + 4
+    move = shifted["network+flip+shift20"][:3, 3] - shifted["network+flip"][:3, 3]
+    assert abs(np.linalg.norm(move) - 20.0) < 1e-9
+    assert_close(shifted["network+shift-20"][:3, :3], shifted["network"][:3, :3], atol=1e-12)
 
 
 def test_point_to_plane_batch_converges_from_several_starts(fibula_target, distal_patch):
@@ -250,7 +258,8 @@ def test_target_from_points_estimates_normals():
     ("shaft_rotations", 0), ("shaft_rotations", 37), ("icp_points", 2), ("target_points", 10),
     ("icp_iterations", -1), ("icp_mode", "dense"), ("icp_sigma", 0.0), ("icp_neighbors", 0),
     ("icp_trim", 1.0), ("score_trim", -0.1), ("distinct_deg", 0.0), ("distinct_mm", -1.0),
-    ("ambiguity_gap_mm", -0.5), ("icp_coarse_points", 3), ("icp_fine_iterations", -2),
+    ("ambiguity_gap_mm", -0.5), ("icp_schedule", ((3, 10),)), ("icp_schedule", ((128, -1),)),
+    ("icp_margin_mm", 0.1),
 ])
 def test_config_validation(key, value):
     with pytest.raises(ConfigError, match=f"hypotheses.{key}"):
