@@ -256,8 +256,9 @@ def register(
     ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="The CT mesh, to check that the "
                                            "run was trained for it."),
     hypotheses: bool = typer.Option(True, "--hypotheses/--no-hypotheses", help="After the "
-                                    "network, also try the symmetric alternatives of its pose "
-                                    "(flipped end to end, turned about the shaft), keep the one "
+                                    "network, also try the alternatives of its pose (flipped end "
+                                    "to end, turned about the shaft, slid along it; around the "
+                                    "coarse pose and a principal-axes solve too), keep the one "
                                     "that fits the CT best and flag the result ambiguous when "
                                     "another pose fits about as well. --no-hypotheses is the "
                                     "paper's plain pipeline."),
@@ -278,8 +279,9 @@ def register(
     if result.hypotheses is not None:
         h = result.hypotheses
         gap = "no competing pose" if h.score_gap_mm is None else \
-            f"next different pose ('{h.runner_up}') {h.score_gap_mm:.2f} mm worse"
-        typer.echo(f"hypothesis '{h.chosen}', {gap}; confidence {h.confidence:.2f}"
+            f"next different pose ('{h.runner_up}') {h.score_gap_mm:.3f} mm worse"
+        typer.echo(f"hypothesis '{h.chosen}' of {h.starts_tried} starts, {gap}; confidence "
+                   f"{h.confidence:.2f}"
                    + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
 
 

@@ -6,43 +6,39 @@ coarse pose only has to land in ICP's basin; when it lands in the basin of a sym
 alternative, plain ICP converges there and the result is a flip. This module tries the
 alternatives at test time, with no extra training data:
 
-1. **Hypotheses** (all ``T_ct_us``, mm), built around a start pose ``T_start`` (the network's
-   result after its ICP):
+1. **Start poses** (all ``T_ct_us``, mm). Bases: ``network`` (the network's pose after its
+   ICP), ``coarse`` (its coarse pose before the ICP, with ``include_coarse``) and ``pca`` (with
+   ``principal_axes_solve`` and a completion: the full-to-full solve of the completed shape
+   against the CT by principal axes; the completion is a whole bone, so this is well posed up
+   to the axes' signs, which the flips below cover). Around each base ``T_b``: ``G @ T_b`` with
+   ``G`` a rigid motion of the *CT frame* about the principal axes of the completed bone placed
+   by ``T_b`` (centroid ``c``, axes ``a0`` = long, ``a1``, ``a2``; the CT's own frame without a
+   completion): rotations about ``a0`` by ``360 k / shaft_rotations`` deg (``+rot45``, ...),
+   with ``axis_flips`` each also flipped end to end (180 deg about ``a1``, ``+flip``), and
+   each of these slid along ``a0`` by multiples of ``slide_step_mm`` over +-``slide_range_mm``
+   (default half the CT's length; ``+slide-16``, ...), for the slides along the shaft ICP
+   cannot undo. Names read like ``network+flip+rot90+slide24``. With the defaults that is
+   3 bases x 16 rotations x ~50 slides, about 2,400 starts on a fibula.
 
-   - ``network``: ``T_start`` itself;
-   - its symmetric alternatives ``G @ T_start``, with ``G`` a rotation of the *CT frame* about
-     the principal axes of the completed bone placed by ``T_start`` (centroid ``c``, axes
-     ``a0`` = long, ``a1``, ``a2`` = the two short ones): rotations about the long axis ``a0``
-     by ``360 k / shaft_rotations`` degrees (``network+rot90``, ...) and, with ``axis_flips``,
-     each of them combined with the end-to-end flip, 180 deg about ``a1`` (``network+flip``,
-     ``network+flip+rot90``, ...). Together that is the dihedral group of the shaft: with 4
-     rotations it holds the 180 deg turns about all three principal axes. Without a completion,
-     the CT's own principal frame is used instead (the completion of a well-placed cloud *is*
-     the CT bone);
-   - with a completion and ``centred_copies``: each of these shifted so that the completion's
-     centroid meets the CT's (``network+centred``, ``network+flip+centred``, ...): a full
-     shape shares its centroid with the CT, which undoes the network's slides along the shaft
-     (its most common error) that ICP cannot;
-   - ``coarse``: the network's coarse pose before its ICP (when given);
-   - with ``principal_axes_solve`` and a completion: the full-to-full solve of the completed
-     shape against the CT by principal axes, one hypothesis per sign choice of the axes that
-     gives a proper rotation (``pca+++``, ``pca--+``, ``pca-+-``, ``pca+--``).
+2. **Screening** (:func:`screen_starts`): all starts at once get a quick point-to-plane ICP
+   (``screen_iterations`` on ``screen_points`` US points, correspondences read from a
+   closest-point grid of the CT, :meth:`HypothesisTarget.nearest_approx`) and a quick score;
+   the ``refine_top`` best distinct ones go on, the network's own pose always among them.
+   Scoring *after* a few ICP steps matters: before them the right basin's starts rank in the
+   hundreds, after them first.
 
-2. **Refinement**: all hypotheses are refined together, in one batch, of an FPS subset of the
+3. **Refinement**: the kept starts are refined together, in one batch, of an FPS subset of the
    US cloud (``icp_points``) against a dense cloud of the CT surface (``target_points``
    area-uniform samples with their triangles' normals). By default (``icp_mode="plane"``) with
    the batched point-to-plane ICP :func:`point_to_plane_icp_batch`, coarse to fine: the
    ``icp_schedule`` stages on evenly strided subsets (128, then 512 US points, 30 iterations
    each), then ``icp_iterations`` on all ``icp_points``; after each stage only the hypotheses
-   whose residual is within ``icp_margin_mm`` of the best go on. Measured on simulated fibula
-   sweeps from starts 15 deg / 10 mm off (flipped or not), it lands 84-100% of them within
-   2 mm / 2 deg where the point-to-point
+   whose residual is within ``icp_margin_mm`` of the best go on. Point-to-point
    :func:`~comreg_core.model.diff_icp.differentiable_icp` (``"hard"`` / ``"soft"``, kept as
-   options, run in one batched call in normalised units) lands 20-50% in the same or more time:
-   along a shaft the surface slides under the points and point-to-point ICP crawls
+   options) crawls along a shaft, where the surface slides under the points
    (``tests/benchmarks/bench_hypotheses.py``).
 
-3. **Score** (mm, lower is better): the trimmed mean distance of the hypothesis' registered US
+4. **Score** (mm, lower is better): the trimmed mean distance of the hypothesis' registered US
    subset to the CT surface: the mean of the smallest ``1 - score_trim`` share of the
    point-to-surface distances, each taken to the tangent plane of the nearest dense CT point
    (KD-tree, pykdtree; :meth:`HypothesisTarget.surface_distances`: unlike the plain
@@ -50,16 +46,19 @@ alternatives at test time, with no extra training data:
    scores near 0 and the gaps between poses are not blurred). Trimming keeps false bone echoes
    and parts of the sweep the CT does not explain from dominating.
 
-4. **Choice and confidence**: the best score wins (ties go to the earlier hypothesis, i.e. the
-   network's own pose). The *runner-up* is the best-scoring hypothesis whose refined pose is a
-   genuinely different pose from the winner: rotated by more than ``distinct_deg`` or with the
-   US cloud's centroid moved by more than ``distinct_mm``; hypotheses that converged onto the
-   winner's pose are duplicates and never count. ``score_gap_mm = score(runner-up) -
-   score(best)``; ``confidence = score_gap_mm / score(runner-up)`` (= ``1 - best / runner-up``,
-   in [0, 1]: 0 is a tie, 1 no competing pose; 1 when no distinct runner-up exists); and
-   ``ambiguous = score_gap_mm < ambiguity_gap_mm``: another, clearly different pose explains
-   the US points (nearly) as well as the chosen one, e.g. a sweep of a featureless stretch of
-   shaft.
+5. **Choice and confidence**: the best score wins (exact ties go to the network's own pose).
+   Two refined poses are *distinct* when rotated apart by more than ``distinct_deg`` or placing
+   the US centroid more than ``distinct_mm`` apart. Poses that score within a factor
+   ``1 / (1 - min_confidence)`` of the best are *tied*; with ``tie_break="network"`` the tied
+   pose rotated least from the network's pose sets the rotation (among the tied poses rotated
+   like it, the best score wins, so slides are still decided by the score): a flip or a spin
+   the geometry cannot tell apart is decided by the learned prior. The *runner-up* is the
+   best-scoring pose distinct from the chosen one (converged duplicates never count);
+   ``score_gap_mm = score(runner-up) - score(chosen)``; ``confidence = max(gap, 0) /
+   score(runner-up)`` (= ``1 - chosen / runner-up``, in [0, 1]: 0 a tie, 1 no competing pose,
+   also when there is no runner-up); ``ambiguous = confidence < min_confidence``: another,
+   clearly different pose explains the US points (nearly) as well, e.g. a sweep of a
+   featureless stretch of shaft.
 
 Use it standalone (no network needed)::
 
@@ -77,6 +76,7 @@ config ``data.pose: full``, the full-rotation sampler; evaluate with ``--perturb
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -91,9 +91,6 @@ from comreg_core.model.normalization import Normalization
 from comreg_core.model.ops import subsample
 from comreg_core.transforms import apply_transform, as_points, check_rigid, orthonormalize
 
-#: Sign choices of the principal-axes solve that give proper rotations (det = +1).
-_PCA_SIGNS = {"pca+++": (1, 1, 1), "pca--+": (-1, -1, 1), "pca-+-": (-1, 1, -1),
-              "pca+--": (1, -1, -1)}
 
 
 @dataclass(frozen=True)
@@ -102,18 +99,20 @@ class HypothesisConfig:
 
     Attributes:
         enabled: run the stage at all (False = the paper's plain pipeline).
-        shaft_rotations: rotations about the long axis, ``360 / shaft_rotations`` deg apart, the
-            start pose included (1 = only the start pose).
+        shaft_rotations: rotations about the long axis per base, ``360 / shaft_rotations``
+            deg apart, the base included (1 = only the base).
         axis_flips: also flip each of them end to end (180 deg about a short axis).
-        include_coarse: also refine the network's coarse pose (when one is given).
-        principal_axes_solve: add the 4 principal-axes solves of the completion vs the CT
-            (needs a completion).
-        centred_copies: with a completion, also try each rotation hypothesis (the start pose
-            and its alternatives) shifted so that the completion's centroid meets the CT's:
-            the full shape and the CT share a centroid, so this undoes a slide along the shaft
-            that ICP cannot (suffix ``+centred``).
-        shaft_shifts_mm: also try each rotation hypothesis slid along the long axis by these
-            distances (mm; suffix ``+shift20`` etc.).
+        include_coarse: the network's coarse pose is a base too (when one is given).
+        principal_axes_solve: the principal-axes solve of the completion vs the CT is a base
+            too (needs a completion).
+        slide_step_mm: also try each rotation hypothesis slid along its long axis in steps of
+            this (mm; suffix ``+slide16`` etc.; 0 = no slides).
+        slide_range_mm: the largest slide (mm); None = half the CT's length.
+        screen_points, screen_iterations, screen_score_points: the screening of all starts
+            (:func:`screen_starts`): US points and iterations of its quick ICP, US points of
+            its quick score.
+        refine_top: starts refined by the full ICP and scored (the network's own pose and
+            the best screened distinct others); 0 = all of them, unscreened.
         icp_points: US points (FPS subset) in the hypotheses' ICP and score.
         target_points: area-uniform CT surface samples: the ICP target and the score's cloud.
         icp_mode: ``"plane"``: batched point-to-plane ICP against the CT samples' normals
@@ -132,20 +131,29 @@ class HypothesisConfig:
         icp_neighbors: candidates of a soft correspondence.
         icp_trim: share of the worst residuals left out of each ICP step.
         score_trim: share of the largest distances left out of the score.
+        tie_break: among the tied poses (scores within ``1 / (1 - min_confidence)`` of the
+            best), ``"network"``
+            keeps the best-scoring of those rotated like the one rotated least from the
+            network's pose (the learned prior decides a flip or spin the geometry cannot; a
+            slide is still decided by the score), ``"score"`` the best score.
         distinct_deg, distinct_mm: two refined poses are different poses when their rotations
             differ by more than ``distinct_deg`` or they place the US centroid more than
             ``distinct_mm`` apart; otherwise the later one is a duplicate.
-        ambiguity_gap_mm: a result is ambiguous when a different pose scores within this of the
-            best.
+        min_confidence: a result is ambiguous when its confidence is below this (a different
+            pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score).
     """
 
     enabled: bool = True
-    shaft_rotations: int = 4
+    shaft_rotations: int = 8
     axis_flips: bool = True
     include_coarse: bool = True
     principal_axes_solve: bool = True
-    centred_copies: bool = False
-    shaft_shifts_mm: tuple[float, ...] = ()
+    slide_step_mm: float = 8.0
+    slide_range_mm: float | None = None
+    screen_points: int = 32
+    screen_iterations: int = 20
+    screen_score_points: int = 128
+    refine_top: int = 12
     icp_points: int = 2048
     target_points: int = 20_000
     icp_mode: Literal["plane", "hard", "soft"] = "plane"
@@ -156,32 +164,43 @@ class HypothesisConfig:
     icp_neighbors: int = 16
     icp_trim: float = 0.1
     score_trim: float = 0.2
+    tie_break: Literal["network", "score"] = "network"
     distinct_deg: float = 10.0
     distinct_mm: float = 5.0
-    ambiguity_gap_mm: float = 0.2
+    min_confidence: float = 0.3
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "hypotheses.enabled", "must be true or false")
         require(self.shaft_rotations >= 1, "hypotheses.shaft_rotations", "must be at least 1")
         require(self.shaft_rotations <= 36, "hypotheses.shaft_rotations",
                 "must be at most 36 (10 deg apart)")
+        require(self.slide_step_mm >= 0, "hypotheses.slide_step_mm", "must be 0 (off) or more")
+        require(self.slide_range_mm is None or self.slide_range_mm >= 0,
+                "hypotheses.slide_range_mm", "must be 0 or more (or null: half the CT length)")
+        require(self.screen_points >= 6, "hypotheses.screen_points", "must be at least 6")
+        require(self.screen_iterations >= 0, "hypotheses.screen_iterations", "must be 0 or more")
+        require(self.screen_score_points >= 3, "hypotheses.screen_score_points",
+                "must be at least 3")
+        require(self.refine_top >= 0, "hypotheses.refine_top", "must be 0 (all) or more")
         require(self.icp_points >= 3, "hypotheses.icp_points", "must be at least 3")
         require(self.target_points >= 100, "hypotheses.target_points", "must be at least 100")
         require(self.icp_iterations >= 0, "hypotheses.icp_iterations", "must be 0 or more")
         require(all(p >= 6 and it >= 0 for p, it in self.icp_schedule),
                 "hypotheses.icp_schedule", "needs at least 6 points and 0 or more iterations "
                 "per stage")
-        require(self.icp_margin_mm > self.ambiguity_gap_mm, "hypotheses.icp_margin_mm",
-                "must be above ambiguity_gap_mm")
+        require(self.icp_margin_mm > 0, "hypotheses.icp_margin_mm", "must be positive")
         require(self.icp_mode in ("plane", "hard", "soft"), "hypotheses.icp_mode",
                 "must be 'plane', 'hard' or 'soft'")
         require(self.icp_sigma > 0, "hypotheses.icp_sigma", "must be positive")
         require(self.icp_neighbors >= 1, "hypotheses.icp_neighbors", "must be at least 1")
         require(0.0 <= self.icp_trim < 1.0, "hypotheses.icp_trim", "must be in [0, 1)")
         require(0.0 <= self.score_trim < 1.0, "hypotheses.score_trim", "must be in [0, 1)")
+        require(self.tie_break in ("network", "score"), "hypotheses.tie_break",
+                "must be 'network' or 'score'")
         require(self.distinct_deg > 0, "hypotheses.distinct_deg", "must be positive")
         require(self.distinct_mm > 0, "hypotheses.distinct_mm", "must be positive")
-        require(self.ambiguity_gap_mm >= 0, "hypotheses.ambiguity_gap_mm", "must be 0 or more")
+        require(0.0 <= self.min_confidence < 1.0, "hypotheses.min_confidence",
+                "must be in [0, 1)")
 
 
 def as_hypothesis_config(value) -> HypothesisConfig:
@@ -286,14 +305,43 @@ class HypothesisTarget:
         shape = np.shape(points)[:-1]
         return np.asarray(d, dtype=np.float64).reshape(shape), idx.astype(np.int64).reshape(shape)
 
-    def surface_distances(self, points: np.ndarray) -> np.ndarray:
+    def nearest_approx(self, points: np.ndarray) -> np.ndarray:
+        """Indices of (nearly) the nearest CT points of ``(..., 3)`` points, read from a
+        closest-point grid over the CT's bounding box plus :attr:`GRID_MARGIN_MM` (built on
+        first use, :attr:`GRID_VOXELS` voxels at most): the nearest CT point of the voxel's
+        centre, points outside the grid clamped onto it. Off by up to about half a voxel
+        diagonal (~2.5 mm on a fibula): for screening many poses, not for the final fit."""
+        origin, spacing, grid = self.closest_point_grid
+        pts = np.asarray(points, dtype=np.float64)
+        ijk = np.rint((pts - origin) / spacing).astype(np.int64)
+        ijk = np.clip(ijk, 0, np.array(grid.shape) - 1)
+        return grid[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
+
+    GRID_MARGIN_MM = 30.0
+    GRID_VOXELS = 400_000
+
+    @functools.cached_property
+    def closest_point_grid(self) -> tuple[np.ndarray, float, np.ndarray]:
+        """``(origin (3,) mm, spacing mm, (I, J, K) int32 indices of the nearest CT point of
+        each voxel centre)`` (:meth:`nearest_approx`)."""
+        low = self.points.min(axis=0) - self.GRID_MARGIN_MM
+        size = self.points.max(axis=0) + self.GRID_MARGIN_MM - low
+        spacing = max(1.0, float(np.cbrt(np.prod(size) / self.GRID_VOXELS)))
+        shape = np.ceil(size / spacing).astype(np.int64) + 1
+        axes = [low[i] + spacing * np.arange(shape[i]) for i in range(3)]
+        centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        _, idx = self.tree.query(np.ascontiguousarray(centres), k=1)
+        return low, spacing, idx.astype(np.int32).reshape(tuple(shape))
+
+    def surface_distances(self, points: np.ndarray, approximate: bool = False) -> np.ndarray:
         """Distances (mm) of ``(..., 3)`` points to the CT surface, approximated by the tangent
         plane at the nearest CT point: ``|(p - q) . n_q|``. On a smooth surface this is the
         point-to-surface distance without most of the sampling bias of the plain
         nearest-neighbour distance (about half the sample spacing, ~0.4 mm at 20,000 samples
-        of a fibula); it never exceeds the nearest-neighbour distance."""
+        of a fibula); it never exceeds the nearest-neighbour distance. ``approximate``: with
+        :meth:`nearest_approx`'s CT points (fast, for screening)."""
         pts = np.asarray(points, dtype=np.float64)
-        _, idx = self.nearest(pts)
+        idx = self.nearest_approx(pts) if approximate else self.nearest(pts)[1]
         return np.abs(np.einsum("...i,...i->...", pts - self.points[idx], self.normals[idx]))
 
 
@@ -369,7 +417,8 @@ def point_to_plane_icp_batch(source: np.ndarray, T_init: np.ndarray, target: Hyp
 
 
 def _point_to_plane(src: np.ndarray, T: np.ndarray, target: HypothesisTarget, iterations: int,
-                    trim_fraction: float, tolerance_mm: float) -> tuple[np.ndarray, np.ndarray]:
+                    trim_fraction: float, tolerance_mm: float, approximate: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
     from scipy.spatial.transform import Rotation
 
     T = T.copy()
@@ -381,9 +430,14 @@ def _point_to_plane(src: np.ndarray, T: np.ndarray, target: HypothesisTarget, it
     for _ in range(iterations):
         Ta = T[active]
         m = len(active)
-        moved = np.einsum("bij,nj->bni", Ta[:, :3, :3], src) + Ta[:, None, :3, 3]  # m n 3
-        d, idx = target.nearest(moved)  # m n
-        q, nrm = target.points[idx], target.normals[idx]  # m n 3
+        moved = src @ Ta[:, :3, :3].transpose(0, 2, 1) + Ta[:, None, :3, 3]  # m n 3
+        if approximate:
+            idx = target.nearest_approx(moved)  # m n
+            q, nrm = target.points[idx], target.normals[idx]  # m n 3
+            d = np.linalg.norm(moved - q, axis=2)
+        else:
+            d, idx = target.nearest(moved)  # m n
+            q, nrm = target.points[idx], target.normals[idx]  # m n 3
         if keep < n:
             limit = np.partition(d, keep - 1, axis=1)[:, keep - 1:keep]  # m 1
             w = (d <= limit).astype(np.float64)  # m n
@@ -394,8 +448,8 @@ def _point_to_plane(src: np.ndarray, T: np.ndarray, target: HypothesisTarget, it
         c = (w[..., None] * moved).sum(1) / w.sum(1)[:, None]  # m 3
         A = np.concatenate([np.cross(moved - c[:, None], nrm), nrm], axis=2)  # m n 6
         Aw = A * w[..., None]
-        H = np.einsum("bni,bnj->bij", Aw, A)  # m 6 6
-        g = np.einsum("bni,bn->bi", Aw, r)  # m 6
+        H = Aw.transpose(0, 2, 1) @ A  # m 6 6
+        g = (Aw.transpose(0, 2, 1) @ r[..., None])[..., 0]  # m 6
         damp = (1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] + 1e-12) * np.eye(6)
         x = np.linalg.solve(H + damp, -g[..., None])[..., 0]  # m 6
         step = np.tile(np.eye(4), (m, 1, 1))
@@ -432,9 +486,11 @@ class HypothesisResult:
         chosen: its name.
         runner_up: the best-scoring genuinely different pose's name, None if there is none.
         score_gap_mm: ``score(runner_up) - score(chosen)`` (mm), None without a runner-up.
-        confidence: ``score_gap_mm / score(runner_up)`` in [0, 1]; 1.0 without a runner-up.
-        ambiguous: ``score_gap_mm < ambiguity_gap_mm``.
+        confidence: ``max(score_gap_mm, 0) / score(runner_up)`` in [0, 1]; 1.0 without a
+            runner-up.
+        ambiguous: ``confidence < min_confidence``.
         hypotheses: every refined :class:`Hypothesis`, in generation order.
+        starts_tried: start poses built and screened before the best ``refine_top`` were refined.
     """
 
     T_ct_us: np.ndarray
@@ -444,6 +500,7 @@ class HypothesisResult:
     confidence: float
     ambiguous: bool
     hypotheses: tuple[Hypothesis, ...] = field(default=())
+    starts_tried: int = 0
 
     @property
     def scores(self) -> dict[str, float]:
@@ -459,7 +516,7 @@ class HypothesisResult:
         return {"chosen": self.chosen, "runner_up": self.runner_up,
                 "score_mm": self.best.score_mm, "score_gap_mm": self.score_gap_mm,
                 "confidence": self.confidence, "ambiguous": self.ambiguous,
-                "scores_mm": self.scores}
+                "starts_tried": self.starts_tried, "scores_mm": self.scores}
 
 
 def build_hypotheses(T_start: np.ndarray, target: HypothesisTarget,
@@ -476,40 +533,96 @@ def build_hypotheses(T_start: np.ndarray, target: HypothesisTarget,
         T_coarse: ``(4, 4)`` mm, the network's coarse pose, or None.
     """
     cfg = config or HypothesisConfig()
-    T_start = check_rigid(T_start)
-    if completion is not None:
-        centre, axes = principal_frame(apply_transform(T_start, completion))
-    else:
-        centre, axes = target.centre, target.axes
-    starts: dict[str, np.ndarray] = {}
-    flip = rotation_about(centre, axes[:, 1], math.pi)
-    for flipped in ((False, True) if cfg.axis_flips else (False,)):
-        for k in range(cfg.shaft_rotations):
-            degrees = round(360.0 * k / cfg.shaft_rotations)
-            G = rotation_about(centre, axes[:, 0], math.radians(360.0 * k / cfg.shaft_rotations))
-            name = "network" + ("+flip" if flipped else "") + (f"+rot{degrees}" if k else "")
-            starts[name] = (G @ flip if flipped else G) @ T_start
-    rotations = list(starts.items())
-    for shift_mm in cfg.shaft_shifts_mm:
-        shift = np.eye(4)
-        shift[:3, 3] = shift_mm * axes[:, 0]
-        starts.update({f"{name}+shift{shift_mm:g}": shift @ T for name, T in rotations})
-    if completion is not None and cfg.centred_copies:
-        # the alternatives turn about the completion's centroid c, so one shift serves them all
-        shift = np.eye(4)
-        shift[:3, 3] = target.centre - centre
-        starts.update({f"{name}+centred": shift @ T for name, T in rotations})
+    bases = {"network": check_rigid(T_start)}
     if T_coarse is not None and cfg.include_coarse:
-        starts["coarse"] = check_rigid(T_coarse)
+        bases["coarse"] = check_rigid(T_coarse)
     if completion is not None and cfg.principal_axes_solve:
         c_us, a_us = principal_frame(completion)
-        c_ct, a_ct = target.centre, target.axes
-        for name, signs in _PCA_SIGNS.items():
-            T = np.eye(4)
-            T[:3, :3] = a_ct @ np.diag(signs) @ a_us.T
-            T[:3, 3] = c_ct - T[:3, :3] @ c_us
-            starts[name] = T
+        T = np.eye(4)
+        T[:3, :3] = target.axes @ a_us.T
+        T[:3, 3] = target.centre - T[:3, :3] @ c_us
+        bases["pca"] = T
+    starts: dict[str, np.ndarray] = {}
+    slides = slide_offsets_mm(target, cfg)
+    for base, T_base in bases.items():
+        if completion is not None:
+            centre, axes = principal_frame(apply_transform(T_base, completion))
+        else:
+            centre, axes = target.centre, target.axes
+        flip = rotation_about(centre, axes[:, 1], math.pi)
+        for flipped in ((False, True) if cfg.axis_flips else (False,)):
+            for k in range(cfg.shaft_rotations):
+                angle = 360.0 * k / cfg.shaft_rotations
+                G = rotation_about(centre, axes[:, 0], math.radians(angle))
+                G = G @ flip if flipped else G
+                name = base + ("+flip" if flipped else "") + (f"+rot{round(angle)}" if k else "")
+                for slide in slides:
+                    S = np.eye(4)
+                    S[:3, 3] = slide * axes[:, 0]
+                    starts[name + (f"+slide{slide:g}" if slide else "")] = S @ G @ T_base
     return starts
+
+
+def slide_offsets_mm(target: HypothesisTarget, config: HypothesisConfig) -> np.ndarray:
+    """Slides along the long axis tried per rotation hypothesis (mm, 0 first, then by
+    increasing size): multiples of ``slide_step_mm`` up to ``slide_range_mm`` (default half
+    the CT's length along its long axis); just ``[0]`` when ``slide_step_mm`` is 0."""
+    if config.slide_step_mm == 0:
+        return np.zeros(1)
+    reach = config.slide_range_mm
+    if reach is None:
+        along = (target.points - target.centre) @ target.axes[:, 0]
+        reach = 0.5 * float(along.max() - along.min())
+    steps = np.arange(1, int(reach // config.slide_step_mm) + 1) * config.slide_step_mm
+    return np.concatenate([[0.0], np.stack([steps, -steps], axis=1).ravel()])
+
+
+def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: HypothesisTarget,
+                  config: HypothesisConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Pick the starts worth a full ICP: ``screen_iterations`` of point-to-plane ICP on
+    ``screen_points`` US points for every start at once (correspondences from the CT's
+    closest-point grid, :meth:`HypothesisTarget.nearest_approx`), then a quick score (trimmed
+    mean distance of ``screen_score_points`` US points to the CT); keep the first start (the
+    network's own pose, unmoved) and then the best-scoring ones, skipping those within
+    ``distinct_deg`` and ``distinct_mm`` (US centroid) of one already kept, up to
+    ``refine_top`` in all (all of them, unmoved, when ``refine_top`` is 0 or not below ``B``).
+
+    Args:
+        us_points: ``(n, 3)`` mm, US points (US frame).
+        starts: ``(B, 4, 4)`` mm start poses ``T_ct_us``.
+
+    Returns:
+        ``(K,)`` indices of the kept starts and their ``(K, 4, 4)`` screened poses.
+    """
+    if config.refine_top == 0 or len(starts) <= config.refine_top:
+        return np.arange(len(starts)), starts
+
+    def strided(count: int) -> np.ndarray:
+        return us_points[np.linspace(0, len(us_points) - 1,
+                                     min(count, len(us_points))).astype(np.int64)]
+
+    poses, _ = _point_to_plane(strided(config.screen_points), starts, target,
+                               config.screen_iterations, config.icp_trim, 0.1, approximate=True)
+    sub = strided(config.screen_score_points)
+    moved = sub @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]  # B n 3
+    d = np.sort(target.surface_distances(moved, approximate=True), axis=1)
+    keep = max(1, len(sub) - int(config.score_trim * len(sub)))
+    order = np.argsort(d[:, :keep].mean(axis=1), kind="stable")
+    centroids = poses[:, :3, :3] @ us_points.mean(axis=0) + poses[:, :3, 3]  # B 3
+    cos_limit = math.cos(math.radians(config.distinct_deg))
+    chosen = [0]
+    for i in order:
+        if len(chosen) == config.refine_top:
+            break
+        cos = (np.einsum("kij,ij->k", poses[chosen, :3, :3], poses[i, :3, :3]) - 1.0) / 2.0
+        near = (cos > cos_limit) & (np.linalg.norm(centroids[chosen] - centroids[i], axis=1)
+                                    <= config.distinct_mm)
+        if not near.any():
+            chosen.append(int(i))
+    kept = np.array(chosen)
+    screened = poses[kept]
+    screened[0] = starts[0]
+    return kept, screened
 
 
 def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: HypothesisTarget,
@@ -541,21 +654,23 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
         if len(completion) < 4:
             completion = None
     starts = build_hypotheses(T_start, target, completion, cfg, T_coarse=T_coarse)
-    names = list(starts)
     norm, device = target.normalization, target.device
 
     src = torch.from_numpy(norm.points_to_model(pts)).float()[None].to(device)  # 1 N 3
     src = subsample(src, cfg.icp_points, 0)  # 1 n 3
     subset_mm = norm.points_to_mm(src[0].double().cpu().numpy())  # n 3
+    all_names = list(starts)
+    kept, screened = screen_starts(subset_mm, np.stack(list(starts.values())), target, cfg)
+    names = [all_names[i] for i in kept]
     B = len(names)
     if cfg.icp_mode == "plane":
         refined, rmse = point_to_plane_icp_batch(
-            subset_mm, np.stack([starts[n] for n in names]), target,
+            subset_mm, screened, target,
             iterations=cfg.icp_iterations, schedule=cfg.icp_schedule,
             margin_mm=cfg.icp_margin_mm, trim_fraction=cfg.icp_trim)
         finals = [orthonormalize(T) for T in refined]
     else:
-        init = torch.from_numpy(np.stack([norm.transform_to_model(starts[n]) for n in names])
+        init = torch.from_numpy(np.stack([norm.transform_to_model(T) for T in screened])
                                 ).float().to(device)  # B 4 4
         with torch.no_grad():
             icp = differentiable_icp(src.expand(B, -1, -1), target.model_points, init,
@@ -572,24 +687,30 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
     hypotheses = tuple(Hypothesis(n, starts[n], finals[i], float(scores[i]),
                                   float(rmse[i]) if math.isfinite(rmse[i]) else float("nan"))
                        for i, n in enumerate(names))
-    best = int(np.argmin(scores))  # first minimum: the network's pose wins ties
     centroid = pts.mean(axis=0)
-    at_best = apply_transform(finals[best], centroid[None])[0]
-    runner, runner_score = None, math.inf
-    for i in range(B):
-        if i == best or scores[i] >= runner_score:
-            continue
-        moved_c = apply_transform(finals[i], centroid[None])[0]
-        if (rotation_angle_deg(finals[i], finals[best]) > cfg.distinct_deg
-                or np.linalg.norm(moved_c - at_best) > cfg.distinct_mm):
-            runner, runner_score = i, float(scores[i])
+    placed = np.stack([apply_transform(T, centroid[None])[0] for T in finals])  # B 3
+
+    def distinct(i: int, j: int) -> bool:
+        return (rotation_angle_deg(finals[i], finals[j]) > cfg.distinct_deg
+                or float(np.linalg.norm(placed[i] - placed[j])) > cfg.distinct_mm)
+
+    best = int(np.argmin(scores))  # first minimum: the network's pose wins exact ties
+    if cfg.tie_break == "network":
+        # runner-up confidence below min_confidence <=> score below best / (1 - min_confidence)
+        tied = [i for i in range(B) if scores[i] * (1.0 - cfg.min_confidence) < scores[best]]
+        nearest = min(tied, key=lambda i: rotation_angle_deg(finals[i], starts["network"]))
+        best = min((i for i in tied if rotation_angle_deg(finals[i], finals[nearest])
+                    <= cfg.distinct_deg), key=lambda i: scores[i])  # slides: by score
+    runner = min((i for i in range(B) if i != best and distinct(i, best)),
+                 key=lambda i: scores[i], default=None)
     if runner is None:
         gap, confidence, ambiguous = None, 1.0, False
     else:
+        runner_score = float(scores[runner])
         gap = runner_score - float(scores[best])
-        confidence = float(gap / runner_score) if runner_score > 0 else 0.0
-        ambiguous = bool(gap < cfg.ambiguity_gap_mm)
+        confidence = float(max(gap, 0.0) / runner_score) if runner_score > 0 else 0.0
+        ambiguous = bool(confidence < cfg.min_confidence)
     return HypothesisResult(T_ct_us=finals[best], chosen=names[best],
                             runner_up=None if runner is None else names[runner],
                             score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,
-                            hypotheses=hypotheses)
+                            hypotheses=hypotheses, starts_tried=len(all_names))

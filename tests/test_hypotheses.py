@@ -15,7 +15,8 @@ from comreg_core.config import ConfigError
 from comreg_core.evaluation.metrics import SurfaceReference
 from comreg_core.hypotheses import (HypothesisConfig, HypothesisTarget, as_hypothesis_config,
                                     build_hypotheses, point_to_plane_icp_batch,
-                                    rotation_about, search_hypotheses)
+                                    rotation_about, screen_starts, search_hypotheses,
+                                    slide_offsets_mm)
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import FIBULA_STL, assert_close
 
@@ -78,7 +79,7 @@ def test_distal_patch_near_start_lands_and_is_not_ambiguous(fibula_target, dista
     rte, rre = _errors(result.T_ct_us, truth, us)
     assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen)
     assert not result.ambiguous and result.confidence > 0.3, result.to_json()
-    assert result.runner_up is not None and result.score_gap_mm >= 0.2
+    assert result.runner_up is not None and result.score_gap_mm > 0.1
 
 
 @pytest.mark.parametrize("short_axis", [1, 2])
@@ -95,12 +96,17 @@ def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_pa
     if with_completion:
         whole, _ = SurfaceReference(FIBULA_STL, sample_seed=5).samples(4000)
         completion = apply_transform(invert_rigid(truth), whole)  # the bone in the US frame
-    result = search_hypotheses(us, start, fibula_target, completion)
+    config = HypothesisConfig()
+    result = search_hypotheses(us, start, fibula_target, completion, config)
     rte, rre = _errors(result.T_ct_us, truth, us)
     assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen, result.scores)
     assert result.chosen != "network" and not result.ambiguous
-    if with_completion:
-        assert {"pca+++", "pca--+", "pca-+-", "pca+--"} <= set(result.scores)
+    # every start was screened; the network's pose and the best others were refined
+    bases = 2 if with_completion else 1  # the network's pose (+ the principal-axes solve)
+    slides = len(slide_offsets_mm(fibula_target, config))
+    assert result.starts_tried == bases * 8 * 2 * slides
+    assert len(result.hypotheses) == config.refine_top
+    assert result.hypotheses[0].name == "network"
     # the unflipped network pose itself ends up far away and scores clearly worse
     network = next(h for h in result.hypotheses if h.name == "network")
     assert _errors(network.T_ct_us, truth, us)[1] > 90.0
@@ -109,7 +115,7 @@ def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_pa
 
 def test_score_and_confidence_follow_their_definitions(fibula_target, distal_patch):
     us, truth, ct_patch = distal_patch
-    config = HypothesisConfig(icp_points=1024)
+    config = HypothesisConfig(icp_points=1024, tie_break="score")
     start = _perturb(truth, ct_patch.mean(axis=0), degrees=3.0, mm=2.0, seed=3)
     result = search_hypotheses(us, start, fibula_target, config=config)
     # the score: trimmed mean distance to the tangent plane of the nearest CT point (scipy's
@@ -143,7 +149,7 @@ def test_score_and_confidence_follow_their_definitions(fibula_target, distal_pat
     assert result.runner_up == runner.name
     assert_close(result.score_gap_mm, runner.score_mm - best.score_mm, atol=1e-12)
     assert_close(result.confidence, 1.0 - best.score_mm / runner.score_mm, atol=1e-12)
-    assert result.ambiguous == (result.score_gap_mm < config.ambiguity_gap_mm)
+    assert result.ambiguous == (result.confidence < config.min_confidence)
     data = result.to_json()
     assert data["scores_mm"] == scores and data["chosen"] == result.chosen
     import json
@@ -179,11 +185,12 @@ def test_cylinder_patch_is_flagged_ambiguous():
 
 def test_the_hypotheses_built(fibula_target):
     T = _rigid([10.0, 0.0, 0.0], [1.0, 2.0, 3.0])
-    starts = build_hypotheses(T, fibula_target, None, HypothesisConfig(shaft_rotations=4),
-                              T_coarse=np.eye(4))
+    no_slides = HypothesisConfig(shaft_rotations=4, slide_step_mm=0)
+    starts = build_hypotheses(T, fibula_target, None, no_slides, T_coarse=np.eye(4))
     assert list(starts)[0] == "network" and "coarse" in starts
-    assert len(starts) == 4 * 2 + 1  # dihedral group of 4 rotations x flips, + the coarse
+    assert len(starts) == 2 * 4 * 2  # 2 bases x dihedral group of 4 rotations x flips
     assert_close(starts["network"], T, atol=0)
+    assert_close(starts["coarse"], np.eye(4), atol=0)
     c, axes = fibula_target.centre, fibula_target.axes
     # rot180 about the long axis = flip about a1 then about a2 (the Klein four-group)
     flip2 = rotation_about(c, axes[:, 2], math.pi)
@@ -194,31 +201,87 @@ def test_the_hypotheses_built(fibula_target):
         assert np.linalg.det(R) > 0
     only = build_hypotheses(T, fibula_target, None,
                             HypothesisConfig(shaft_rotations=1, axis_flips=False,
-                                             include_coarse=False), T_coarse=np.eye(4))
+                                             include_coarse=False, slide_step_mm=0),
+                            T_coarse=np.eye(4))
     assert list(only) == ["network"]
+    # the principal-axes solve of the CT cloud against itself, flipped and turned: the identity
+    # is one of its 4 proper sign choices (pca, pca+flip, pca+rot180, pca+flip+rot180)
     completion = fibula_target.points
-    default = build_hypotheses(T, fibula_target, completion, HypothesisConfig())
-    assert not any(n.endswith("+centred") for n in default) and len(default) == 8 + 4
-    full = build_hypotheses(T, fibula_target, completion, HypothesisConfig(centred_copies=True))
-    # the principal-axes solves of the CT cloud against itself: the identity is one of them
-    assert min(np.abs(full[n] - np.eye(4)).max() for n in ("pca+++", "pca--+", "pca-+-",
-                                                            "pca+--")) < 1e-6
-    # every rotation hypothesis has a centred copy: same rotation, the completion's centroid
-    # moved onto the CT's
-    rotations = [n for n in full if n.startswith("network") and not n.endswith("+centred")]
-    assert len(rotations) == 8 and all(f"{n}+centred" in full for n in rotations)
-    for name in rotations:
-        centred = full[f"{name}+centred"]
-        assert_close(centred[:3, :3], full[name][:3, :3], atol=1e-12)
-        assert_close(apply_transform(centred, completion).mean(axis=0), fibula_target.centre,
-                     atol=1e-9, what=f"centroid of {name}+centred")
-    assert len(full) == 8 + 8 + 4
-    shifted = build_hypotheses(T, fibula_target, completion,
-                               HypothesisConfig(shaft_shifts_mm=(-20.0, 20.0)))
-    assert len(shifted) == 8 * 3 + 4
-    move = shifted["network+flip+shift20"][:3, 3] - shifted["network+flip"][:3, 3]
-    assert abs(np.linalg.norm(move) - 20.0) < 1e-9
-    assert_close(shifted["network+shift-20"][:3, :3], shifted["network"][:3, :3], atol=1e-12)
+    with_pca = build_hypotheses(T, fibula_target, completion, no_slides)
+    assert len(with_pca) == 2 * 4 * 2
+    assert min(np.abs(with_pca[n] - np.eye(4)).max() for n in
+               ("pca", "pca+flip", "pca+rot180", "pca+flip+rot180")) < 1e-6
+    # slides: multiples of the step along the long axis, up to half the CT's length
+    config = HypothesisConfig(slide_step_mm=20.0)
+    slides = slide_offsets_mm(fibula_target, config)
+    along = (fibula_target.points - c) @ axes[:, 0]
+    half_length = (along.max() - along.min()) / 2
+    assert slides[0] == 0 and np.abs(slides).max() <= half_length < np.abs(slides).max() + 20
+    assert np.allclose(np.sort(slides), np.arange(-len(slides) // 2 + 1, len(slides) // 2 + 1)
+                       * 20.0)
+    slid = build_hypotheses(T, fibula_target, completion, config)
+    assert len(slid) == 2 * 8 * 2 * len(slides)
+    move = slid["network+flip+slide40"][:3, 3] - slid["network+flip"][:3, 3]
+    assert abs(np.linalg.norm(move) - 40.0) < 1e-9
+    assert_close(slid["network+slide-20"][:3, :3], slid["network"][:3, :3], atol=1e-12)
+    assert list(slide_offsets_mm(fibula_target, HypothesisConfig(slide_step_mm=0))) == [0.0]
+    assert len(slide_offsets_mm(fibula_target, HypothesisConfig(slide_range_mm=30.0))) == 7
+
+
+def test_screening_ranks_the_true_basin_first(fibula_target, distal_patch):
+    """Of hundreds of starts, the screening keeps the network's own (bad) start first and one
+    near the truth among the few it keeps; without ``refine_top`` it keeps all, unmoved."""
+    us, truth, ct_patch = distal_patch
+    config = HypothesisConfig()
+    bad_start = rotation_about(fibula_target.centre, fibula_target.axes[:, 1], math.pi) @ \
+        _perturb(truth, ct_patch.mean(axis=0), degrees=25.0, mm=30.0, seed=5)
+    starts = build_hypotheses(bad_start, fibula_target, None, config)
+    stack = np.stack(list(starts.values()))
+    kept, screened = screen_starts(us[::10], stack, fibula_target, config)
+    assert len(kept) == config.refine_top and kept[0] == 0
+    assert_close(screened[0], bad_start, atol=0)
+    errors = [_errors(T, truth, us) for T in screened[1:]]
+    assert min(rre for _, rre in errors) < 5.0 and min(rte for rte, _ in errors) < 5.0, errors
+    everything, unmoved = screen_starts(us[::10], stack, fibula_target,
+                                        HypothesisConfig(refine_top=0))
+    assert np.array_equal(everything, np.arange(len(stack))) and unmoved is stack
+
+
+def test_closest_point_grid_agrees_with_the_kd_tree(fibula_target):
+    """The grid's CT points are at most about half a voxel diagonal worse than the true
+    nearest ones; outside the grid, points are clamped onto it."""
+    rng = np.random.default_rng(6)
+    near = fibula_target.points[rng.integers(0, len(fibula_target.points), 5000)]
+    queries = near + rng.normal(0.0, 5.0, near.shape)
+    origin, spacing, grid = fibula_target.closest_point_grid
+    assert grid.size <= HypothesisTarget.GRID_VOXELS * 1.1
+    exact = cKDTree(fibula_target.points).query(queries)[0]
+    approx = np.linalg.norm(queries - fibula_target.points[fibula_target.nearest_approx(
+        queries)], axis=1)
+    assert (approx >= exact - 1e-9).all()
+    assert (approx - exact).max() <= spacing * math.sqrt(3)
+    assert np.median(approx - exact) < 0.2 * spacing
+    far = fibula_target.centre + np.array([[5000.0, 0.0, 0.0]])
+    assert fibula_target.nearest_approx(far).shape == (1,)
+
+
+def test_tie_break_by_the_network_pose_on_a_symmetric_cylinder():
+    """On a cylinder every turn fits: ``network`` tie-breaking keeps the network's rotation,
+    ``score`` the lowest score, and both are flagged ambiguous."""
+    mesh = trimesh.creation.cylinder(radius=12.0, height=240.0, sections=128)
+    target = HypothesisTarget.from_mesh((np.asarray(mesh.vertices), np.asarray(mesh.faces)))
+    rng = np.random.default_rng(7)
+    theta, z = rng.uniform(0.0, np.pi / 2, 2000), rng.uniform(-40.0, 40.0, 2000)
+    patch = np.column_stack([12.0 * np.cos(theta), 12.0 * np.sin(theta), z])
+    truth = invert_rigid(_rigid([-40.0, 10.0, 75.0], [100.0, 20.0, -50.0]))
+    start = rotation_about(np.zeros(3), [0.0, 0.0, 1.0], math.radians(40.0)) @ truth
+    us = apply_transform(invert_rigid(truth), patch)
+    network = search_hypotheses(us, start, target)
+    assert network.ambiguous
+    assert _errors(network.T_ct_us, start, us)[1] < 5.0  # the network's turn is kept
+    by_score = search_hypotheses(us, start, target, config=HypothesisConfig(tie_break="score"))
+    assert by_score.ambiguous
+    assert by_score.chosen == min(by_score.scores, key=by_score.scores.get)
 
 
 def test_point_to_plane_batch_converges_from_several_starts(fibula_target, distal_patch):
@@ -258,8 +321,10 @@ def test_target_from_points_estimates_normals():
     ("shaft_rotations", 0), ("shaft_rotations", 37), ("icp_points", 2), ("target_points", 10),
     ("icp_iterations", -1), ("icp_mode", "dense"), ("icp_sigma", 0.0), ("icp_neighbors", 0),
     ("icp_trim", 1.0), ("score_trim", -0.1), ("distinct_deg", 0.0), ("distinct_mm", -1.0),
-    ("ambiguity_gap_mm", -0.5), ("icp_schedule", ((3, 10),)), ("icp_schedule", ((128, -1),)),
-    ("icp_margin_mm", 0.1),
+    ("min_confidence", 1.0), ("icp_schedule", ((3, 10),)), ("icp_schedule", ((128, -1),)),
+    ("icp_margin_mm", 0.0), ("slide_step_mm", -1.0), ("slide_range_mm", -5.0),
+    ("screen_points", 2), ("screen_iterations", -1), ("screen_score_points", 0),
+    ("refine_top", -1), ("tie_break", "random"),
 ])
 def test_config_validation(key, value):
     with pytest.raises(ConfigError, match=f"hypotheses.{key}"):

@@ -308,7 +308,9 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
 
     Reads ``result.json`` (``T_ct_us``, timings, residuals, the run folder and US file it names),
     the US points as given, ``completion_ct.ply`` and, if present, ``metrics.json``; the CT mesh is
-    ``ct_mesh`` or the run's own (its ``config.yaml``). Returns the path of ``report.html``.
+    ``ct_mesh`` or the run's own (its ``config.yaml``). When the hypotheses stage ran, a "pose"
+    block shows whether the pose is ambiguous, its confidence, the chosen hypothesis and the
+    runner-up. Returns the path of ``report.html``.
     """
     import json
 
@@ -339,6 +341,16 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     metrics: dict[str, Any] = {"runtime_s": result.get("runtime_s"),
                                "timings_s": result.get("timings_s", {}),
                                "residuals_mm": result.get("residuals_mm", {})}
+    hypotheses = result.get("hypotheses")
+    if hypotheses:  # the pose check of the hypotheses stage (comreg_core.hypotheses)
+        metrics["pose"] = {
+            "ambiguous": ("YES: another, different pose fits nearly as well; check the images"
+                          if hypotheses.get("ambiguous") else "no"),
+            "confidence": hypotheses.get("confidence"),
+            "chosen hypothesis": hypotheses.get("chosen"),
+            "runner-up": hypotheses.get("runner_up"),
+            "score_mm": hypotheses.get("score_mm"),
+            "score_gap_mm": hypotheses.get("score_gap_mm")}
     metrics_path = out_dir / "metrics.json"
     if metrics_path.is_file():
         metrics["evaluation"] = json.loads(metrics_path.read_text(encoding="utf-8"))["summary"]

@@ -243,3 +243,7 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     assert result.exit_code == 0, result.output
     html = (out / "report.html").read_text()
     assert "icp-gt" in html and "registered_anterior.png" in html
+    # the pose check of the hypotheses stage is in the report
+    hypotheses = json.loads((out / "result.json").read_text())["hypotheses"]
+    assert "pose / confidence" in html and hypotheses["chosen"] in html
+    assert ("YES: another, different pose" in html) == hypotheses["ambiguous"]
