@@ -646,9 +646,9 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
     """
     cfg = config or HypothesisConfig()
     pts = as_points(us_points, "US points")
-    if len(pts) < 3:
+    if len(pts) < 6:  # 6 point-to-surface constraints for the 6 degrees of freedom
         raise InvalidGeometryError(f"The US cloud has {len(pts)} points; the hypotheses need at "
-                                   "least 3.", "Pass a denser US bone surface.")
+                                   "least 6.", "Pass a denser US bone surface.")
     if completion is not None:
         completion = as_points(completion, "completion points")
         if len(completion) < 4:

@@ -341,3 +341,11 @@ def test_config_from_settings():
         as_hypothesis_config({"shaft_rotations": "six"})
     with pytest.raises(ConfigError, match="hypotheses setting"):
         as_hypothesis_config(3)
+
+
+@pytest.mark.parametrize("count", [0, 2, 5])
+def test_too_few_us_points_is_a_clear_error(fibula_target, count):
+    from comreg_core.errors import InvalidGeometryError
+
+    with pytest.raises(InvalidGeometryError, match="need at least 6"):
+        search_hypotheses(fibula_target.points[:count], np.eye(4), fibula_target)
