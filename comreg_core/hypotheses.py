@@ -86,6 +86,7 @@ import torch
 
 from comreg_core.config import require
 from comreg_core.errors import InvalidGeometryError
+from comreg_core.evaluation.metrics import rotation_error_deg
 from comreg_core.model.diff_icp import differentiable_icp
 from comreg_core.model.normalization import Normalization
 from comreg_core.model.ops import subsample
@@ -245,10 +246,29 @@ def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.nda
     return T
 
 
-def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle (deg) of the relative rotation ``R_a^T R_b`` (3x3 parts of 3x3 or 4x4 inputs)."""
-    R = np.asarray(R_a)[:3, :3].T @ np.asarray(R_b)[:3, :3]
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+def _strided(points: np.ndarray, count: int) -> np.ndarray:
+    """``min(count, N)`` evenly strided rows of ``(N, 3)`` points (first and last included)."""
+    return points[np.linspace(0, len(points) - 1, min(count, len(points))).astype(np.int64)]
+
+
+def _trimmed_mean(distances: np.ndarray, trim: float) -> np.ndarray:
+    """``(B,)`` mean of the smallest ``1 - trim`` share (at least one) of each row of ``(B, n)``
+    distances: the hypotheses' score."""
+    n = distances.shape[1]
+    return np.sort(distances, axis=1)[:, :max(1, n - int(trim * n))].mean(axis=1)
+
+
+def _same_pose(poses: np.ndarray, centroids: np.ndarray, i: int, others: np.ndarray,
+               config: HypothesisConfig, *, rotation_only: bool = False) -> np.ndarray:
+    """Which of the poses ``others`` (indices) are the same pose as pose ``i``: rotated apart by
+    at most ``distinct_deg`` and, unless ``rotation_only``, placing the US centroid within
+    ``distinct_mm``. ``poses`` ``(B, 4, 4)``, ``centroids`` ``(B, 3)`` mm (the US centroid
+    placed by each pose); returns ``(len(others),)`` bool."""
+    cos = (np.einsum("kij,ij->k", poses[others, :3, :3], poses[i, :3, :3]) - 1.0) / 2.0
+    same = cos >= math.cos(math.radians(config.distinct_deg))
+    if not rotation_only:
+        same &= np.linalg.norm(centroids[others] - centroids[i], axis=1) <= config.distinct_mm
+    return same
 
 
 class HypothesisTarget:
@@ -407,8 +427,7 @@ def point_to_plane_icp_batch(source: np.ndarray, T_init: np.ndarray, target: Hyp
     stages.append((len(src), int(iterations)))
     going = np.ones(len(T), dtype=bool)
     for i, (points, its) in enumerate(stages):
-        sub = src if points >= len(src) else \
-            src[np.linspace(0, len(src) - 1, points).astype(np.int64)]
+        sub = _strided(src, points)
         T[going], rmse[going] = _point_to_plane(sub, T[going], target, its, trim_fraction,
                                                 tolerance_mm)
         if margin_mm is not None and i < len(stages) - 1 and np.isfinite(rmse[going]).any():
@@ -431,13 +450,11 @@ def _point_to_plane(src: np.ndarray, T: np.ndarray, target: HypothesisTarget, it
         Ta = T[active]
         m = len(active)
         moved = src @ Ta[:, :3, :3].transpose(0, 2, 1) + Ta[:, None, :3, 3]  # m n 3
-        if approximate:
-            idx = target.nearest_approx(moved)  # m n
-            q, nrm = target.points[idx], target.normals[idx]  # m n 3
+        d, idx = (None, target.nearest_approx(moved)) if approximate else \
+            target.nearest(moved)  # m n
+        q, nrm = target.points[idx], target.normals[idx]  # m n 3
+        if d is None:
             d = np.linalg.norm(moved - q, axis=2)
-        else:
-            d, idx = target.nearest(moved)  # m n
-            q, nrm = target.points[idx], target.normals[idx]  # m n 3
         if keep < n:
             limit = np.partition(d, keep - 1, axis=1)[:, keep - 1:keep]  # m 1
             w = (d <= limit).astype(np.float64)  # m n
@@ -597,27 +614,17 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: HypothesisT
     if config.refine_top == 0 or len(starts) <= config.refine_top:
         return np.arange(len(starts)), starts
 
-    def strided(count: int) -> np.ndarray:
-        return us_points[np.linspace(0, len(us_points) - 1,
-                                     min(count, len(us_points))).astype(np.int64)]
-
-    poses, _ = _point_to_plane(strided(config.screen_points), starts, target,
+    poses, _ = _point_to_plane(_strided(us_points, config.screen_points), starts, target,
                                config.screen_iterations, config.icp_trim, 0.1, approximate=True)
-    sub = strided(config.screen_score_points)
+    sub = _strided(us_points, config.screen_score_points)
     moved = sub @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]  # B n 3
-    d = np.sort(target.surface_distances(moved, approximate=True), axis=1)
-    keep = max(1, len(sub) - int(config.score_trim * len(sub)))
-    order = np.argsort(d[:, :keep].mean(axis=1), kind="stable")
+    scores = _trimmed_mean(target.surface_distances(moved, approximate=True), config.score_trim)
     centroids = poses[:, :3, :3] @ us_points.mean(axis=0) + poses[:, :3, 3]  # B 3
-    cos_limit = math.cos(math.radians(config.distinct_deg))
     chosen = [0]
-    for i in order:
+    for i in np.argsort(scores, kind="stable"):
         if len(chosen) == config.refine_top:
             break
-        cos = (np.einsum("kij,ij->k", poses[chosen, :3, :3], poses[i, :3, :3]) - 1.0) / 2.0
-        near = (cos > cos_limit) & (np.linalg.norm(centroids[chosen] - centroids[i], axis=1)
-                                    <= config.distinct_mm)
-        if not near.any():
+        if not _same_pose(poses, centroids, i, np.array(chosen), config).any():
             chosen.append(int(i))
     kept = np.array(chosen)
     screened = poses[kept]
@@ -681,28 +688,23 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
                   icp.transform.double().cpu().numpy()]
         rmse = icp.rmse.double().cpu().numpy() * norm.scale
     moved = np.stack([apply_transform(T, subset_mm) for T in finals])  # B n 3
-    d = np.sort(target.surface_distances(moved), axis=1)  # B n
-    keep = max(1, len(subset_mm) - int(cfg.score_trim * len(subset_mm)))
-    scores = d[:, :keep].mean(axis=1)
+    scores = _trimmed_mean(target.surface_distances(moved), cfg.score_trim)  # B
     hypotheses = tuple(Hypothesis(n, starts[n], finals[i], float(scores[i]),
                                   float(rmse[i]) if math.isfinite(rmse[i]) else float("nan"))
                        for i, n in enumerate(names))
-    centroid = pts.mean(axis=0)
-    placed = np.stack([apply_transform(T, centroid[None])[0] for T in finals])  # B 3
-
-    def distinct(i: int, j: int) -> bool:
-        return (rotation_angle_deg(finals[i], finals[j]) > cfg.distinct_deg
-                or float(np.linalg.norm(placed[i] - placed[j])) > cfg.distinct_mm)
-
+    poses = np.stack(finals)  # B 4 4
+    placed = poses[:, :3, :3] @ pts.mean(axis=0) + poses[:, :3, 3]  # B 3, the US centroid
     best = int(np.argmin(scores))  # first minimum: the network's pose wins exact ties
     if cfg.tie_break == "network":
         # runner-up confidence below min_confidence <=> score below best / (1 - min_confidence)
-        tied = [i for i in range(B) if scores[i] * (1.0 - cfg.min_confidence) < scores[best]]
-        nearest = min(tied, key=lambda i: rotation_angle_deg(finals[i], starts["network"]))
-        best = min((i for i in tied if rotation_angle_deg(finals[i], finals[nearest])
-                    <= cfg.distinct_deg), key=lambda i: scores[i])  # slides: by score
-    runner = min((i for i in range(B) if i != best and distinct(i, best)),
-                 key=lambda i: scores[i], default=None)
+        tied = np.flatnonzero(scores * (1.0 - cfg.min_confidence) < scores[best])
+        nearest = tied[np.argmin([rotation_error_deg(poses[i], starts["network"])
+                                  for i in tied])]
+        rotated_alike = tied[_same_pose(poses, placed, nearest, tied, cfg, rotation_only=True)]
+        best = int(rotated_alike[np.argmin(scores[rotated_alike])])  # slides: by score
+    others = np.array([i for i in range(B) if i != best], dtype=np.int64)
+    distinct = others[~_same_pose(poses, placed, best, others, cfg)]
+    runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
     if runner is None:
         gap, confidence, ambiguous = None, 1.0, False
     else:
