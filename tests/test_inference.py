@@ -92,7 +92,9 @@ def test_hypotheses_stage_is_on_by_default_and_recorded(registrar, us_cloud):
     if not hyp.ambiguous:  # (ties are broken by the network's pose)
         assert hyp.scores[hyp.chosen] == min(hyp.scores.values())
     assert res.confidence == hyp.confidence and res.ambiguous == hyp.ambiguous
-    assert res.icp_rmse == hyp.best.icp_rmse_mm
+    # the chosen pose was polished against the mesh: the reported residual is the polish's
+    assert hyp.polish is not None and hyp.chosen in hyp.polished
+    assert res.icp_rmse == hyp.polish["rmse_mm"] and 0.5 < hyp.polish["inlier_fraction"] <= 1
     data = json.loads(json.dumps(res.to_json(), allow_nan=False))
     assert data["ambiguous"] == hyp.ambiguous and data["confidence"] == hyp.confidence
     assert data["hypotheses"]["chosen"] == hyp.chosen

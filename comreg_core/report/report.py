@@ -309,8 +309,8 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     Reads ``result.json`` (``T_ct_us``, timings, residuals, the run folder and US file it names),
     the US points as given, ``completion_ct.ply`` and, if present, ``metrics.json``; the CT mesh is
     ``ct_mesh`` or the run's own (its ``config.yaml``). When the hypotheses stage ran, a "pose"
-    block shows whether the pose is ambiguous, its confidence, the chosen hypothesis and the
-    runner-up. Returns the path of ``report.html``.
+    block shows whether the pose is ambiguous, its confidence, the chosen hypothesis, the
+    runner-up and what the final polish did. Returns the path of ``report.html``.
     """
     import json
 
@@ -351,6 +351,12 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
             "runner-up": hypotheses.get("runner_up"),
             "score_mm": hypotheses.get("score_mm"),
             "score_gap_mm": hypotheses.get("score_gap_mm")}
+        polish = hypotheses.get("polish")
+        if polish:
+            metrics["pose"]["polish"] = (
+                f"moved {polish['moved_mm']:.2f} mm in {polish['iterations']} iterations, "
+                f"{100 * polish['inlier_fraction']:.0f} % of the points matched, "
+                f"RMS {polish['rmse_mm']:.2f} mm")
     metrics_path = out_dir / "metrics.json"
     if metrics_path.is_file():
         metrics["evaluation"] = json.loads(metrics_path.read_text(encoding="utf-8"))["summary"]

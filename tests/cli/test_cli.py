@@ -210,6 +210,8 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     assert_close(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9, what="rigid")
     assert isinstance(saved["ambiguous"], bool) and "hypothesis '" in result.output
     assert saved["hypotheses"]["chosen"] in saved["hypotheses"]["scores_mm"]
+    polish = saved["hypotheses"]["polish"]  # the final exact-mesh ICP of the chosen pose
+    assert 1 <= polish["iterations"] <= 100 and 0.5 < polish["inlier_fraction"] <= 1.0, polish
     result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out",
                                  str(tmp_path / "plain"), "--no-hypotheses"])
     assert result.exit_code == 0, result.output
@@ -246,4 +248,5 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     # the pose check of the hypotheses stage is in the report
     hypotheses = json.loads((out / "result.json").read_text())["hypotheses"]
     assert "pose / confidence" in html and hypotheses["chosen"] in html
+    assert f"in {hypotheses['polish']['iterations']} iterations" in html
     assert ("YES: another, different pose" in html) == hypotheses["ambiguous"]
