@@ -46,29 +46,39 @@ alternatives at test time, with no extra training data:
    scores near 0 and the gaps between poses are not blurred). Trimming keeps false bone echoes
    and parts of the sweep the CT does not explain from dominating.
 
-5. **Choice and confidence**: the best score wins (exact ties go to the network's own pose).
-   Two refined poses are *distinct* when rotated apart by more than ``distinct_deg`` or placing
-   the US centroid more than ``distinct_mm`` apart. Poses that score within a factor
-   ``1 / (1 - min_confidence)`` of the best are *tied*; with ``tie_break="network"`` the tied
-   pose rotated least from the network's pose sets the rotation (among the tied poses rotated
-   like it, the best score wins, so slides are still decided by the score): a flip or a spin
-   the geometry cannot tell apart is decided by the learned prior. The *runner-up* is the
-   best-scoring pose distinct from the chosen one (converged duplicates never count);
-   ``score_gap_mm = score(runner-up) - score(chosen)``; ``confidence = max(gap, 0) /
-   score(runner-up)`` (= ``1 - chosen / runner-up``, in [0, 1]: 0 a tie, 1 no competing pose,
-   also when there is no runner-up); ``ambiguous = confidence < min_confidence``: another,
-   clearly different pose explains the US points (nearly) as well, e.g. a sweep of a
-   featureless stretch of shaft.
+5. **Polish** (``polish``, needs the mesh): the best-scoring pose and the distinct poses *tied*
+   with it (confidence below ``min_confidence``, step 6; at most ``polish_top``) get a last
+   point-to-plane ICP of the same US subset against the *exact* closest points of the CT mesh
+   and their triangles' normals (:func:`comreg_core.surface_icp.point_to_plane_icp`, the
+   ``icp-gt`` baseline's ICP), pairs farther apart than ``polish_max_distance_mm`` (2 mm) left
+   out, and are re-scored with exact distances to the mesh. With several such poses each first
+   gets a quick polish (:data:`QUICK_POLISH_POINTS` points, :data:`QUICK_POLISH_ITERATIONS`),
+   and the chosen one is then polished in full (at most ``polish_iterations``). Why: the
+   refinement matches to the nearest of the dense CT samples and trims a share of the points,
+   so false echoes a few mm off the bone still pull on it; on simulated fibula sweeps it stopped
+   2-3 deg or 2-11 mm off in 5 of 100 trials that the gated exact polish brought to within
+   0.1 deg / 0.1 mm, and poses that the refinement scored alike (a flip at 0.19 mm, the truth's
+   basin at 0.17 mm) separate once polished (0.2 mm vs 0.006 mm). Median cost ~0.05 s, ~0.4 s
+   with ties. Built from a bare cloud, the target has no :attr:`~HypothesisTarget.matcher` and
+   the polish is skipped.
 
-6. **Polish** (``polish``): the chosen pose gets a last point-to-plane ICP of the same US subset
-   against the *exact* closest points of the CT mesh and their triangles' normals
-   (:func:`comreg_core.surface_icp.point_to_plane_icp`, the ``icp-gt`` baseline's ICP), pairs
-   farther apart than ``polish_max_distance_mm`` (2 mm) left out, at most
-   ``polish_iterations``. The refinement above matches to the nearest of the dense CT samples
-   and trims a share of the points; on simulated fibula sweeps it stopped 2-3 deg or 2-11 mm off
-   in 5 of 100 trials that the gated exact polish brought to within 0.1 deg / 0.1 mm (median
-   cost ~0.05 s). It needs the mesh (:meth:`HypothesisTarget.from_mesh`); built from a bare
-   cloud, the target has no :attr:`~HypothesisTarget.matcher` and the polish is skipped.
+6. **Choice and confidence**: the best score wins (exact ties go to the network's own pose).
+   Two poses are *distinct* when rotated apart by more than ``distinct_deg`` or placing the US
+   centroid more than ``distinct_mm`` apart. ``confidence(a over b) = max(score_b - score_a,
+   0) / max(score_b, score_floor_mm)`` in [0, 1] (``score_floor_mm``, 0.05 mm: differences
+   between near-perfect fits are noise, not evidence). Poses over which the best has a
+   confidence below ``min_confidence`` are *tied* with it; with ``tie_break="network"`` the
+   tied pose rotated least from the network's pose sets the rotation (among the tied poses
+   rotated like it, the best score wins, so slides are still decided by the score): a flip or
+   a spin the geometry cannot tell apart is decided by the learned prior. The *runner-up* is
+   the best-scoring pose distinct from the chosen one (converged duplicates never count);
+   ``score_gap_mm = score(runner-up) - score(chosen)``; ``confidence`` = that of the chosen
+   pose over the runner-up (1 without a runner-up); ``ambiguous = confidence <
+   min_confidence``: another, clearly different pose explains the US points (nearly) as well,
+   e.g. a sweep of a featureless stretch of shaft. With the polish, only the polished poses
+   can be chosen (the others' scores are not exact, and they were not tied anyway); with
+   several, the choice is made on their quick-polish scores and the chosen one is then polished
+   in full (its final score is the one reported).
 
 Use it standalone (no network needed)::
 
@@ -105,7 +115,7 @@ from comreg_core.surface_icp import SurfaceMatcher, point_to_plane_icp
 from comreg_core.transforms import apply_transform, as_points, check_rigid, orthonormalize
 
 #: The polish stops once an update moves no US point by more than this (mm).
-POLISH_TOLERANCE_MM = 1e-3
+POLISH_TOLERANCE_MM = 0.01
 #: US points and most iterations of the quick polish that compares poses tied with the best.
 QUICK_POLISH_POINTS = 512
 QUICK_POLISH_ITERATIONS = 30
@@ -158,15 +168,16 @@ class HypothesisConfig:
             differ by more than ``distinct_deg`` or they place the US centroid more than
             ``distinct_mm`` apart; otherwise the later one is a duplicate.
         polish: polish the best pose and those tied with it by point-to-plane ICP to the
-            exact closest points of the CT mesh and re-score them (step 6 of the module
+            exact closest points of the CT mesh and re-score them (step 5 of the module
             docstring; needs the mesh, skipped without one).
         polish_top: at most this many poses are polished.
         polish_max_distance_mm: pairs farther apart than this are left out of the polish.
         polish_iterations: most iterations of a polish.
         score_floor_mm: score differences are measured relative to at least this (mm) in the
-            confidence: below it they are noise (step 5).
+            confidence: below it they are noise (step 6).
         min_confidence: a result is ambiguous when its confidence is below this (a different
-            pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score).
+            pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score, or
+            within ``min_confidence * score_floor_mm`` of it).
     """
 
     enabled: bool = True
@@ -556,12 +567,12 @@ class HypothesisResult:
     """The outcome of :func:`search_hypotheses` (module docstring for the definitions).
 
     Attributes:
-        T_ct_us: ``(4, 4)`` mm, the chosen hypothesis' refined pose.
+        T_ct_us: ``(4, 4)`` mm, the chosen hypothesis' refined (and polished) pose.
         chosen: its name.
         runner_up: the best-scoring genuinely different pose's name, None if there is none.
         score_gap_mm: ``score(runner_up) - score(chosen)`` (mm), None without a runner-up.
-        confidence: ``max(score_gap_mm, 0) / score(runner_up)`` in [0, 1]; 1.0 without a
-            runner-up.
+        confidence: ``max(score_gap_mm, 0) / max(score(runner_up), score_floor_mm)`` in
+            [0, 1]; 1.0 without a runner-up.
         ambiguous: ``confidence < min_confidence``.
         hypotheses: every refined :class:`Hypothesis`, in generation order.
         starts_tried: start poses built and screened before the best ``refine_top`` were refined.
@@ -761,17 +772,19 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
     centroid = pts.mean(axis=0)  # the US centroid, placed by each pose:
     placed = poses[:, :3, :3] @ centroid + poses[:, :3, 3]  # B 3
     polishes: list[dict[str, Any] | None] = [None] * B
-    polishing = cfg.polish and target.matcher is not None
-    if polishing:  # the best pose and those tied with it, polished and re-scored exactly
+    eligible = np.ones(B, dtype=bool)
+    if cfg.polish and target.matcher is not None:
+        # the best pose and those tied with it, polished and re-scored exactly; only they can
+        # be chosen (the scores of the others are not exact, and they were not tied anyway)
         candidates = _polish_candidates(scores, poses, placed, cfg)
         for i in candidates:  # several: a quick polish of each, then the chosen in full
             poses[i], scores[i], polishes[i] = _polish(subset_mm, centroid, poses[i], target,
                                                        cfg, quick=len(candidates) > 1)
         placed = poses[:, :3, :3] @ centroid + poses[:, :3, 3]
-    while True:  # the choice by the final scores: a fully polished pose (when polishing)
-        best = _choose(scores, poses, placed, starts["network"], cfg)
-        if not polishing or (polishes[best] is not None and not polishes[best]["quick"]):
-            break
+        eligible[:] = False
+        eligible[candidates] = True
+    best = _choose(scores, poses, placed, starts["network"], cfg, eligible)
+    if polishes[best] is not None and polishes[best]["quick"]:
         poses[best], scores[best], polishes[best] = _polish(
             subset_mm, centroid, poses[best], target, cfg, after=polishes[best])
         placed[best] = poses[best, :3, :3] @ centroid + poses[best, :3, 3]
@@ -796,20 +809,23 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
 
 def _confidence(score: float, others: np.ndarray | float, config: HypothesisConfig):
     """How clearly a pose scoring ``score`` beats poses scoring ``others`` (mm): ``max(other -
-    score, 0) / max(other, score_floor_mm)``, in [0, 1] (module docstring, step 5)."""
+    score, 0) / max(other, score_floor_mm)``, in [0, 1] (module docstring, step 6)."""
     others = np.asarray(others, dtype=np.float64)
     return np.maximum(others - score, 0.0) / np.maximum(others, config.score_floor_mm)
 
 
 def _choose(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray, T_network: np.ndarray,
-            config: HypothesisConfig) -> int:
-    """Index of the chosen pose: the best score, or with ``tie_break="network"`` among the poses
-    tied with the best (confidence below ``min_confidence``) the best-scoring of those rotated
-    like the one rotated least from the network's pose ``T_network`` (slides: by score).
-    ``scores`` ``(B,)`` mm, ``poses`` ``(B, 4, 4)``, ``placed`` ``(B, 3)`` US centroids."""
-    best = int(np.argmin(scores))  # first minimum: the network's pose wins exact ties
+            config: HypothesisConfig, eligible: np.ndarray) -> int:
+    """Index of the chosen pose among the ``eligible`` ones ``(B,)`` bool: the best score, or
+    with ``tie_break="network"`` among the poses tied with the best (confidence below
+    ``min_confidence``) the best-scoring of those rotated like the one rotated least from the
+    network's pose ``T_network`` (slides: by score). ``scores`` ``(B,)`` mm, ``poses``
+    ``(B, 4, 4)``, ``placed`` ``(B, 3)`` US centroids."""
+    masked = np.where(eligible, scores, np.inf)
+    best = int(np.argmin(masked))  # first minimum: the network's pose wins exact ties
     if config.tie_break == "network":
-        tied = np.flatnonzero(_confidence(scores[best], scores, config) < config.min_confidence)
+        tied = np.flatnonzero(eligible & (_confidence(scores[best], scores, config)
+                                          < config.min_confidence))
         nearest = tied[np.argmin([rotation_error_deg(poses[i], T_network) for i in tied])]
         rotated_alike = tied[_same_pose(poses, placed, nearest, tied, config,
                                         rotation_only=True)]
@@ -820,9 +836,12 @@ def _choose(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray, T_network
 def _polish_candidates(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray,
                        config: HypothesisConfig) -> list[int]:
     """The poses worth polishing: the best-scoring one and the distinct poses tied with it
-    (confidence below ``min_confidence``), by increasing score, at most ``polish_top``."""
+    (confidence below ``min_confidence``), the network's own pose (index 0) next if it is tied,
+    then by increasing score, at most ``polish_top``."""
     order = np.argsort(scores, kind="stable")
     tied = order[_confidence(scores[order[0]], scores[order], config) < config.min_confidence]
+    if 0 in tied[1:]:  # the prior: a tie the geometry cannot break may be the network's to break
+        tied = np.concatenate([tied[:1], [0], tied[1:][tied[1:] != 0]])
     kept: list[int] = []
     for i in tied:
         if len(kept) == config.polish_top:
@@ -835,7 +854,7 @@ def _polish_candidates(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray
 def _polish(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,
             target: HypothesisTarget, config: HypothesisConfig, *, quick: bool = False,
             after: dict[str, Any] | None = None) -> tuple[np.ndarray, float, dict[str, Any]]:
-    """Step 6 of the module docstring for one pose ``T`` ``(4, 4)``: the polished pose, its
+    """Step 5 of the module docstring for one pose ``T`` ``(4, 4)``: the polished pose, its
     exact score (trimmed mean distance of ``subset_mm`` ``(n, 3)`` to the mesh, mm) and the
     polish's record (:attr:`Hypothesis.polish`; ``moved_mm`` of the US ``centroid`` ``(3,)``).
     ``quick``: on :data:`QUICK_POLISH_POINTS`

@@ -290,7 +290,8 @@ def test_tie_break_by_the_network_pose_on_a_symmetric_cylinder():
     assert _errors(network.T_ct_us, start, us)[1] < 5.0  # the network's turn is kept
     by_score = search_hypotheses(us, start, target, config=HypothesisConfig(tie_break="score"))
     assert by_score.ambiguous
-    assert by_score.chosen == min(by_score.scores, key=by_score.scores.get)
+    # the lowest score (chosen on the quick polish's scores; all fit the cylinder to ~0.01 mm)
+    assert by_score.scores[by_score.chosen] <= min(by_score.scores.values()) + 0.01
 
 
 def test_point_to_plane_batch_converges_from_several_starts(fibula_target, distal_patch):
@@ -328,16 +329,19 @@ def test_polish_gates_out_false_echoes(fibula_target):
     info = polished.polish
     assert info["converged"] and 0.4 < info["inlier_fraction"] < 0.8, info
     assert info["moved_mm"] > 0.5 and info["rmse_mm"] < 0.2
-    assert polished.to_json()["polish"] == info
+    assert polished.chosen == "network" and polished.to_json()["polish"] == info
 
     unpolished = search_hypotheses(us, start, fibula_target,
                                    config=HypothesisConfig(polish=False))
-    assert unpolished.polish is None and unpolished.chosen == polished.chosen
+    assert unpolished.polish is None and not unpolished.polished
     rte_raw, rre_raw = _errors(unpolished.T_ct_us, truth, us)
-    assert rte_raw > 1.0 and rre_raw > 5.0, (rte_raw, rre_raw)  # measured 2.1 mm / 12 deg
-    assert_close(info["moved_mm"], np.linalg.norm(
-        apply_transform(polished.T_ct_us, us.mean(axis=0)[None])
-        - apply_transform(unpolished.T_ct_us, us.mean(axis=0)[None])), atol=1e-6)
+    assert rte_raw > 1.0 and rre_raw > 5.0, (rte_raw, rre_raw)
+    refined = unpolished.hypotheses[0].T_ct_us  # the network's pose before the polish
+    rte_net, rre_net = _errors(refined, truth, us)
+    assert rte_net > 1.0 and rre_net > 5.0, (rte_net, rre_net)  # measured 2.1 mm / 12 deg
+    centre = us.mean(axis=0)[None]
+    assert_close(info["moved_mm"], np.linalg.norm(apply_transform(polished.T_ct_us, centre)
+                                                  - apply_transform(refined, centre)), atol=0.05)
 
     bare = HypothesisTarget(fibula_target.points, fibula_target.normalization,
                             normals=fibula_target.normals)
