@@ -27,8 +27,8 @@ alternatives at test time, with no extra training data:
    Scoring *after* a few ICP steps matters: before them the right basin's starts rank in the
    hundreds, after them first.
 
-3. **Refinement**: the kept starts are refined together, in one batch, of an FPS subset of the
-   US cloud (``icp_points``) against a dense cloud of the CT surface (``target_points``
+3. **Refinement**: the kept starts are refined together, in one batch, of a subset of the
+   US cloud (``icp_points``, a uniform random one by default, ``icp_subset``) against a dense cloud of the CT surface (``target_points``
    area-uniform samples with their triangles' normals). By default (``icp_mode="plane"``) with
    the batched point-to-plane ICP :func:`point_to_plane_icp_batch`, coarse to fine: the
    ``icp_schedule`` stages on evenly strided subsets (128, then 512 US points, 30 iterations
@@ -141,7 +141,12 @@ class HypothesisConfig:
             its quick score.
         refine_top: starts refined by the full ICP and scored (the network's own pose and
             the best screened distinct others); 0 = all of them, unscreened.
-        icp_points: US points (FPS subset) in the hypotheses' ICP and score.
+        icp_points: US points in the hypotheses' ICP and score.
+        icp_subset: how those points are picked: ``"random"`` (a seeded uniform subset, in
+            sweep order: it keeps the sweep's own share of false echoes) or ``"fps"``
+            (farthest-point sampling, as the network's input: even coverage, but it picks
+            isolated false echoes first; on simulated fibula sweeps it raised their share
+            from ~3 % of the sweep to 10-15 % of the subset, more than ``icp_trim`` drops).
         target_points: area-uniform CT surface samples: the ICP target and the score's cloud.
         icp_mode: ``"plane"``: batched point-to-plane ICP against the CT samples' normals
             (:func:`point_to_plane_icp_batch`, the default: it converges along shafts);
@@ -187,11 +192,12 @@ class HypothesisConfig:
     principal_axes_solve: bool = True
     slide_step_mm: float = 8.0
     slide_range_mm: float | None = None
-    screen_points: int = 32
+    screen_points: int = 64
     screen_iterations: int = 20
     screen_score_points: int = 128
     refine_top: int = 12
     icp_points: int = 2048
+    icp_subset: Literal["random", "fps"] = "random"
     target_points: int = 20_000
     icp_mode: Literal["plane", "hard", "soft"] = "plane"
     icp_iterations: int = 20
@@ -225,6 +231,8 @@ class HypothesisConfig:
                 "must be at least 3")
         require(self.refine_top >= 0, "hypotheses.refine_top", "must be 0 (all) or more")
         require(self.icp_points >= 3, "hypotheses.icp_points", "must be at least 3")
+        require(self.icp_subset in ("random", "fps"), "hypotheses.icp_subset",
+                "must be 'random' or 'fps'")
         require(self.target_points >= 100, "hypotheses.target_points", "must be at least 100")
         require(self.icp_iterations >= 0, "hypotheses.icp_iterations", "must be 0 or more")
         require(all(p >= 6 and it >= 0 for p, it in self.icp_schedule),
@@ -292,6 +300,18 @@ def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.nda
     T[:3, :3] = R
     T[:3, 3] = centre - R @ centre
     return T
+
+
+def us_subset(points: np.ndarray, count: int, method: str = "random") -> np.ndarray:
+    """``min(count, N)`` of the ``(N, 3)`` US points (mm) for the hypotheses' ICP and score:
+    ``"random"``, a uniform subset (seed 0: the same points every run) kept in sweep order, or
+    ``"fps"``, the farthest-point-sampling subset (:func:`comreg_core.model.ops.subsample`)."""
+    if len(points) <= count:
+        return points
+    if method == "fps":
+        cloud = torch.from_numpy(points).float()[None]  # 1 N 3
+        return subsample(cloud, count, 0)[0].double().numpy()
+    return points[np.sort(np.random.default_rng(0).choice(len(points), count, replace=False))]
 
 
 def _strided(points: np.ndarray, count: int) -> np.ndarray:
@@ -742,9 +762,7 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
     starts = build_hypotheses(T_start, target, completion, cfg, T_coarse=T_coarse)
     norm, device = target.normalization, target.device
 
-    src = torch.from_numpy(norm.points_to_model(pts)).float()[None].to(device)  # 1 N 3
-    src = subsample(src, cfg.icp_points, 0)  # 1 n 3
-    subset_mm = norm.points_to_mm(src[0].double().cpu().numpy())  # n 3
+    subset_mm = us_subset(pts, cfg.icp_points, cfg.icp_subset)  # n 3
     all_names = list(starts)
     kept, screened = screen_starts(subset_mm, np.stack(list(starts.values())), target, cfg)
     names = [all_names[i] for i in kept]
@@ -756,6 +774,7 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
             margin_mm=cfg.icp_margin_mm, trim_fraction=cfg.icp_trim)
         finals = [orthonormalize(T) for T in refined]
     else:
+        src = torch.from_numpy(norm.points_to_model(subset_mm)).float()[None].to(device)
         init = torch.from_numpy(np.stack([norm.transform_to_model(T) for T in screened])
                                 ).float().to(device)  # B 4 4
         with torch.no_grad():

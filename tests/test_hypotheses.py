@@ -17,7 +17,7 @@ from comreg_core.evaluation.metrics import SurfaceReference
 from comreg_core.hypotheses import (HypothesisConfig, HypothesisTarget, as_hypothesis_config,
                                     build_hypotheses, point_to_plane_icp_batch,
                                     rotation_about, screen_starts, search_hypotheses,
-                                    slide_offsets_mm)
+                                    slide_offsets_mm, us_subset)
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import FIBULA_STL, assert_close
 
@@ -120,14 +120,10 @@ def test_score_and_confidence_follow_their_definitions(fibula_target, distal_pat
     start = _perturb(truth, ct_patch.mean(axis=0), degrees=3.0, mm=2.0, seed=3)
     result = search_hypotheses(us, start, fibula_target, config=config)
     # the score: trimmed mean distance to the tangent plane of the nearest CT point (scipy's
-    # KD-tree here) of the ICP subset of the US points (recomputed with the same FPS)
-    import torch
-
-    from comreg_core.model.ops import subsample
-
-    norm = fibula_target.normalization
-    sub = torch.from_numpy(norm.points_to_model(us)).float()[None]
-    sub_mm = norm.points_to_mm(subsample(sub, config.icp_points, 0)[0].double().numpy())
+    # KD-tree here) of the ICP subset of the US points (the documented uniform subset: seed 0,
+    # in sweep order)
+    sub_mm = us[np.sort(np.random.default_rng(0).choice(len(us), config.icp_points,
+                                                        replace=False))]
     tree = cKDTree(fibula_target.points)
     keep = len(sub_mm) - int(config.score_trim * len(sub_mm))
     mesh = pv.read(FIBULA_STL)
@@ -329,16 +325,16 @@ def test_polish_gates_out_false_echoes(fibula_target):
     info = polished.polish
     assert info["converged"] and 0.4 < info["inlier_fraction"] < 0.8, info
     assert info["moved_mm"] > 0.5 and info["rmse_mm"] < 0.2
-    assert polished.chosen == "network" and polished.to_json()["polish"] == info
+    assert polished.chosen in polished.polished and polished.to_json()["polish"] == info
 
     unpolished = search_hypotheses(us, start, fibula_target,
                                    config=HypothesisConfig(polish=False))
     assert unpolished.polish is None and not unpolished.polished
     rte_raw, rre_raw = _errors(unpolished.T_ct_us, truth, us)
-    assert rte_raw > 1.0 and rre_raw > 5.0, (rte_raw, rre_raw)
+    assert rte_raw > 0.5 and rre_raw > 2.0, (rte_raw, rre_raw)  # measured 0.8 mm / 3.0 deg
     refined = unpolished.hypotheses[0].T_ct_us  # the network's pose before the polish
     rte_net, rre_net = _errors(refined, truth, us)
-    assert rte_net > 1.0 and rre_net > 5.0, (rte_net, rre_net)  # measured 2.1 mm / 12 deg
+    assert rte_net > 0.5 and rre_net > 2.0, (rte_net, rre_net)
     centre = us.mean(axis=0)[None]
     assert_close(info["moved_mm"], np.linalg.norm(apply_transform(polished.T_ct_us, centre)
                                                   - apply_transform(refined, centre)), atol=0.05)
@@ -347,6 +343,32 @@ def test_polish_gates_out_false_echoes(fibula_target):
                             normals=fibula_target.normals)
     assert bare.matcher is None
     assert search_hypotheses(us, start, bare).polish is None
+
+
+def test_random_subset_keeps_the_sweeps_share_of_false_echoes(fibula_target):
+    """Simulated fibula sweeps (the paper's false intersections): farthest-point sampling picks
+    the isolated false echoes first, a uniform subset keeps their share; on that subset the
+    trimmed refinement stays on the truth (identity: the sweeps are in the CT frame)."""
+    from comreg_core.simulation import simulate_sweeps
+
+    config = HypothesisConfig()
+    for sweep in simulate_sweeps(FIBULA_STL, 3, seed=5):
+        cloud = sweep.points
+        off = lambda pts: float((fibula_target.matcher.closest(pts)[2] > 2.0).mean())
+        share = off(cloud)  # measured 2-4 % of a sweep
+        random_share = off(us_subset(cloud, config.icp_points, "random"))
+        fps_share = off(us_subset(cloud, config.icp_points, "fps"))
+        assert 0.005 < share < 0.08, share
+        assert random_share < 1.6 * share + 0.01, (share, random_share)
+        assert fps_share > 2.0 * share, (share, fps_share)  # measured ~10 % of the subset
+        subset = us_subset(cloud, config.icp_points)
+        refined, _ = point_to_plane_icp_batch(subset, np.eye(4)[None], fibula_target,
+                                              iterations=config.icp_iterations,
+                                              schedule=config.icp_schedule,
+                                              trim_fraction=config.icp_trim)
+        rte, rre = _errors(refined[0], np.eye(4), cloud)
+        assert rte < 0.5 and rre < 0.5, (rte, rre)
+    assert len(us_subset(cloud[:100], config.icp_points)) == 100  # fewer points: all of them
 
 
 @pytest.mark.parametrize("mode", ["hard", "soft"])
@@ -378,7 +400,7 @@ def test_target_from_points_estimates_normals():
     ("screen_points", 2), ("screen_iterations", -1), ("screen_score_points", 0),
     ("refine_top", -1), ("tie_break", "random"), ("polish", "yes"),
     ("polish_max_distance_mm", 0.0), ("polish_iterations", 0), ("polish_top", 0),
-    ("score_floor_mm", 0.0),
+    ("score_floor_mm", 0.0), ("icp_subset", "voxel"),
 ])
 def test_config_validation(key, value):
     with pytest.raises(ConfigError, match=f"hypotheses.{key}"):
