@@ -314,6 +314,11 @@ def us_subset(points: np.ndarray, count: int, method: str = "random") -> np.ndar
     return points[np.sort(np.random.default_rng(0).choice(len(points), count, replace=False))]
 
 
+def _apply_batch(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` points moved by each of ``(B, 4, 4)`` poses: ``(B, n, 3)``."""
+    return points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
+
+
 def _strided(points: np.ndarray, count: int) -> np.ndarray:
     """``min(count, N)`` evenly strided rows of ``(N, 3)`` points (first and last included)."""
     return points[np.linspace(0, len(points) - 1, min(count, len(points))).astype(np.int64)]
@@ -532,7 +537,7 @@ def _point_to_plane(src: np.ndarray, T: np.ndarray, target: HypothesisTarget, it
     for _ in range(iterations):
         Ta = T[active]
         m = len(active)
-        moved = src @ Ta[:, :3, :3].transpose(0, 2, 1) + Ta[:, None, :3, 3]  # m n 3
+        moved = _apply_batch(Ta, src)  # m n 3
         d, idx = (None, target.nearest_approx(moved)) if approximate else \
             target.nearest(moved)  # m n
         q, nrm = target.points[idx], target.normals[idx]  # m n 3
@@ -716,9 +721,9 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: HypothesisT
     poses, _ = _point_to_plane(_strided(us_points, config.screen_points), starts, target,
                                config.screen_iterations, config.icp_trim, 0.1, approximate=True)
     sub = _strided(us_points, config.screen_score_points)
-    moved = sub @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]  # B n 3
+    moved = _apply_batch(poses, sub)  # B n 3
     scores = _trimmed_mean(target.surface_distances(moved, approximate=True), config.score_trim)
-    centroids = poses[:, :3, :3] @ us_points.mean(axis=0) + poses[:, :3, 3]  # B 3
+    centroids = _apply_batch(poses, us_points.mean(axis=0)[None])[:, 0]  # B 3
     chosen = [0]
     for i in np.argsort(scores, kind="stable"):
         if len(chosen) == config.refine_top:
@@ -786,10 +791,10 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
                   icp.transform.double().cpu().numpy()]
         rmse = icp.rmse.double().cpu().numpy() * norm.scale
     poses = np.stack(finals)  # B 4 4
-    moved = subset_mm @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]  # B n 3
+    moved = _apply_batch(poses, subset_mm)  # B n 3
     scores = _trimmed_mean(target.surface_distances(moved), cfg.score_trim)  # B
     centroid = pts.mean(axis=0)  # the US centroid, placed by each pose:
-    placed = poses[:, :3, :3] @ centroid + poses[:, :3, 3]  # B 3
+    placed = _apply_batch(poses, centroid[None])[:, 0]  # B 3
     polishes: list[dict[str, Any] | None] = [None] * B
     eligible = np.ones(B, dtype=bool)
     if cfg.polish and target.matcher is not None:
@@ -799,14 +804,14 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
         for i in candidates:  # several: a quick polish of each, then the chosen in full
             poses[i], scores[i], polishes[i] = _polish(subset_mm, centroid, poses[i], target,
                                                        cfg, quick=len(candidates) > 1)
-        placed = poses[:, :3, :3] @ centroid + poses[:, :3, 3]
+        placed = _apply_batch(poses, centroid[None])[:, 0]
         eligible[:] = False
         eligible[candidates] = True
     best = _choose(scores, poses, placed, starts["network"], cfg, eligible)
     if polishes[best] is not None and polishes[best]["quick"]:
         poses[best], scores[best], polishes[best] = _polish(
             subset_mm, centroid, poses[best], target, cfg, after=polishes[best])
-        placed[best] = poses[best, :3, :3] @ centroid + poses[best, :3, 3]
+        placed[best] = apply_transform(poses[best], centroid[None])[0]
     others = np.array([i for i in range(B) if i != best], dtype=np.int64)
     distinct = others[~_same_pose(poses, placed, best, others, cfg)]
     runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
