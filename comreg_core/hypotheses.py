@@ -172,6 +172,9 @@ class HypothesisConfig:
         distinct_deg, distinct_mm: two refined poses are different poses when their rotations
             differ by more than ``distinct_deg`` or they place the US centroid more than
             ``distinct_mm`` apart; otherwise the later one is a duplicate.
+        retry_ambiguous: when the result is ambiguous, search again from the starts
+            interleaved with the first grid (rotations and slides shifted by half a step) and
+            choose among both rounds' hypotheses (step 7).
         polish: polish the best pose and those tied with it by point-to-plane ICP to the
             exact closest points of the CT mesh and re-score them (step 5 of the module
             docstring; needs the mesh, skipped without one).
@@ -210,6 +213,7 @@ class HypothesisConfig:
     tie_break: Literal["network", "score"] = "network"
     distinct_deg: float = 10.0
     distinct_mm: float = 5.0
+    retry_ambiguous: bool = True
     polish: bool = True
     polish_top: int = 4
     polish_max_distance_mm: float = 2.0
@@ -250,6 +254,8 @@ class HypothesisConfig:
         require(self.distinct_deg > 0, "hypotheses.distinct_deg", "must be positive")
         require(self.distinct_mm > 0, "hypotheses.distinct_mm", "must be positive")
         require(isinstance(self.polish, bool), "hypotheses.polish", "must be true or false")
+        require(isinstance(self.retry_ambiguous, bool), "hypotheses.retry_ambiguous",
+                "must be true or false")
         require(self.polish_top >= 1, "hypotheses.polish_top", "must be at least 1")
         require(self.score_floor_mm > 0, "hypotheses.score_floor_mm", "must be positive (mm)")
         require(self.polish_max_distance_mm > 0, "hypotheses.polish_max_distance_mm",
@@ -643,7 +649,8 @@ class HypothesisResult:
 def build_hypotheses(T_start: np.ndarray, target: HypothesisTarget,
                      completion: np.ndarray | None = None,
                      config: HypothesisConfig | None = None, *,
-                     T_coarse: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                     T_coarse: np.ndarray | None = None,
+                     grid_offset: float = 0.0) -> dict[str, np.ndarray]:
     """The start poses ``{name: T_ct_us (4, 4) mm}`` of the hypotheses (module docstring).
 
     Args:
@@ -652,6 +659,8 @@ def build_hypotheses(T_start: np.ndarray, target: HypothesisTarget,
         completion: ``(M, 3)`` mm, the completed bone in the US frame, or None.
         config: settings (default :class:`HypothesisConfig`).
         T_coarse: ``(4, 4)`` mm, the network's coarse pose, or None.
+        grid_offset: shift of the rotations and slides, as a share of their steps (0.5: the
+            grid interleaved with the default one; the bases themselves are not included).
     """
     cfg = config or HypothesisConfig()
     bases = {"network": check_rigid(T_start)}
@@ -664,7 +673,7 @@ def build_hypotheses(T_start: np.ndarray, target: HypothesisTarget,
         T[:3, 3] = target.centre - T[:3, :3] @ c_us
         bases["pca"] = T
     starts: dict[str, np.ndarray] = {}
-    slides = slide_offsets_mm(target, cfg)
+    slides = slide_offsets_mm(target, cfg) + grid_offset * cfg.slide_step_mm
     for base, T_base in bases.items():
         if completion is not None:
             centre, axes = principal_frame(apply_transform(T_base, completion))
@@ -673,10 +682,10 @@ def build_hypotheses(T_start: np.ndarray, target: HypothesisTarget,
         flip = rotation_about(centre, axes[:, 1], math.pi)
         for flipped in ((False, True) if cfg.axis_flips else (False,)):
             for k in range(cfg.shaft_rotations):
-                angle = 360.0 * k / cfg.shaft_rotations
+                angle = 360.0 * (k + grid_offset) / cfg.shaft_rotations
                 G = rotation_about(centre, axes[:, 0], math.radians(angle))
                 G = G @ flip if flipped else G
-                name = base + ("+flip" if flipped else "") + (f"+rot{round(angle)}" if k else "")
+                name = base + ("+flip" if flipped else "") + (f"+rot{angle:g}" if angle else "")
                 for slide in slides:
                     S = np.eye(4)
                     S[:3, 3] = slide * axes[:, 0]
@@ -699,12 +708,14 @@ def slide_offsets_mm(target: HypothesisTarget, config: HypothesisConfig) -> np.n
 
 
 def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: HypothesisTarget,
-                  config: HypothesisConfig) -> tuple[np.ndarray, np.ndarray]:
+                  config: HypothesisConfig, *, keep_first: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Pick the starts worth a full ICP: ``screen_iterations`` of point-to-plane ICP on
     ``screen_points`` US points for every start at once (correspondences from the CT's
     closest-point grid, :meth:`HypothesisTarget.nearest_approx`), then a quick score (trimmed
     mean distance of ``screen_score_points`` US points to the CT); keep the first start (the
-    network's own pose, unmoved) and then the best-scoring ones, skipping those within
+    network's own pose, unmoved; unless ``keep_first`` is False) and then the best-scoring
+    ones, skipping those within
     ``distinct_deg`` and ``distinct_mm`` (US centroid) of one already kept, up to
     ``refine_top`` in all (all of them, unmoved, when ``refine_top`` is 0 or not below ``B``).
 
@@ -724,15 +735,16 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: HypothesisT
     moved = _apply_batch(poses, sub)  # B n 3
     scores = _trimmed_mean(target.surface_distances(moved, approximate=True), config.score_trim)
     centroids = _apply_batch(poses, us_points.mean(axis=0)[None])[:, 0]  # B 3
-    chosen = [0]
+    chosen = [0] if keep_first else []
     for i in np.argsort(scores, kind="stable"):
         if len(chosen) == config.refine_top:
             break
-        if not _same_pose(poses, centroids, i, np.array(chosen), config).any():
+        if not chosen or not _same_pose(poses, centroids, i, np.array(chosen), config).any():
             chosen.append(int(i))
     kept = np.array(chosen)
     screened = poses[kept]
-    screened[0] = starts[0]
+    if keep_first:
+        screened[0] = starts[0]
     return kept, screened
 
 
@@ -741,6 +753,10 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
                       config: HypothesisConfig | None = None, *,
                       T_coarse: np.ndarray | None = None) -> HypothesisResult:
     """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
+
+    With ``retry_ambiguous``, an ambiguous result gets a second round from the grid of starts
+    interleaved with the first (rotations and slides shifted by half a step), and the choice
+    is made again among the hypotheses of both rounds.
 
     Args:
         us_points: ``(N, 3)`` mm, the observed US bone points in their own (US) frame.
@@ -764,71 +780,109 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Hypoth
         completion = as_points(completion, "completion points")
         if len(completion) < 4:
             completion = None
-    starts = build_hypotheses(T_start, target, completion, cfg, T_coarse=T_coarse)
-    norm, device = target.normalization, target.device
-
     subset_mm = us_subset(pts, cfg.icp_points, cfg.icp_subset)  # n 3
-    all_names = list(starts)
-    kept, screened = screen_starts(subset_mm, np.stack(list(starts.values())), target, cfg)
-    names = [all_names[i] for i in kept]
-    B = len(names)
-    if cfg.icp_mode == "plane":
-        refined, rmse = point_to_plane_icp_batch(
-            subset_mm, screened, target,
-            iterations=cfg.icp_iterations, schedule=cfg.icp_schedule,
-            margin_mm=cfg.icp_margin_mm, trim_fraction=cfg.icp_trim)
-        finals = [orthonormalize(T) for T in refined]
-    else:
-        src = torch.from_numpy(norm.points_to_model(subset_mm)).float()[None].to(device)
-        init = torch.from_numpy(np.stack([norm.transform_to_model(T) for T in screened])
-                                ).float().to(device)  # B 4 4
-        with torch.no_grad():
-            icp = differentiable_icp(src.expand(B, -1, -1), target.model_points, init,
-                                     iterations=cfg.icp_iterations, sigma=cfg.icp_sigma,
-                                     neighbors=cfg.icp_neighbors, mode=cfg.icp_mode,
-                                     trim_fraction=cfg.icp_trim)
-        finals = [norm.transform_to_mm(orthonormalize(T)) for T in
-                  icp.transform.double().cpu().numpy()]
-        rmse = icp.rmse.double().cpu().numpy() * norm.scale
-    poses = np.stack(finals)  # B 4 4
-    moved = _apply_batch(poses, subset_mm)  # B n 3
-    scores = _trimmed_mean(target.surface_distances(moved), cfg.score_trim)  # B
-    centroid = pts.mean(axis=0)  # the US centroid, placed by each pose:
-    placed = _apply_batch(poses, centroid[None])[:, 0]  # B 3
-    polishes: list[dict[str, Any] | None] = [None] * B
-    eligible = np.ones(B, dtype=bool)
-    if cfg.polish and target.matcher is not None:
-        # the best pose and those tied with it, polished and re-scored exactly; only they can
-        # be chosen (the scores of the others are not exact, and they were not tied anyway)
-        candidates = _polish_candidates(scores, poses, placed, cfg)
-        for i in candidates:  # several: a quick polish of each, then the chosen in full
-            poses[i], scores[i], polishes[i] = _polish(subset_mm, centroid, poses[i], target,
-                                                       cfg, quick=len(candidates) > 1)
-        placed = _apply_batch(poses, centroid[None])[:, 0]
-        eligible[:] = False
-        eligible[candidates] = True
-    best = _choose(scores, poses, placed, starts["network"], cfg, eligible)
-    if polishes[best] is not None and polishes[best]["quick"]:
-        poses[best], scores[best], polishes[best] = _polish(
-            subset_mm, centroid, poses[best], target, cfg, after=polishes[best])
-        placed[best] = apply_transform(poses[best], centroid[None])[0]
-    others = np.array([i for i in range(B) if i != best], dtype=np.int64)
-    distinct = others[~_same_pose(poses, placed, best, others, cfg)]
-    runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
-    if runner is None:
-        gap, confidence, ambiguous = None, 1.0, False
-    else:
-        gap = float(scores[runner] - scores[best])
-        confidence = float(_confidence(scores[best], scores[runner], cfg))
-        ambiguous = bool(confidence < cfg.min_confidence)
-    hypotheses = tuple(Hypothesis(n, starts[n], poses[i], float(scores[i]),
+    centroid = pts.mean(axis=0)  # the US centroid, placed by each pose
+    T_network = check_rigid(T_start)
+    names: list[str] = []
+    starts: list[np.ndarray] = []
+    poses = np.zeros((0, 4, 4))
+    scores, rmse = np.zeros(0), np.zeros(0)
+    polishes: list[dict[str, Any] | None] = []
+    tried = 0
+    for offset in (0.0, 0.5) if cfg.retry_ambiguous else (0.0,):
+        grid = build_hypotheses(T_network, target, completion, cfg, T_coarse=T_coarse,
+                                grid_offset=offset)
+        tried += len(grid)
+        new_names, new_starts, new_poses, new_rmse = _refine_round(
+            subset_mm, grid, target, cfg, keep_first=offset == 0.0)
+        names += new_names
+        starts += new_starts
+        poses = np.concatenate([poses, new_poses])
+        rmse = np.concatenate([rmse, new_rmse])
+        scores = np.concatenate([scores, _trimmed_mean(
+            target.surface_distances(_apply_batch(new_poses, subset_mm)), cfg.score_trim)])
+        polishes += [None] * len(new_names)
+        best, runner = _choose_and_polish(subset_mm, centroid, poses, scores, polishes,
+                                          T_network, target, cfg)
+        confidence = 1.0 if runner is None else float(_confidence(scores[best], scores[runner],
+                                                                  cfg))
+        if confidence >= cfg.min_confidence:
+            break
+    gap = None if runner is None else float(scores[runner] - scores[best])
+    hypotheses = tuple(Hypothesis(n, starts[i], poses[i], float(scores[i]),
                                   float(rmse[i]) if math.isfinite(rmse[i]) else float("nan"),
                                   polishes[i])
                        for i, n in enumerate(names))
     return HypothesisResult(T_ct_us=poses[best], chosen=names[best],
                             runner_up=None if runner is None else names[runner],
-                            score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,
-                            hypotheses=hypotheses, starts_tried=len(all_names))
+                            score_gap_mm=gap, confidence=confidence,
+                            ambiguous=confidence < cfg.min_confidence,
+                            hypotheses=hypotheses, starts_tried=tried)
+
+
+def _refine_round(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: HypothesisTarget,
+                  config: HypothesisConfig, *, keep_first: bool
+                  ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
+    """Steps 2-3 of the module docstring for the start poses ``grid`` ``{name: (4, 4)}``:
+    screen them (``keep_first``: the first one, the network's own pose, always goes on), refine
+    the kept ones. Returns their names, start poses, ``(K, 4, 4)`` refined poses (mm) and
+    ``(K,)`` ICP residuals (mm)."""
+    all_names = list(grid)
+    kept, screened = screen_starts(subset_mm, np.stack(list(grid.values())), target, config,
+                                   keep_first=keep_first)
+    names = [all_names[i] for i in kept]
+    if config.icp_mode == "plane":
+        refined, rmse = point_to_plane_icp_batch(
+            subset_mm, screened, target,
+            iterations=config.icp_iterations, schedule=config.icp_schedule,
+            margin_mm=config.icp_margin_mm, trim_fraction=config.icp_trim)
+        poses = np.stack([orthonormalize(T) for T in refined])
+    else:
+        norm, device = target.normalization, target.device
+        src = torch.from_numpy(norm.points_to_model(subset_mm)).float()[None].to(device)
+        init = torch.from_numpy(np.stack([norm.transform_to_model(T) for T in screened])
+                                ).float().to(device)  # K 4 4
+        with torch.no_grad():
+            icp = differentiable_icp(src.expand(len(names), -1, -1), target.model_points, init,
+                                     iterations=config.icp_iterations, sigma=config.icp_sigma,
+                                     neighbors=config.icp_neighbors, mode=config.icp_mode,
+                                     trim_fraction=config.icp_trim)
+        poses = np.stack([norm.transform_to_mm(orthonormalize(T)) for T in
+                          icp.transform.double().cpu().numpy()])
+        rmse = icp.rmse.double().cpu().numpy() * norm.scale
+    return names, [grid[n] for n in names], poses, rmse
+
+
+def _choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.ndarray,
+                       scores: np.ndarray, polishes: list[dict[str, Any] | None],
+                       T_network: np.ndarray, target: HypothesisTarget,
+                       config: HypothesisConfig) -> tuple[int, int | None]:
+    """Steps 5-6 of the module docstring: polish the poses tied with the best (``poses``
+    ``(B, 4, 4)``, ``scores`` ``(B,)`` and ``polishes`` are updated in place; poses polished
+    before are not polished again), choose, and find the runner-up. Returns ``(chosen,
+    runner-up or None)`` indices."""
+    eligible = np.ones(len(poses), dtype=bool)
+    placed = _apply_batch(poses, centroid[None])[:, 0]  # B 3
+    if config.polish and target.matcher is not None:
+        # the best pose and those tied with it, polished and re-scored exactly; only polished
+        # poses can be chosen (the scores of the others are not exact, and they were not tied)
+        candidates = _polish_candidates(scores, poses, placed, config)
+        quick = len(candidates) > 1  # several: a quick polish of each, then the chosen in full
+        for i in candidates:
+            if polishes[i] is None:
+                poses[i], scores[i], polishes[i] = _polish(subset_mm, centroid, poses[i], target,
+                                                           config, quick=quick)
+        placed = _apply_batch(poses, centroid[None])[:, 0]
+        eligible = np.array([p is not None for p in polishes])
+    best = _choose(scores, poses, placed, T_network, config, eligible)
+    if polishes[best] is not None and polishes[best]["quick"]:
+        poses[best], scores[best], polishes[best] = _polish(
+            subset_mm, centroid, poses[best], target, config, after=polishes[best])
+        placed[best] = apply_transform(poses[best], centroid[None])[0]
+    others = np.array([i for i in range(len(poses)) if i != best], dtype=np.int64)
+    distinct = others[~_same_pose(poses, placed, best, others, config)]
+    runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
+    return best, runner
 
 
 def _confidence(score: float, others: np.ndarray | float, config: HypothesisConfig):
