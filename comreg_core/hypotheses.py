@@ -28,9 +28,12 @@ alternatives at test time, with no extra training data:
    hundreds, after them first.
 
 3. **Refinement**: the kept starts are refined together, in one batch, of a subset of the
-   US cloud (``icp_points``, a uniform random one by default, ``icp_subset``) against a dense cloud of the CT surface (``target_points``
-   area-uniform samples with their triangles' normals). By default (``icp_mode="plane"``) with
-   the batched point-to-plane ICP :func:`point_to_plane_icp_batch`, coarse to fine: the
+   US cloud (``icp_points``, uniform random, ``icp_subset``) against a dense cloud of the CT
+   surface (``target_points`` area-uniform samples with their triangles' normals). Not an FPS
+   subset: farthest-point sampling picks isolated false echoes first (on simulated fibula
+   sweeps ~3 % of the points, 10-15 % of an FPS subset, more than ``icp_trim`` leaves out,
+   enough to pull the ICP 20 mm off the truth). By default (``icp_mode="plane"``) with the
+   batched point-to-plane ICP :func:`point_to_plane_icp_batch`, coarse to fine: the
    ``icp_schedule`` stages on evenly strided subsets (128, then 512 US points, 30 iterations
    each), then ``icp_iterations`` on all ``icp_points``; after each stage only the hypotheses
    whose residual is within ``icp_margin_mm`` of the best go on. Point-to-point
@@ -79,6 +82,15 @@ alternatives at test time, with no extra training data:
    can be chosen (the others' scores are not exact, and they were not tied anyway); with
    several, the choice is made on their quick-polish scores and the chosen one is then polished
    in full (its final score is the one reported).
+
+7. **Second round** (``retry_ambiguous``): an ambiguous result may mean only that no start
+   landed in the right basin (from poses the network was not trained for, its bases can be
+   20-30 deg off and the grid's 45 deg spacing too coarse). Then steps 1-3 run again on the
+   grid interleaved with the first (rotations and slides shifted by half a step: ``+rot22.5``,
+   ``+slide4``, ...; the bases themselves are not repeated), and steps 5-6 choose among the
+   hypotheses of both rounds (poses polished in the first round are not polished again).
+   ``starts_tried`` counts both rounds. Costs about one more search, only for ambiguous
+   results.
 
 Use it standalone (no network needed)::
 

@@ -184,6 +184,13 @@ def test_cylinder_patch_is_flagged_ambiguous():
     assert rre > 10.0 or rte > 5.0
     # every hypothesis fits the cylinder (the patch lies on it in all of these poses)
     assert max(result.scores.values()) < 0.05
+    # ambiguous: a second round from the interleaved grid was searched too (twice the starts,
+    # its hypotheses named by the half steps); without the retry, one round
+    one_round = search_hypotheses(us, truth, target,
+                                  config=HypothesisConfig(retry_ambiguous=False))
+    assert one_round.ambiguous and result.starts_tried == 2 * one_round.starts_tried
+    assert any("rot22.5" in h.name for h in result.hypotheses)
+    assert not any("rot22.5" in h.name for h in one_round.hypotheses)
 
 
 # --- hypotheses, refinement, options --------------------------------------------------------
@@ -230,6 +237,12 @@ def test_the_hypotheses_built(fibula_target):
     assert abs(np.linalg.norm(move) - 40.0) < 1e-9
     assert_close(slid["network+slide-20"][:3, :3], slid["network"][:3, :3], atol=1e-12)
     assert list(slide_offsets_mm(fibula_target, HypothesisConfig(slide_step_mm=0))) == [0.0]
+    # the interleaved grid of the second round: rotations and slides shifted by half a step
+    shifted = build_hypotheses(T, fibula_target, completion, config, grid_offset=0.5)
+    assert len(shifted) == len(slid) and not set(shifted) & set(slid)
+    half_turn = shifted["network+rot22.5+slide10"] @ invert_rigid(slid["network"])
+    assert abs(np.degrees(Rotation.from_matrix(half_turn[:3, :3]).magnitude()) - 22.5) < 1e-6
+    assert "network+flip+rot337.5+slide-190" in shifted
     assert len(slide_offsets_mm(fibula_target, HypothesisConfig(slide_range_mm=30.0))) == 7
 
 
@@ -400,7 +413,7 @@ def test_target_from_points_estimates_normals():
     ("screen_points", 2), ("screen_iterations", -1), ("screen_score_points", 0),
     ("refine_top", -1), ("tie_break", "random"), ("polish", "yes"),
     ("polish_max_distance_mm", 0.0), ("polish_iterations", 0), ("polish_top", 0),
-    ("score_floor_mm", 0.0), ("icp_subset", "voxel"),
+    ("score_floor_mm", 0.0), ("icp_subset", "voxel"), ("retry_ambiguous", "yes"),
 ])
 def test_config_validation(key, value):
     with pytest.raises(ConfigError, match=f"hypotheses.{key}"):
