@@ -214,7 +214,9 @@ def pretrain(
     preset: Preset = typer.Option(Preset.cpu, help="Network size and schedule: 'cpu' (small, "
                                   "fast on a laptop) or 'paper' (the paper's, for a GPU)."),
     max_minutes: Optional[float] = typer.Option(None, "--max-minutes", min=0.1,
-                                                help="Time budget of this invocation."),
+                                                help="Wall-clock budget of this whole command "
+                                                "(set-up and validation included); less than "
+                                                "one epoch in it is an error."),
     epochs: Optional[int] = typer.Option(None, "--epochs", min=1, help="Total epochs."),
     resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its "
                                 "last checkpoint."),
@@ -242,6 +244,12 @@ def pretrain(
     typer.echo(f"wrote {result.run_dir}: {result.epochs} epochs, {result.samples_seen} samples in "
                f"{result.elapsed_s / 60:.1f} min on {result.device} (stopped: {result.stopped})"
                + (f"; validation {summary}" if summary else ""))
+    from comreg_core.training.checkpoint import network_warning
+
+    warning = network_warning({"epoch": result.epochs, "validation": result.validation,
+                               "initial_error": result.initial_error})
+    if warning:
+        typer.echo(f"warning: {warning}", err=True)
 
 
 @app.command("register")

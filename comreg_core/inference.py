@@ -50,7 +50,7 @@ from comreg_core.model.diff_icp import differentiable_icp
 from comreg_core.model.normalization import Normalization
 from comreg_core.model.ops import subsample
 from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, ct_fingerprint,
-                                             load_checkpoint, mesh_fingerprint)
+                                             load_checkpoint, mesh_fingerprint, network_warning)
 from comreg_core.training.config import PretrainConfig, config_from_yaml
 from comreg_core.training.trainer import resolve_device
 from comreg_core.transforms import apply_transform, as_points, orthonormalize
@@ -131,6 +131,7 @@ class RegistrationResult:
             "icp_rmse_mm": self.icp_rmse, "confidence": self.confidence,
             "ambiguous": self.ambiguous,
             "hypotheses": None if self.hypotheses is None else self.hypotheses.to_json(),
+            "warnings": list(self.info.get("warnings", [])),
         }
 
 
@@ -152,14 +153,19 @@ class Registrar:
         hypotheses: the test-time hypotheses stage: None or True = on with the defaults of
             :class:`~comreg_core.hypotheses.HypothesisConfig`, False = off (the paper's plain
             pipeline), or a ``HypothesisConfig`` (its ``enabled`` decides).
+        warnings: what the run's own validation says against its network
+            (:func:`~comreg_core.training.checkpoint.network_warning`); copied into every
+            result's ``warnings``.
     """
 
     def __init__(self, model: ComRegNet, ct_points: np.ndarray, normalization: Normalization,
                  *, ct_vertices: np.ndarray | None = None, ct_faces: np.ndarray | None = None,
                  fingerprint: str = "", space: str = "LPS", device: str | torch.device = "cpu",
                  config: PretrainConfig | None = None,
-                 hypotheses: HypothesisConfig | bool | None = None):
+                 hypotheses: HypothesisConfig | bool | None = None,
+                 warnings: list[str] | None = None):
         self.device = resolve_device(device)
+        self.warnings = list(warnings or [])
         self.model = model.to(self.device).eval()
         self.ct_points = as_points(ct_points, "CT points")
         self.normalization = normalization
@@ -216,7 +222,8 @@ class Registrar:
         return cls(model, state["ct_points"].numpy(), norm,
                    ct_vertices=state["ct_vertices"].numpy(), ct_faces=state["ct_faces"].numpy(),
                    fingerprint=expected, space=str(state.get("ct_space", "LPS")), device=dev,
-                   config=cfg, hypotheses=hypotheses)
+                   config=cfg, hypotheses=hypotheses,
+                   warnings=[w] if (w := network_warning(state)) else [])
 
     # ------------------------------------------------------------------------------------------
 
@@ -296,19 +303,12 @@ class Registrar:
         t["preprocess"] = time.perf_counter() - start
         with torch.no_grad():
             mark = time.perf_counter()
-            completion = model.completion(subsample(src, cfg.completion.input_points, 0))
-            tokens, positions = model._tokens(completion)
+            completion, pose = model.coarse_pose(src, encoding)
+            coarse = pose.transform
             self._sync()
-            t["completion"] = time.perf_counter() - mark
+            t["completion_and_coarse_pose"] = time.perf_counter() - mark
             mark = time.perf_counter()
-            coarse, _, _ = model.pose_head(tokens, positions, encoding.tokens, encoding.positions)
-            self._sync()
-            t["coarse_pose"] = time.perf_counter() - mark
-            mark = time.perf_counter()
-            icp = differentiable_icp(subsample(src, cfg.icp.num_points, 0), encoding.icp_points,
-                                     coarse, iterations=cfg.icp.iterations, sigma=cfg.icp.sigma,
-                                     neighbors=cfg.icp.neighbors, mode=cfg.icp.mode,
-                                     trim_fraction=cfg.icp.trim_fraction)
+            icp = model.refine(subsample(src, cfg.icp.num_points, 0), encoding, coarse)
             self._sync()
             t["icp"] = time.perf_counter() - mark
         mark = time.perf_counter()
@@ -335,7 +335,7 @@ class Registrar:
         residuals = self.residuals(registered)
         t["residuals"] = time.perf_counter() - mark
         info = {"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(t),
-                "residuals_mm": residuals,
+                "residuals_mm": residuals, "warnings": list(self.warnings),
                 "hypotheses": None if hyp is None else hyp.to_json()}
         if hyp is not None:  # the flag where other consumers (the plugin) look for it
             info.update(ambiguous=hyp.ambiguous, confidence=hyp.confidence)
@@ -423,6 +423,8 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
         tmp.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
     log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
              result.runtime_s, result.device, out)
+    for warning in registrar.warnings:
+        log.warning("%s", warning)
     if result.ambiguous:
         log.warning("Ambiguous registration: hypothesis '%s' fits the US points within %.2f mm "
                     "of '%s' (confidence %.2f); check the result visually.",

@@ -34,3 +34,40 @@ def random_rigid(rng: np.random.Generator, max_translation: float = 100.0) -> np
     T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
     T[:3, 3] = rng.uniform(-max_translation, max_translation, 3)
     return T
+
+
+def tibia_like_mesh(length: float = 360.0, n_rings: int = 180, n_around: int = 96):
+    """A closed, tibia-like bone surface ``(vertices (V, 3) mm, faces (F, 3))`` made here, for
+    learning benchmarks on a bone of another shape than the shared fibula: a 360 mm shaft with a
+    rounded-triangular cross-section (anterior crest), a wide proximal plateau (two condyles and
+    a tuberosity bump in front), a narrower distal end with a medial malleolus bulge. Long axis
+    z (0 = distal, ``length`` = proximal), anterior +y, medial +x. Star-shaped rings, capped."""
+    z = np.linspace(0.0, length, n_rings)
+    theta = np.linspace(0.0, 2 * np.pi, n_around, endpoint=False)
+    u = z / length
+    # radius profile along the bone: narrow shaft, flared ends (proximal wider)
+    base = 11.0 + 22.0 * np.exp(-((1 - u) / 0.09) ** 2) + 12.0 * np.exp(-(u / 0.07) ** 2)
+    rings = []
+    for k in range(n_rings):
+        t = theta
+        r = base[k] * (1.0 + 0.18 * np.cos(3 * (t - np.pi / 2)))  # triangular, crest in front
+        prox = np.exp(-((1 - u[k]) / 0.06) ** 2)
+        r = r * (1.0 + prox * (0.35 * np.cos(2 * t) ** 2 - 0.15 * np.sin(t)))  # condyles
+        tub = np.exp(-((u[k] - 0.88) / 0.03) ** 2)
+        r = r + 9.0 * tub * np.exp(-((t - np.pi / 2) / 0.35) ** 2)  # tuberosity, anterior
+        mall = np.exp(-((u[k] - 0.03) / 0.04) ** 2)
+        r = r + 10.0 * mall * np.exp(-(np.angle(np.exp(1j * t)) / 0.5) ** 2)  # medial malleolus
+        bow = 6.0 * np.sin(np.pi * u[k])  # a gentle anterior bow of the shaft
+        rings.append(np.stack([r * np.cos(t), r * np.sin(t) + bow, np.full_like(t, z[k])], 1))
+    vertices = np.concatenate(rings + [np.array([[0.0, 0.0, -2.0], [0.0, 0.0, length + 2.0]])])
+    faces = []
+    n = n_around
+    for k in range(n_rings - 1):
+        a = k * n + np.arange(n)
+        b = k * n + (np.arange(n) + 1) % n
+        faces += [np.stack([a, b, a + n], 1), np.stack([b, b + n, a + n], 1)]
+    bottom, top = len(vertices) - 2, len(vertices) - 1
+    ring0, ring1 = np.arange(n), (n_rings - 1) * n + np.arange(n)
+    faces.append(np.stack([np.full(n, bottom), (ring0 + 1) % n, ring0], 1))
+    faces.append(np.stack([np.full(n, top), ring1, (n_rings - 1) * n + (np.arange(n) + 1) % n], 1))
+    return vertices, np.concatenate(faces).astype(np.int64)

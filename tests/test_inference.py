@@ -19,7 +19,7 @@ from comreg_core.transforms import apply_transform, check_rigid
 from tests.helpers import FIBULA_STL, assert_close
 from tests.training.tiny import tiny_run
 
-TIMING_KEYS = {"preprocess", "completion", "coarse_pose", "icp", "hypotheses", "postprocess",
+TIMING_KEYS = {"preprocess", "completion_and_coarse_pose", "icp", "hypotheses", "postprocess",
                "total", "residuals"}
 
 

@@ -27,7 +27,7 @@ from comreg_core.model.losses import (
 )
 from comreg_core.model.normalization import Normalization
 from comreg_core.model.ops import chamfer_l1, furthest_point_sample, gather_points, knn
-from comreg_core.model.pose_head import PoseHead
+from comreg_core.model.pose_head import CorrespondencePoseHead, PoseHead, build_pose_head
 
 __all__ = [
     "AdaPoinTr", "CompletionOutput", "ComRegNet", "ComRegOutput", "TargetEncoding",
@@ -35,4 +35,5 @@ __all__ = [
     "PoseHeadConfig", "model_preset", "ICPResult", "differentiable_icp", "weighted_procrustes",
     "LossTerms", "comreg_loss", "output_loss", "pose_loss", "rotation_angle", "Normalization",
     "chamfer_l1", "furthest_point_sample", "gather_points", "knn", "PoseHead",
+    "CorrespondencePoseHead", "build_pose_head",
 ]

@@ -5,6 +5,10 @@ cloud ``T``, both in the CT's normalised coordinates (:mod:`comreg_core.model.no
 and returns the completion of ``S^t``, the coarse transform ``T_coarse^-1`` (source -> target)
 predicted from ``H(S^t) (+) H(T)``, and its ICP refinement ``T_fine^-1``.
 
+With ``input_frame: centroid`` the source is shifted so the centroid of its network input is at
+0 before ``f`` and ``g``; the completion and the coarse transform are shifted back, so every
+output is in the same frame as with ``input_frame: ct``.
+
 ``encode_target`` runs the target half once (e.g. at inference, where the CT is fixed); its
 result can be passed as ``target``. In training the CT goes through ``f`` every step (with
 gradients), as in the paper; pass it with batch 1 to run it once per step for the whole batch.
@@ -12,6 +16,7 @@ gradients), as in the paper; pass it with batch 1 to run it once per step for th
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -21,8 +26,8 @@ from comreg_core.errors import InvalidGeometryError
 from comreg_core.model.adapointr import AdaPoinTr, CompletionOutput
 from comreg_core.model.config import ModelConfig
 from comreg_core.model.diff_icp import ICPResult, differentiable_icp
-from comreg_core.model.ops import check_points, subsample
-from comreg_core.model.pose_head import PoseHead
+from comreg_core.model.ops import check_points, subsample, transform_points
+from comreg_core.model.pose_head import Correspondences, PoseOutput, build_pose_head
 
 
 class TargetEncoding(NamedTuple):
@@ -49,6 +54,8 @@ class ComRegOutput(NamedTuple):
         quaternion: ``(B, 4)`` unit quaternion (w, x, y, z) of the coarse rotation.
         translation: ``(B, 3)`` coarse translation.
         icp: :class:`ICPResult` (per-iteration history, rmse, aligned ICP points).
+        correspondences: the correspondence head's :class:`Correspondences` (positions in the
+            source frame), or None for the MLP head.
     """
 
     completion: CompletionOutput
@@ -57,6 +64,7 @@ class ComRegOutput(NamedTuple):
     quaternion: Tensor
     translation: Tensor
     icp: ICPResult
+    correspondences: Correspondences | None = None
 
 
 class ComRegNet(nn.Module):
@@ -72,7 +80,7 @@ class ComRegNet(nn.Module):
         self.completion = AdaPoinTr(config.completion)
         c = config.completion
         feature_dim = c.decoder_dim if config.pose.features == "decoded" else c.encoder_dim
-        self.pose_head = PoseHead(feature_dim, config.pose)
+        self.pose_head = build_pose_head(feature_dim, config.pose)
 
     def _start(self) -> int | None:
         return None if self.training else 0
@@ -90,6 +98,52 @@ class ComRegNet(nn.Module):
             return out.decoded, out.centres
         return out.encoded, out.proxies
 
+    def _input_offset(self, src_in: Tensor) -> Tensor:
+        """``(B, 1, 3)`` the shift taken off the source before ``f`` (0 in the CT frame)."""
+        if self.config.input_frame == "centroid":
+            return src_in.detach().mean(dim=1, keepdim=True)
+        return src_in.new_zeros(src_in.shape[0], 1, 3)
+
+    def _coarse(self, completion: CompletionOutput, offset: Tensor,
+                encoding: TargetEncoding) -> PoseOutput:
+        """The pose head on a completion made in the shifted frame, composed with the shift:
+        ``T = T' . (x - offset)``; correspondence positions moved back to the source frame."""
+        tokens, positions = self._tokens(completion)
+        pose = self.pose_head(tokens, positions, encoding.tokens, encoding.positions)
+        R = pose.transform[:, :3, :3]  # B 3 3
+        shift = (R @ offset.transpose(1, 2)).squeeze(-1)  # B 3
+        transform = torch.cat([pose.transform[:, :3], pose.transform[:, 3:]], dim=1).clone()
+        transform[:, :3, 3] = pose.transform[:, :3, 3] - shift
+        corr = pose.correspondences
+        if corr is not None:
+            corr = corr._replace(positions=corr.positions + offset)
+        return PoseOutput(transform, pose.quaternion, transform[:, :3, 3], corr)
+
+    @staticmethod
+    def _unshift(completion: CompletionOutput, offset: Tensor) -> CompletionOutput:
+        """The completion's points moved from the shifted frame back to the source frame."""
+        return completion._replace(
+            centres=completion.centres + offset, proxies=completion.proxies + offset,
+            dense=None if completion.dense is None else completion.dense + offset)
+
+    def coarse_pose(self, source: Tensor, target: TargetEncoding
+                    ) -> tuple[CompletionOutput, PoseOutput]:
+        """Completion and coarse pose of sources against an encoded target (no ICP).
+
+        Args:
+            source: ``(B, N, 3)`` partial US clouds (normalised).
+            target: :meth:`encode_target` of the CT.
+
+        Returns:
+            the completion (source frame) and the :class:`PoseOutput` (source -> target).
+        """
+        self._check_cloud(source, "source")
+        src_in = subsample(source, self.config.completion.input_points, self._start())
+        offset = self._input_offset(src_in)  # B 1 3
+        completion = self.completion(src_in - offset)
+        pose = self._coarse(completion, offset, target)
+        return self._unshift(completion, offset), pose
+
     def encode_target(self, target: Tensor) -> TargetEncoding:
         """Run the target half: ``f(T)`` up to the decoded features, and its ICP subset.
 
@@ -105,7 +159,8 @@ class ComRegNet(nn.Module):
         icp_points = subsample(target, self.config.icp.num_points, self._start())
         return TargetEncoding(tokens, positions, icp_points)
 
-    def forward(self, source: Tensor, target: Tensor | TargetEncoding) -> ComRegOutput:
+    def forward(self, source: Tensor, target: Tensor | TargetEncoding,
+                refine_only: Callable[[Tensor], Tensor] | None = None) -> ComRegOutput:
         """Complete the source and register it to the target.
 
         Args:
@@ -113,6 +168,11 @@ class ComRegNet(nn.Module):
                 scale). Clouds above ``completion.input_points`` are reduced by FPS for ``f``;
                 ICP uses an FPS subset of ``icp.num_points``.
             target: ``(B | 1, M, 3)`` CT clouds ``T``, or a :class:`TargetEncoding`.
+            refine_only: optional ``coarse (B, 4, 4) -> (B,) bool``: ICP runs only on the
+                samples it selects; the others' fine transform is their coarse one. Training
+                passes the fine-loss gate (:func:`~comreg_core.model.losses.in_fine_gate`):
+                outside it the fine term is 0 whatever ICP returns, so the result and the
+                gradients are the same, for less work.
 
         Returns:
             :class:`ComRegOutput`.
@@ -122,6 +182,8 @@ class ComRegNet(nn.Module):
         B = source.shape[0]
         start = self._start()
         src_in = subsample(source, cfg.completion.input_points, start)  # B n 3
+        offset = self._input_offset(src_in)  # B 1 3
+        src_in = src_in - offset
         if isinstance(target, TargetEncoding):
             encoding = target
             completion = self.completion(src_in)
@@ -143,12 +205,49 @@ class ComRegNet(nn.Module):
                 tokens, positions = self._tokens(self.completion(tgt_in, rebuild=False))
             encoding = TargetEncoding(tokens, positions,
                                       subsample(target, cfg.icp.num_points, start))
-        src_tokens, src_positions = self._tokens(completion)
-        coarse, quaternion, translation = self.pose_head(src_tokens, src_positions,
-                                                         encoding.tokens, encoding.positions)
+        pose = self._coarse(completion, offset, encoding)
+        completion = self._unshift(completion, offset)
         icp_source = subsample(source, cfg.icp.num_points, start)  # B N_c 3
-        icp = differentiable_icp(icp_source, encoding.icp_points, coarse,
-                                 iterations=cfg.icp.iterations, sigma=cfg.icp.sigma,
-                                 neighbors=cfg.icp.neighbors, mode=cfg.icp.mode,
-                                 trim_fraction=cfg.icp.trim_fraction)
-        return ComRegOutput(completion, coarse, icp.transform, quaternion, translation, icp)
+        if refine_only is None:
+            icp = self.refine(icp_source, encoding, pose.transform)
+        else:
+            icp = self._refine_some(icp_source, encoding, pose.transform, refine_only)
+        return ComRegOutput(completion, pose.transform, icp.transform, pose.quaternion,
+                            pose.translation, icp, pose.correspondences)
+
+    def _refine_some(self, icp_source: Tensor, target: TargetEncoding, coarse: Tensor,
+                     select: Callable[[Tensor], Tensor]) -> ICPResult:
+        """:meth:`refine` on the samples ``select(coarse)`` picks; the rest keep ``coarse``
+        (history: ``coarse`` repeated, rmse NaN, aligned points: the coarse-moved source)."""
+        chosen = select(coarse.detach())  # B
+        idx = chosen.nonzero().squeeze(1)
+        part = None
+        if len(idx):
+            tgt = target if target.icp_points.shape[0] == 1 else target._replace(
+                icp_points=target.icp_points[idx])
+            part = self.refine(icp_source[idx], tgt, coarse[idx])
+        B = coarse.shape[0]
+        K = self.config.icp.iterations if part is None else part.transform_history.shape[1]
+        transform = coarse.clone()
+        aligned = transform_points(coarse, icp_source)
+        rmse = coarse.new_full((B,), float("nan"))
+        history = coarse.unsqueeze(1).expand(B, K, 4, 4).clone()
+        rmse_history = coarse.new_full((B, K), float("nan"))
+        converged = torch.zeros(B, dtype=torch.bool, device=coarse.device)
+        if part is not None:
+            transform = transform.index_put((idx,), part.transform)
+            aligned = aligned.index_put((idx,), part.aligned)
+            rmse = rmse.index_put((idx,), part.rmse.to(rmse.dtype))
+            history = history.index_put((idx,), part.transform_history)
+            rmse_history = rmse_history.index_put((idx,), part.rmse_history.to(rmse.dtype))
+            converged = converged.index_put((idx,), part.converged)
+        return ICPResult(transform, aligned, rmse, history, rmse_history, converged)
+
+    def refine(self, icp_source: Tensor, target: TargetEncoding, coarse: Tensor) -> ICPResult:
+        """The differentiable ICP from ``coarse`` ``(B, 4, 4)``: ``icp_source`` ``(B, N_c, 3)``
+        onto the target's ICP subset, with this model's ICP settings."""
+        icp = self.config.icp
+        return differentiable_icp(icp_source, target.icp_points, coarse,
+                                  iterations=icp.iterations, sigma=icp.sigma,
+                                  neighbors=icp.neighbors, mode=icp.mode,
+                                  trim_fraction=icp.trim_fraction)

@@ -104,17 +104,26 @@ class CompletionConfig:
 
 @dataclass(frozen=True)
 class PoseHeadConfig:
-    """Registration module ``g``: pooled per-query features of both clouds -> coarse pose.
+    """Registration module ``g``: per-query features of both clouds -> coarse pose.
 
     Attributes:
         features: ``"decoded"`` feeds ``H = M_D(Q, V)`` (the paper); ``"encoded"`` feeds ``V``
             (the paper's "w/o completion" ablation).
+        head: ``"mlp"`` (the paper): pooled tokens -> MLP -> rotation + translation.
+            ``"correspondence"``: every source token predicts where its query centre lies on
+            the CT (normalised CT coordinates) and a weight; the coarse pose is the weighted
+            Procrustes fit of the centres to those points (see :mod:`.pose_head`). Not in the
+            paper; the ``cpu`` preset uses it because it learns within a CPU budget.
+        rotation: the ``mlp`` head's rotation output: ``"quaternion"`` (the paper) or ``"6d"``
+            (the continuous 6-D representation of Zhou et al. 2019).
         token_dim: width of the shared per-token layer applied before pooling.
         hidden_dim, num_blocks: the MLP: ``num_blocks`` x (Linear + GroupNorm + GELU).
         norm_groups: GroupNorm groups in the MLP.
     """
 
     features: Literal["decoded", "encoded"] = "decoded"
+    head: Literal["mlp", "correspondence"] = "mlp"
+    rotation: Literal["quaternion", "6d"] = "quaternion"
     token_dim: int = 512
     hidden_dim: int = 512
     num_blocks: int = 5
@@ -173,16 +182,21 @@ class LossConfig:
             (30 deg) the coarse translation still diverged (225 mm after one epoch); with
             the fine term off it learned (median 16.6 deg after 6 minutes). Not in the paper:
             ``fine_gate_deg: 180`` and ``fine_gate_translation: .inf`` give the paper's loss.
+        lambda_correspondence: weight of the correspondence term (``pose.head:
+            correspondence`` only): the mean distance (normalised units) of each token's
+            predicted CT point from where the true transform puts its query centre. It is a
+            third term of ``L_registration``.
     """
 
     lambda_coarse: float = 1.0
     lambda_fine: float = 0.5
+    lambda_correspondence: float = 1.0
     rho: float = 0.1
     fine_gate_deg: float = 10.0
     fine_gate_translation: float = 0.025
 
     def __post_init__(self) -> None:
-        for name in ("lambda_coarse", "lambda_fine", "rho"):
+        for name in ("lambda_coarse", "lambda_fine", "lambda_correspondence", "rho"):
             require(getattr(self, name) >= 0, f"loss.{name}", "must be 0 or more")
         require(0 < self.fine_gate_deg <= 180, "loss.fine_gate_deg",
                 "must lie in (0, 180] degrees (180 = no gate, the paper's loss)")
@@ -197,8 +211,17 @@ class LossConfig:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """The whole network: completion, pose head, ICP, losses (defaults = ``paper`` preset)."""
+    """The whole network: completion, pose head, ICP, losses (defaults = ``paper`` preset).
 
+    Attributes:
+        input_frame: ``"ct"`` (the paper): the source enters ``f`` and ``g`` in the CT's
+            normalised coordinates. ``"centroid"``: the source is first moved so that the
+            centroid of its network input lies at 0 (the shift is undone on every output), so
+            the network never has to learn where the cloud happens to sit: its outputs are
+            the same for a cloud translated anywhere. Not in the paper; used by ``cpu``.
+    """
+
+    input_frame: Literal["ct", "centroid"] = "ct"
     completion: CompletionConfig = field(default_factory=CompletionConfig)
     pose: PoseHeadConfig = field(default_factory=PoseHeadConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
@@ -217,6 +240,7 @@ class ModelConfig:
 MODEL_PRESETS: dict[str, dict] = {
     "paper": {},
     "cpu": {
+        "input_frame": "centroid",
         "completion": {
             "input_points": 2048,
             "center_num": [256, 128],
@@ -231,7 +255,8 @@ MODEL_PRESETS: dict[str, dict] = {
             "fold_grid": [4, 4],
             "fold_hidden": 128,
         },
-        "pose": {"token_dim": 256},
+        "pose": {"token_dim": 256, "head": "correspondence"},
+        "loss": {"rho": 1.0},
         "icp": {"num_points": 2048, "neighbors": 16},
     },
 }

@@ -6,7 +6,9 @@
   ``arccos((tr(R_hat^T R) - 1) / 2)`` but is computed as ``atan2(sin, cos)`` so that value and
   gradient stay finite at 0 and 180 degrees (see :func:`rotation_angle`).
 * ``L_registration = mean(lambda_coarse L_reg(coarse) + lambda_fine L_reg(fine))``, the fine
-  term gated per sample by the coarse pose error (``LossConfig.fine_gate_*``).
+  term gated per sample by the coarse pose error (``LossConfig.fine_gate_*``); with the
+  correspondence head, ``+ lambda_correspondence mean_i ||y_i - T^-1 c_i||`` (each token's
+  predicted CT point against where the truth puts its query centre).
 * ``L_final = L_completion + lambda_reg L_registration`` with
   ``lambda_reg = rho L_completion / L_registration``, the weight detached (a number, not a path
   for gradients).
@@ -21,10 +23,11 @@ import torch
 from torch import Tensor
 
 from comreg_core.model.config import LossConfig
-from comreg_core.model.ops import chamfer_l1, safe_norm
+from comreg_core.model.ops import chamfer_l1, safe_norm, transform_points
 
 if TYPE_CHECKING:
     from comreg_core.model.comreg import ComRegOutput
+    from comreg_core.model.pose_head import Correspondences
 
 
 def rotation_angle(R_hat: Tensor, R: Tensor) -> Tensor:
@@ -67,6 +70,19 @@ def pose_loss(T_hat: Tensor, T: Tensor) -> Tensor:
     return translation + rotation_angle(T_hat[..., :3, :3], T[..., :3, :3])
 
 
+def in_fine_gate(coarse_transform: Tensor, gt_transform: Tensor, config: LossConfig) -> Tensor:
+    """``(B,)`` bool: which samples' fine term counts (coarse estimate within
+    ``fine_gate_deg`` and ``fine_gate_translation`` of the truth; all when ungated)."""
+    with torch.no_grad():
+        if not config.fine_gated:
+            return torch.ones(coarse_transform.shape[0], dtype=torch.bool,
+                              device=coarse_transform.device)
+        angle = rotation_angle(coarse_transform[..., :3, :3], gt_transform[..., :3, :3])
+        shift = (coarse_transform[..., :3, 3] - gt_transform[..., :3, 3]).norm(dim=-1)
+        return (angle < math.radians(config.fine_gate_deg)) & (
+            shift < config.fine_gate_translation)
+
+
 class LossTerms(NamedTuple):
     """All loss terms, batch means (scalars). ``total`` is the one to back-propagate."""
 
@@ -78,11 +94,13 @@ class LossTerms(NamedTuple):
     reg_coarse: Tensor
     reg_fine: Tensor
     lambda_reg: Tensor
+    correspondence: Tensor
 
 
 def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transform: Tensor,
                 fine_transform: Tensor, gt_transform: Tensor,
-                config: LossConfig | None = None) -> LossTerms:
+                config: LossConfig | None = None,
+                correspondences: Correspondences | None = None) -> LossTerms:
     """The ComReg training objective.
 
     Args:
@@ -93,6 +111,7 @@ def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transf
         fine_transform: ``(B, 4, 4)`` predicted ``T_fine^-1``.
         gt_transform: ``(B, 4, 4)`` ground truth ``T^-1`` (source -> CT).
         config: :class:`LossConfig` (lambda_coarse, lambda_fine, rho); None = the paper's.
+        correspondences: the correspondence head's predictions, or None (MLP head).
 
     Returns:
         :class:`LossTerms`.
@@ -104,18 +123,30 @@ def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transf
     reg_coarse = pose_loss(coarse_transform, gt_transform).mean()
     fine = pose_loss(fine_transform, gt_transform)  # B
     if config.fine_gated:
-        with torch.no_grad():
-            coarse_angle = rotation_angle(coarse_transform[..., :3, :3], gt_transform[..., :3, :3])
-            coarse_shift = (coarse_transform[..., :3, 3] - gt_transform[..., :3, 3]).norm(dim=-1)
-            in_basin = ((coarse_angle < math.radians(config.fine_gate_deg))
-                        & (coarse_shift < config.fine_gate_translation))
+        in_basin = in_fine_gate(coarse_transform, gt_transform, config)
         fine = torch.where(in_basin, fine, torch.zeros_like(fine))
     reg_fine = fine.mean()
     registration = config.lambda_coarse * reg_coarse + config.lambda_fine * reg_fine
+    correspondence = correspondence_loss(correspondences, gt_transform)
+    if correspondences is not None:
+        registration = registration + config.lambda_correspondence * correspondence
     lambda_reg = (config.rho * completion / registration.clamp_min(1e-12)).detach()
     total = completion + lambda_reg * registration
     return LossTerms(total, completion, sparse, dense_cd, registration, reg_coarse, reg_fine,
-                     lambda_reg)
+                     lambda_reg, correspondence)
+
+
+def correspondence_loss(correspondences: Correspondences | None, gt_transform: Tensor) -> Tensor:
+    """Mean distance of the predicted CT points ``y_i`` from ``T^-1 c_i`` (0 when None).
+
+    Args:
+        correspondences: positions ``c_i`` ``(B, T, 3)`` (source frame) and predictions ``y_i``.
+        gt_transform: ``(B, 4, 4)`` ground truth ``T^-1`` (source -> CT).
+    """
+    if correspondences is None:
+        return gt_transform.new_zeros(())
+    truth = transform_points(gt_transform, correspondences.positions.detach())  # B T 3
+    return safe_norm(correspondences.predicted - truth, dim=-1).mean()
 
 
 def output_loss(output: ComRegOutput, gt_points: Tensor, gt_transform: Tensor,
@@ -129,4 +160,5 @@ def output_loss(output: ComRegOutput, gt_points: Tensor, gt_transform: Tensor,
         config: loss weights.
     """
     return comreg_loss(output.completion.centres, output.completion.dense, gt_points,
-                       output.coarse_transform, output.fine_transform, gt_transform, config)
+                       output.coarse_transform, output.fine_transform, gt_transform, config,
+                       output.correspondences)

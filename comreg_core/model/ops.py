@@ -319,3 +319,42 @@ def transform_points(transform: Tensor, points: Tensor) -> Tensor:
     R = transform[:, :3, :3]  # B 3 3
     t = transform[:, :3, 3]  # B 3
     return points @ R.transpose(1, 2) + t.unsqueeze(1)
+
+
+def rotation_6d_to_matrix(x: Tensor) -> Tensor:
+    """Rotation matrices ``(..., 3, 3)`` of the continuous 6-D representation ``(..., 6)`` (Zhou
+    et al., CVPR 2019): the two 3-vectors are orthonormalised by Gram-Schmidt and become the
+    first two *columns*; the third is their cross product."""
+    if x.shape[-1] != 6:
+        raise ValueError(f"6-D rotations must have shape (..., 6), got {tuple(x.shape)}")
+    a, b = x[..., :3], x[..., 3:]
+    e1 = a / a.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    b = b - (e1 * b).sum(-1, keepdim=True) * e1
+    e2 = b / b.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    e3 = torch.cross(e1, e2, dim=-1)
+    return torch.stack([e1, e2, e3], dim=-1)
+
+
+def matrix_to_quaternion(rotation: Tensor) -> Tensor:
+    """Unit quaternions ``(..., 4)`` (w, x, y, z; w >= 0) of rotation matrices ``(..., 3, 3)``
+    (Shepperd's method: the largest of the four squared components is taken first)."""
+    if rotation.shape[-2:] != (3, 3):
+        raise ValueError(f"rotations must have shape (..., 3, 3), got {tuple(rotation.shape)}")
+    m = rotation
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    squares = torch.stack([1 + tr, 1 + 2 * m[..., 0, 0] - tr, 1 + 2 * m[..., 1, 1] - tr,
+                           1 + 2 * m[..., 2, 2] - tr], dim=-1)  # ... 4, = 4 q_k^2
+    k = squares.argmax(dim=-1, keepdim=True)  # ... 1
+    off = torch.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
+                       m[..., 1, 0] - m[..., 0, 1], m[..., 0, 1] + m[..., 1, 0],
+                       m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1]], dim=-1)
+    # 4 q_k q_j for each choice of k (rows: k = w, x, y, z; columns: j = w, x, y, z)
+    products = torch.stack([
+        torch.stack([squares[..., 0], off[..., 0], off[..., 1], off[..., 2]], -1),
+        torch.stack([off[..., 0], squares[..., 1], off[..., 3], off[..., 4]], -1),
+        torch.stack([off[..., 1], off[..., 3], squares[..., 2], off[..., 5]], -1),
+        torch.stack([off[..., 2], off[..., 4], off[..., 5], squares[..., 3]], -1),
+    ], dim=-2)  # ... 4 4
+    q = products.gather(-2, k.unsqueeze(-1).expand(*k.shape[:-1], 1, 4)).squeeze(-2)  # ... 4
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return torch.where(q[..., :1] < 0, -q, q)

@@ -341,6 +341,8 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     metrics: dict[str, Any] = {"runtime_s": result.get("runtime_s"),
                                "timings_s": result.get("timings_s", {}),
                                "residuals_mm": result.get("residuals_mm", {})}
+    if result.get("warnings"):
+        metrics["warnings"] = " ".join(result["warnings"])
     hypotheses = result.get("hypotheses")
     if hypotheses:  # the pose check of the hypotheses stage (comreg_core.hypotheses)
         metrics["pose"] = {

@@ -124,7 +124,32 @@ def run_ct_mesh(run_dir: str | Path):
 
 #: Checkpoint entries a registration needs (no optimiser, scheduler or RNG state).
 MODEL_ENTRIES = ("config_yaml", "ct_fingerprint", "ct_space", "ct_vertices", "ct_faces",
-                 "ct_points", "norm_center", "norm_scale", "epoch", "samples_seen", "elapsed_s")
+                 "ct_points", "norm_center", "norm_scale", "epoch", "samples_seen", "elapsed_s",
+                 "validation", "validation_epoch", "initial_error")
+
+#: The network counts as not having learned while its validation coarse RRE (median) is above
+#: this share of the validation set's initial misalignment (median RRE of doing nothing).
+NOT_LEARNED_RRE_SHARE = 0.75
+
+
+def network_warning(state: dict[str, Any]) -> str | None:
+    """A one-line warning when a checkpoint's own validation says its network has not learned
+    (coarse RRE median above :data:`NOT_LEARNED_RRE_SHARE` of the initial poses'), or when it
+    has no training or validation to judge by; None when it has learned."""
+    epochs = int(state.get("epoch", 0))
+    if epochs == 0:
+        return ("The network has not been trained (0 epochs): its pose is a guess; only the "
+                "pose search can make the result right.")
+    validation, initial = state.get("validation"), state.get("initial_error")
+    if not validation or not initial:
+        return None  # written before validation was stored: nothing to judge by
+    coarse = float(validation["val_coarse_RRE_deg_median"])
+    start = float(initial["RRE_deg_median"])
+    if coarse > NOT_LEARNED_RRE_SHARE * start:
+        return (f"The network has not learned the pose: after {epochs} epochs its validation "
+                f"coarse rotation error (median {coarse:.0f} deg) is no better than the initial "
+                f"poses' ({start:.0f} deg); the result rests on the pose search. Train longer.")
+    return None
 
 
 def export_model(run_dir: str | Path, path: str | Path, *, half: bool = True) -> Path:

@@ -75,7 +75,9 @@ class TrainingConfig:
         lr_backbone, weight_decay_backbone: AdamW on the completion network.
         lr_head: Adam on the registration head.
         lr_decay, lr_decay_epochs: both learning rates are multiplied by ``lr_decay`` every
-            ``lr_decay_epochs`` epochs (LambdaLR).
+            ``lr_decay_epochs`` epochs (LambdaLR, stepped after every training step).
+        warmup_steps: the learning rates rise linearly from ``1 / warmup_steps`` of their value
+            to it over the first ``warmup_steps`` steps (0 = none, the paper).
         grad_clip: clip the global gradient norm to this value (0 = no clipping).
         validation_every: validate every this many epochs (0 = never).
         validation_sweeps: held-out simulated sweeps in the validation set.
@@ -94,6 +96,7 @@ class TrainingConfig:
     lr_head: float = 1e-4
     lr_decay: float = 0.9
     lr_decay_epochs: int = 20
+    warmup_steps: int = 0
     grad_clip: float = 0.0
     validation_every: int = 1
     validation_sweeps: int = 32
@@ -114,6 +117,7 @@ class TrainingConfig:
                 "must be 0 or more")
         require(0 < self.lr_decay <= 1, "training.lr_decay", "must lie in (0, 1]")
         require(self.lr_decay_epochs >= 1, "training.lr_decay_epochs", "must be at least 1")
+        require(self.warmup_steps >= 0, "training.warmup_steps", "must be 0 or more")
         require(self.grad_clip >= 0, "training.grad_clip", "must be 0 or more")
         require(self.validation_every >= 0, "training.validation_every", "must be 0 or more")
         require(self.validation_sweeps >= 1, "training.validation_sweeps", "must be at least 1")
@@ -156,7 +160,8 @@ PRETRAIN_PRESETS: dict[str, dict[str, Any]] = {
         "simulation": {"n_points": 2048},
         "data": {"ct_points": 4096},
         "training": {"samples_per_epoch": 256, "validation_sweeps": 24,
-                     "checkpoint_minutes": 2.0},
+                     "checkpoint_minutes": 2.0, "lr_backbone": 5e-4, "lr_head": 5e-4,
+                     "warmup_steps": 64, "lr_decay_epochs": 4},
     },
 }
 

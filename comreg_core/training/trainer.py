@@ -41,11 +41,12 @@ import torch
 
 from comreg_core.config import ConfigError, deep_merge, from_dict, to_dict
 from comreg_core.errors import ComRegError
-from comreg_core.evaluation.metrics import (FLIP_RRE_DEG, rotation_error_deg, is_success,
+from comreg_core.evaluation.metrics import (FLIP_RRE_DEG, SurfaceReference, completion_metrics,
+                                            is_success, rotation_error_deg,
                                             translation_error_mm)
 from comreg_core.io._files import atomic_output, require_input_file
 from comreg_core.model.comreg import ComRegNet
-from comreg_core.model.losses import output_loss
+from comreg_core.model.losses import in_fine_gate, output_loss
 from comreg_core.model.normalization import Normalization
 from comreg_core.training.checkpoint import (CHECKPOINT_NAME, CheckpointError,
                                              check_fingerprint, load_checkpoint,
@@ -64,13 +65,13 @@ CONFIG_NAME = "config.yaml"
 #: Columns of ``training_log.csv`` (losses are epoch means; ``val_*`` empty when not validated).
 LOG_COLUMNS = (
     "epoch", "samples", "time_s", "epoch_s", "lr_backbone", "lr_head", "loss", "completion",
-    "sparse", "dense", "registration", "reg_coarse", "reg_fine", "skipped_steps",
-    "val_RTE_mm_median", "val_RRE_deg_median", "val_RTE_mm_mean", "val_RRE_deg_mean",
+    "sparse", "dense", "registration", "reg_coarse", "reg_fine", "correspondence",
+    "skipped_steps", "val_RTE_mm_median", "val_RRE_deg_median", "val_RTE_mm_mean", "val_RRE_deg_mean",
     "val_coarse_RTE_mm_median", "val_coarse_RRE_deg_median", "val_success_rate",
-    "val_flip_rate", "val_loss", "val_completion", "val_s",
+    "val_flip_rate", "val_loss", "val_completion", "val_completion_CD_mm_median", "val_s",
 )
 _LOSS_TERMS = ("total", "completion", "sparse", "dense", "registration", "reg_coarse",
-               "reg_fine")
+               "reg_fine", "correspondence")
 
 Progress = Callable[[int, int, dict[str, Any]], None]
 
@@ -123,17 +124,20 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
 
 def build_optimizers(model: ComRegNet, training) -> tuple[list, list]:
     """AdamW on the completion backbone, Adam on the registration head, each with a LambdaLR
-    multiplying its learning rate by ``lr_decay`` every ``lr_decay_epochs`` epochs."""
+    stepped after every training step: a linear warm-up over ``warmup_steps`` steps, then the
+    learning rate multiplied by ``lr_decay`` every ``lr_decay_epochs`` epochs."""
     backbone = list(model.completion.parameters())
     head = list(model.pose_head.parameters())
     assert len(backbone) + len(head) == len(list(model.parameters())), "unassigned parameters"
     opt_b = torch.optim.AdamW(backbone, lr=training.lr_backbone,
                               weight_decay=training.weight_decay_backbone)
     opt_h = torch.optim.Adam(head, lr=training.lr_head)
-    decay, every = training.lr_decay, training.lr_decay_epochs
+    decay, warmup = training.lr_decay, training.warmup_steps
+    every = training.lr_decay_epochs * (training.samples_per_epoch // training.batch_size)
 
-    def factor(epoch: int) -> float:
-        return decay ** (epoch // every)
+    def factor(step: int) -> float:
+        warm = min(1.0, (step + 1) / warmup) if warmup else 1.0
+        return warm * decay ** (step // every)
 
     scheds = [torch.optim.lr_scheduler.LambdaLR(o, factor) for o in (opt_b, opt_h)]
     return [opt_b, opt_h], scheds
@@ -147,13 +151,16 @@ def _pose_errors(T_est_n: np.ndarray, sample: Sample, norm: Normalization) -> tu
 
 
 def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
-             norm: Normalization, batch_size: int = 8, loss=None) -> dict[str, float]:
+             norm: Normalization, batch_size: int = 8, loss=None,
+             surface: SurfaceReference | None = None) -> dict[str, float]:
     """Register the validation samples; the ``val_*`` figures of :data:`LOG_COLUMNS`
     (``val_loss`` / ``val_completion``: the training objective and its completion term, means
-    over the samples, in eval mode)."""
+    over the samples, in eval mode; ``val_completion_CD_mm_median``: the evaluation's completion
+    CD (:func:`~comreg_core.evaluation.metrics.completion_metrics`) against ``surface``, the CT,
+    when given)."""
     was_training = model.training
     model.eval()
-    fine, coarse = [], []
+    fine, coarse, completion_cd = [], [], []
     loss_sum = completion_sum = 0.0
     start = time.perf_counter()
     device = ct_points_n.device
@@ -171,6 +178,11 @@ def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
                 completion_sum += float(terms.completion) * len(chunk)
                 fine += list(out.fine_transform.double().cpu().numpy())
                 coarse += list(out.coarse_transform.double().cpu().numpy())
+                if surface is not None:
+                    for dense, s in zip(out.completion.dense.double().cpu().numpy(), chunk):
+                        completion_cd.append(completion_metrics(
+                            norm.points_to_mm(dense), invert_rigid(s.T_us_ct_mm), surface,
+                            n_ct_samples=4096)["completion_CD_mm"])
     finally:
         model.train(was_training)
     fe = np.array([_pose_errors(T, s, norm) for T, s in zip(fine, samples)])
@@ -186,6 +198,8 @@ def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
         "val_flip_rate": float(np.mean(fe[:, 1] > FLIP_RRE_DEG)),
         "val_loss": loss_sum / len(samples),
         "val_completion": completion_sum / len(samples),
+        "val_completion_CD_mm_median": (float(np.median(completion_cd)) if completion_cd
+                                        else float("nan")),
         "val_s": time.perf_counter() - start,
     }
 
@@ -276,6 +290,7 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
         InputFileNotFoundError, CorruptFileError, InvalidGeometryError: unusable CT mesh.
         ConfigError: invalid settings. CheckpointError: resume problems, CT mismatch on resume.
     """
+    command_start = time.monotonic()  # the budget covers the whole call, set-up included
     ct_mesh_path = require_input_file(ct_mesh_path, "CT mesh file")
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
@@ -336,6 +351,7 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     val_set = validation_samples(ct, cfg.simulation, cfg.data.pose, cfg.seed,
                                  tc.validation_sweeps) if tc.validation_every else []
     initial = identity_errors(val_set, norm) if val_set else {}
+    surface = SurfaceReference((ct.vertices, ct.faces)) if val_set else None
     if initial:
         log.info("Validation set: %d sweeps, initial misalignment median RTE %.1f mm, RRE "
                  "%.1f deg", len(val_set), initial["RTE_mm_median"], initial["RRE_deg_median"])
@@ -343,6 +359,7 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     ckpt_path = run_dir / CHECKPOINT_NAME
 
     def checkpoint() -> None:
+        mark = time.monotonic()
         payload = {
             "config_yaml": config_to_yaml(cfg), "ct_fingerprint": fingerprint["sha256"],
             "ct_space": mesh.space,
@@ -361,7 +378,12 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
         }
         if dev.type == "cuda":
             payload["cuda_rng"] = torch.cuda.get_rng_state(dev)
+        if last_validation is not None:
+            payload["validation"] = {k: float(v) for k, v in last_validation.items()}
+            payload["validation_epoch"] = int(last_validation_epoch)
+            payload["initial_error"] = {k: float(v) for k, v in initial.items()}
         save_checkpoint(payload, ckpt_path)
+        cost["checkpoint"] = time.monotonic() - mark
         log.debug("Checkpoint at epoch %d step %d", epoch, step)
 
     t0 = time.monotonic()
@@ -370,13 +392,28 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
         return elapsed + (time.monotonic() - t0)
 
     budget_s = tc.max_minutes * 60.0 if tc.max_minutes > 0 else math.inf
+    cost = {"step": 0.0, "validation": 0.0, "checkpoint": 0.0}  # latest durations, seconds
+
+    def out_of_time(ends_epoch: bool) -> bool:
+        """Whether the next step (and the validation and checkpoint it may trigger) would end
+        after the budget."""
+        left = budget_s - (time.monotonic() - command_start)
+        need = cost["step"] + cost["checkpoint"] + (cost["validation"] if ends_epoch else 0.0)
+        return left < need
     last_validation: dict[str, float] | None = None
+    last_validation_epoch = 0
+    if state is not None and "validation" in state:
+        last_validation = {k: float(v) for k, v in state["validation"].items()}
+        last_validation_epoch = int(state["validation_epoch"])
     last_losses: dict[str, float] = {}
     if state is None:
         row: dict[str, Any] = {"epoch": 0, "samples": 0, "time_s": 0.0,
                                "lr_backbone": tc.lr_backbone, "lr_head": tc.lr_head}
         if val_set:
-            last_validation = validate(model, ct_points_n, val_set, norm, loss=cfg.model.loss)
+            mark = time.monotonic()
+            last_validation = validate(model, ct_points_n, val_set, norm, loss=cfg.model.loss,
+                                       surface=surface)
+            cost["validation"] = time.monotonic() - mark
             row.update(last_validation)
         epoch_log.write(row)
         checkpoint()
@@ -394,16 +431,18 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
         batches = iter(loader)
     try:
         while epoch < tc.epochs:
-            if time.monotonic() - t0 >= budget_s:
+            if out_of_time(step + 1 == steps_per_epoch):
                 stopped = "time"
                 break
+            step_start = time.monotonic()
             batch = next(batches)
             source = batch["source"].to(dev, non_blocking=True)
             gt_points = batch["gt_points"].to(dev, non_blocking=True)
             gt_transform = batch["gt_transform"].to(dev, non_blocking=True)
             for opt in optimizers:
                 opt.zero_grad(set_to_none=True)
-            out = model(source, ct_points_n[None])
+            out = model(source, ct_points_n[None], refine_only=lambda coarse: in_fine_gate(
+                coarse, gt_transform, cfg.model.loss))
             terms = output_loss(out, gt_points, gt_transform, cfg.model.loss)
             if torch.isfinite(terms.total):
                 terms.total.backward()
@@ -417,6 +456,9 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
             else:
                 log.warning("Non-finite loss at epoch %d step %d; step skipped", epoch, step)
                 sums["skipped"] = sums.get("skipped", 0.0) + 1
+            for sch in schedulers:
+                sch.step()
+            cost["step"] = time.monotonic() - step_start
             step += 1
             samples_seen += tc.batch_size
             info: dict[str, Any] = {"epoch": epoch + 1, "loss": float(terms.total.detach()),
@@ -426,8 +468,6 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
                 epoch += 1
                 step = 0
                 lrs = [s.get_last_lr()[0] for s in schedulers]
-                for s in schedulers:
-                    s.step()
                 n = max(sums.get("steps", 0.0), 1.0)
                 last_losses = {k: sums.get(k, 0.0) / n for k in _LOSS_TERMS}
                 row = {"epoch": epoch, "samples": samples_seen, "time_s": elapsed_now(),
@@ -436,8 +476,11 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
                        **{k: last_losses[k] for k in _LOSS_TERMS[1:]},
                        "skipped_steps": int(sums.get("skipped", 0))}
                 if val_set and epoch % tc.validation_every == 0:
+                    mark = time.monotonic()
                     last_validation = validate(model, ct_points_n, val_set, norm,
-                                               loss=cfg.model.loss)
+                                               loss=cfg.model.loss, surface=surface)
+                    cost["validation"] = time.monotonic() - mark
+                    last_validation_epoch = epoch
                     row.update(last_validation)
                     info["val_RTE_mm"] = last_validation["val_RTE_mm_median"]
                     info["val_RRE_deg"] = last_validation["val_RRE_deg_median"]
@@ -463,5 +506,21 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     checkpoint()
     log.info("Training stopped (%s) after %d epochs, %d samples, %.1f min", stopped, epoch,
              samples_seen, elapsed_now() / 60)
-    return TrainResult(run_dir, ckpt_path, run_dir / LOG_NAME, epoch, samples_seen,
-                       elapsed_now(), stopped, str(dev), last_losses, last_validation, initial)
+    result = TrainResult(run_dir, ckpt_path, run_dir / LOG_NAME, epoch, samples_seen,
+                         elapsed_now(), stopped, str(dev), last_losses, last_validation, initial)
+    if epoch == 0:
+        raise BudgetTooShortError(
+            f"The time budget ended before the first epoch ({step} of {steps_per_epoch} steps "
+            f"done in {(time.monotonic() - command_start) / 60:.1f} min): '{ckpt_path}' holds "
+            f"a network that has not learned.",
+            "Give more minutes (--max-minutes), or continue this run with --resume.", result)
+    return result
+
+
+class BudgetTooShortError(ComRegError):
+    """:func:`pretrain` stopped by its time budget before completing one epoch. ``result`` is
+    the :class:`TrainResult` (the run folder is valid and can be resumed)."""
+
+    def __init__(self, message: str, hint: str, result: TrainResult):
+        super().__init__(message, hint)
+        self.result = result

@@ -16,7 +16,8 @@ from comreg_core.model.comreg import ComRegNet
 from comreg_core.training import (LOG_COLUMNS, CheckpointError, load_checkpoint,
                                   mesh_fingerprint, pretrain, pretrain_preset)
 from comreg_core.training.config import config_from_yaml
-from comreg_core.training.trainer import build_optimizers
+from comreg_core.training.checkpoint import network_warning
+from comreg_core.training.trainer import BudgetTooShortError, build_optimizers
 from tests.helpers import FIBULA_STL
 from tests.training.tiny import TINY, TINY_EPOCHS, tiny_run
 
@@ -47,7 +48,9 @@ def test_paper_preset_is_the_papers_schedule():
 def test_optimizers_and_lr_schedule():
     cfg = pretrain_preset("cpu", TINY)
     model = ComRegNet(cfg.model)
-    opts, scheds = build_optimizers(model, pretrain_preset("paper").training)
+    # the paper's schedule, with one step per epoch so that epochs and steps coincide
+    paper = pretrain_preset("paper", {"training": {"samples_per_epoch": 4}}).training
+    opts, scheds = build_optimizers(model, paper)
     assert isinstance(opts[0], torch.optim.AdamW) and opts[0].defaults["weight_decay"] == 5e-4
     assert type(opts[1]) is torch.optim.Adam
     lrs = []
@@ -59,6 +62,20 @@ def test_optimizers_and_lr_schedule():
             s.step()
     assert lrs[0] == lrs[19] == pytest.approx(1e-4)
     assert lrs[20] == pytest.approx(0.9e-4) and lrs[40] == pytest.approx(0.81e-4)
+
+    # the cpu preset: linear warm-up over 64 steps, then x0.9 every 4 epochs of 64 steps
+    cpu = pretrain_preset("cpu").training
+    opts, scheds = build_optimizers(model, cpu)
+    lrs = []
+    for _ in range(4 * 64 + 1):
+        lrs.append([s.get_last_lr()[0] for s in scheds])
+        for o in opts:
+            o.step()
+        for s in scheds:
+            s.step()
+    assert lrs[0] == pytest.approx([5e-4 / 64] * 2) and lrs[31] == pytest.approx([2.5e-4] * 2)
+    assert lrs[63] == lrs[255] == pytest.approx([5e-4] * 2)
+    assert lrs[256] == pytest.approx([4.5e-4] * 2)
 
 
 def test_tiny_run_writes_a_reproducible_folder(tmp_path_factory):
@@ -133,19 +150,44 @@ def test_resume_after_kill_continues_exactly(tmp_path):
     assert more.epochs == 4
 
 
-def test_time_budget_stops_and_checkpoints(tmp_path):
-    result = pretrain(FIBULA_STL, tmp_path / "run", preset="cpu", config=TINY, epochs=50,
-                      max_minutes=1e-6, device="cpu")
+def test_a_budget_shorter_than_one_epoch_is_an_error_and_the_run_resumes(tmp_path):
+    with pytest.raises(BudgetTooShortError, match="before the first epoch") as caught:
+        pretrain(FIBULA_STL, tmp_path / "run", preset="cpu", config=TINY, epochs=50,
+                 max_minutes=1e-6, device="cpu")
+    result = caught.value.result
     assert result.stopped == "time" and result.epochs == 0
     state = load_checkpoint(tmp_path / "run")
     assert state["epoch"] == 0 and state["samples_seen"] == result.samples_seen
+    assert "has not been trained" in network_warning(state)
+    resumed = pretrain(FIBULA_STL, tmp_path / "run", resume=True, epochs=1, max_minutes=0,
+                       device="cpu")
+    assert resumed.epochs == 1 and resumed.stopped == "epochs"
+
+
+def test_the_budget_covers_the_whole_call(tmp_path, monkeypatch):
+    """The budget counts from the call (set-up included) and leaves room for the next step and
+    the validation that ends an epoch: a clock that jumps 0.4 s at every reading lets a 1-epoch
+    budget end the run before epoch 2, whatever the machine's speed."""
+    import itertools
+
+    from comreg_core.training import trainer
+
+    ticks = itertools.count()
+    monkeypatch.setattr(trainer.time, "monotonic", lambda: 0.4 * next(ticks))
+    with pytest.raises(BudgetTooShortError):
+        pretrain(FIBULA_STL, tmp_path / "a", preset="cpu", config=TINY, epochs=5,
+                 max_minutes=0.4 / 60, device="cpu")
+    result = pretrain(FIBULA_STL, tmp_path / "b", preset="cpu", config=TINY, epochs=5,
+                      max_minutes=20.0 / 60, device="cpu")
+    assert result.stopped == "time" and 1 <= result.epochs < 5
 
 
 def test_resume_with_another_ct_is_refused(tmp_path):
     import trimesh
 
     run = tmp_path / "run"
-    pretrain(FIBULA_STL, run, preset="cpu", config=TINY, max_minutes=1e-6, device="cpu")
+    with pytest.raises(BudgetTooShortError):
+        pretrain(FIBULA_STL, run, preset="cpu", config=TINY, max_minutes=1e-6, device="cpu")
     capsule = trimesh.creation.capsule(height=60.0, radius=10.0)
     other = write_mesh(SurfaceMesh(np.asarray(capsule.vertices), np.asarray(capsule.faces)),
                        tmp_path / "capsule.stl")

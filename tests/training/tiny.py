@@ -18,7 +18,7 @@ TINY = {
     "simulation": {"n_points": 256},
     "data": {"ct_points": 512, "workers": 1, "prefetch_batches": 2},
     "training": {"samples_per_epoch": 16, "batch_size": 4, "validation_sweeps": 4,
-                 "lr_backbone": 1e-3, "lr_head": 1e-3},
+                 "lr_backbone": 1e-3, "lr_head": 1e-3, "warmup_steps": 2},
 }
 
 #: Epochs of the shared tiny run.

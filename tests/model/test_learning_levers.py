@@ -1,0 +1,166 @@
+"""The levers that make the ``cpu`` preset learn: rotation representations, the correspondence
+pose head, the source-centroid input frame, ICP only inside the fine-loss gate, and a few
+training steps lowering the losses on a tiny bone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from comreg_core.model import ComRegNet, model_preset, output_loss
+from comreg_core.model.losses import correspondence_loss, in_fine_gate
+from comreg_core.model.ops import (make_transform, matrix_to_quaternion, rotation_6d_to_matrix,
+                                   transform_points)
+from comreg_core.model.pose_head import (CorrespondencePoseHead, Correspondences, PoseHead,
+                                         build_pose_head)
+from tests.helpers import assert_close
+from tests.model.test_comreg import fibula_batch
+from tests.training.tiny import TINY
+
+
+def tiny_model(**changes) -> ComRegNet:
+    overrides = {**TINY["model"], **changes}
+    return ComRegNet(model_preset("cpu", overrides))
+
+
+@pytest.fixture(scope="module")
+def tiny_batch(shared_data):
+    return fibula_batch(256, 512, 4, seed=3)
+
+
+def test_rotation_6d_gives_proper_rotations_and_recovers_known_ones():
+    R = Rotation.random(8, random_state=0).as_matrix()
+    x = torch.tensor(np.concatenate([R[:, :, 0], R[:, :, 1]], axis=1) * 3.0)  # scaled columns
+    assert_close(rotation_6d_to_matrix(x).numpy(), R, atol=1e-12)
+    M = rotation_6d_to_matrix(torch.randn(100, 6, generator=torch.Generator().manual_seed(0),
+                                          dtype=torch.float64))
+    assert_close((M @ M.transpose(1, 2)).numpy(), np.tile(np.eye(3), (100, 1, 1)), atol=1e-6)
+    assert_close(torch.linalg.det(M).numpy(), np.ones(100), atol=1e-6)
+
+
+def test_matrix_to_quaternion_matches_scipy():
+    rot = Rotation.random(200, random_state=1)
+    quat = matrix_to_quaternion(torch.tensor(rot.as_matrix())).numpy()  # w x y z
+    expected = rot.as_quat()[:, [3, 0, 1, 2]]  # scipy: x y z w
+    expected *= np.sign(expected[:, :1])
+    assert_close(quat, expected, atol=1e-9)
+    # 180-degree turns (w = 0), where the trace-based formula alone fails
+    half = Rotation.from_rotvec(np.pi * np.eye(3)).as_matrix()
+    assert_close(np.abs(matrix_to_quaternion(torch.tensor(half)).numpy()),
+                 np.hstack([np.zeros((3, 1)), np.eye(3)]), atol=1e-9)
+
+
+def test_heads_and_their_identity_start():
+    cfg = model_preset("cpu").pose
+    assert isinstance(build_pose_head(32, cfg), CorrespondencePoseHead)
+    mlp = build_pose_head(32, model_preset("paper").pose)
+    assert isinstance(mlp, PoseHead) and mlp.out.out_features == 7
+    six = PoseHead(32, model_preset("paper", {"pose": {"rotation": "6d"}}).pose)
+    tokens, pos = torch.randn(2, 10, 32), torch.randn(2, 10, 3)
+    out = six(tokens, pos, tokens[:1], pos[:1])
+    assert six.out.out_features == 9 and out.correspondences is None
+    R = out.transform[:, :3, :3].detach()
+    assert_close((R @ R.transpose(1, 2)).numpy(), np.tile(np.eye(3), (2, 1, 1)), atol=1e-5)
+    assert_close(out.quaternion.norm(dim=-1).numpy(), np.ones(2), atol=1e-6)
+
+
+def test_correspondence_head_fits_its_own_predictions():
+    torch.manual_seed(0)
+    head = CorrespondencePoseHead(32, model_preset("cpu").pose)
+    tokens, pos = torch.randn(3, 20, 32), torch.randn(3, 20, 3)
+    out = head(tokens, pos, torch.randn(1, 15, 32), torch.randn(1, 15, 3))
+    c = out.correspondences
+    assert c.predicted.shape == (3, 20, 3) and c.weights.shape == (3, 20)
+    assert_close(c.weights.sum(1).detach().numpy(), np.ones(3), atol=1e-6)
+    # the transform is the weighted least-squares fit: its residual is no larger than that of
+    # the identity or of random rotations with the optimal translation
+    moved = transform_points(out.transform, pos).detach()
+    w = c.weights.detach()
+    best = (w * ((moved - c.predicted.detach()) ** 2).sum(-1)).sum(1)
+    for seed in range(5):
+        R = torch.tensor(Rotation.random(3, random_state=seed).as_matrix(), dtype=torch.float32)
+        rotated = pos @ R.transpose(1, 2)
+        t = ((c.predicted.detach() - rotated) * w.unsqueeze(-1)).sum(1)
+        other = (w * ((rotated + t.unsqueeze(1) - c.predicted.detach()) ** 2).sum(-1)).sum(1)
+        assert bool((best <= other + 1e-5).all())
+
+
+def test_correspondence_loss_is_zero_for_the_truth_and_grows_with_error():
+    gt = make_transform(torch.tensor(Rotation.random(2, random_state=2).as_matrix(),
+                                     dtype=torch.float32), torch.tensor([[0.1, 0, 0], [0, 0.2, 0]]))
+    pos = torch.randn(2, 30, 3)
+    truth = transform_points(gt, pos)
+    w = torch.full((2, 30), 1 / 30)
+    assert float(correspondence_loss(Correspondences(pos, truth, w), gt)) < 1e-6
+    off = Correspondences(pos, truth + torch.tensor([0.03, 0.0, 0.04]), w)
+    assert float(correspondence_loss(off, gt)) == pytest.approx(0.05, rel=1e-5)
+    assert float(correspondence_loss(None, gt)) == 0.0
+
+
+def test_centroid_frame_makes_the_network_translation_equivariant(tiny_batch):
+    torch.manual_seed(0)
+    source, target, _, _ = tiny_batch
+    d = torch.tensor([0.2, -0.1, 0.15])
+    for frame, equivariant in (("centroid", True), ("ct", False)):
+        net = tiny_model(input_frame=frame).eval()
+        with torch.no_grad():
+            a = net(source, target)
+            b = net(source + d, target)
+        shift = make_transform(torch.eye(3).expand(4, 3, 3), (-d).expand(4, 3))  # x -> x - d
+        expected = a.coarse_transform @ shift  # what the coarse pose of the moved cloud must be
+        error = float((b.coarse_transform - expected).abs().max())
+        if equivariant:
+            assert error < 1e-4, error
+            assert_close(b.completion.dense.numpy(), (a.completion.dense + d).numpy(),
+                         atol=1e-4)
+        else:
+            assert error > 1e-3, error
+
+
+def test_icp_only_inside_the_gate_gives_the_same_fine_poses_and_loss(tiny_batch):
+    source, target, gt, gt_points = tiny_batch
+    net = tiny_model().train()
+    cfg = net.config.loss
+    chosen = torch.tensor([True, False, True, False])
+    results = {}
+    for name, select in (("all", None), ("some", lambda coarse: chosen)):
+        torch.manual_seed(1)
+        out = net(source, target, refine_only=select)
+        results[name] = out
+    full, some = results["all"], results["some"]
+    assert_close(some.fine_transform[chosen].detach().numpy(),
+                 full.fine_transform[chosen].detach().numpy(), atol=1e-5)
+    assert_close(some.fine_transform[~chosen].detach().numpy(),
+                 full.coarse_transform[~chosen].detach().numpy(), atol=1e-6)
+    # with the real gate the loss is the same either way
+    torch.manual_seed(1)
+    gated = net(source, target, refine_only=lambda c: in_fine_gate(c, gt, cfg))
+    a = output_loss(full, gt_points, gt, cfg)
+    b = output_loss(gated, gt_points, gt, cfg)
+    assert float(a.total.detach()) == pytest.approx(float(b.total.detach()), rel=1e-5)
+
+
+def test_a_few_steps_lower_the_completion_and_pose_losses_on_a_tiny_bone(tiny_batch):
+    """Twenty Adam steps on one batch of the fibula with the tiny network: completion, coarse
+    pose and correspondence losses all fall clearly (this is the training maths working, not
+    a learning-speed figure, which is the benchmark's)."""
+    source, target, gt, gt_points = tiny_batch
+    torch.manual_seed(0)
+    net = tiny_model().train()
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    history = []
+    for _ in range(20):
+        opt.zero_grad()
+        out = net(source, target)
+        terms = output_loss(out, gt_points, gt, net.config.loss)
+        terms.total.backward()
+        opt.step()
+        history.append([float(terms.completion), float(terms.reg_coarse),
+                        float(terms.correspondence)])
+    first, last = np.mean(history[:3], axis=0), np.mean(history[-3:], axis=0)
+    print("completion, coarse pose, correspondence losses:", first, "->", last)
+    assert last[0] < 0.7 * first[0]
+    assert last[1] < 0.8 * first[1]
+    assert last[2] < 0.8 * first[2]
