@@ -9,7 +9,9 @@ evaluation's definition), coarse RRE / RTE (medians) and the success and flip ra
 paper's plain pipeline (network + differentiable ICP, no pose search). Row ``min 0.0`` is the
 **untrained-model control**: the same network before its first step. ``--set`` changes one
 setting (dotted path into the run config) so a lever can be measured alone. The run folder is
-a normal one: ``comreg evaluate RUN simulated ...`` can evaluate it afterwards.
+a normal one: ``comreg evaluate RUN simulated ...`` can evaluate it afterwards; beside it,
+``RUN_untrained`` holds the same network as it was before its first step (same config, seed and
+initial weights, 0 epochs), the untrained control for ``comreg evaluate``.
 """
 
 from __future__ import annotations
@@ -59,6 +61,28 @@ def print_curve(rows: list[dict[str, str]]) -> None:
         print("  ".join(cells))
 
 
+def write_untrained_control(run_dir: Path, out_dir: Path) -> Path:
+    """``out_dir/checkpoint.pt``: the run's checkpoint with the network's weights as they were
+    before the first step (the trainer seeds torch with the run seed right before building the
+    network, so the same seed rebuilds the same initial weights), epoch 0, no validation."""
+    import torch
+
+    from comreg_core.model.comreg import ComRegNet
+    from comreg_core.training.checkpoint import MODEL_ENTRIES, load_checkpoint, save_checkpoint
+    from comreg_core.training.config import config_from_yaml
+
+    state = load_checkpoint(run_dir)
+    cfg = config_from_yaml(state["config_yaml"])
+    torch.manual_seed(cfg.seed)
+    untrained = {key: state[key] for key in MODEL_ENTRIES if key in state}
+    for key in ("validation", "validation_epoch", "initial_error"):
+        untrained.pop(key, None)
+    untrained.update(model=ComRegNet(cfg.model).state_dict(), epoch=0, samples_seen=0,
+                     elapsed_s=0.0)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return save_checkpoint(untrained, out_dir / "checkpoint.pt")
+
+
 def main(argv: list[str] | None = None) -> None:
     import torch
 
@@ -97,6 +121,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"initial misalignment of the validation set: "
           f"{ {k: round(v, 1) for k, v in result.initial_error.items()} }")
     print_curve(read_curve(result.log_csv))
+    control = write_untrained_control(result.run_dir,
+                                      result.run_dir.with_name(result.run_dir.name + "_untrained"))
+    print(f"untrained control: {control.parent}")
 
 
 if __name__ == "__main__":
