@@ -40,17 +40,25 @@ def run_vtk(algorithm, path: str | Path, *, writing: bool = False) -> None:
         algorithm.RemoveObserver(error_tag)
         algorithm.RemoveObserver(warning_tag)
     if messages or ok != 1 or "ERROR" in captured.GetOutput():
-        captured_text = captured.GetOutput().strip()
-        detail = _clean(messages[0] if messages else captured_text or "VTK failed")
+        detail = _clean([*messages, captured.GetOutput()])
         if writing:
             raise ComRegError(f"Could not write '{path}': {detail}.",
                               "Check that the folder is writable and the disk is not full.")
         raise CorruptFileError(path, detail)
 
 
-def _clean(message: str) -> str:
-    """VTK's message without the ``vtkClass (0x...):`` prefix and trailing dots."""
-    text = " ".join(message.split())
-    text = re.sub(r"^(ERROR|Warning): In \S+, line \d+ ", "", text)
-    text = re.sub(r"^\w+ \(0x[0-9a-fA-F]+\): ", "", text)
-    return text.rstrip(". ")
+#: VTK's generic follow-up errors, which say nothing about the file.
+_PIPELINE_NOISE = ("returned failure for request", "vtkInformation")
+
+
+def _clean(texts: list[str]) -> str:
+    """The first informative VTK message in ``texts``, without the ``ERROR: In file, line n``
+    and ``vtkClass (0x...):`` prefixes, object addresses, pipeline follow-ups and trailing
+    dots."""
+    for text in texts:
+        for part in re.split(r"(?:ERROR|Warning): In \S+, line \d+\s*", " ".join(text.split())):
+            part = re.sub(r"^\w+ \(0x[0-9a-fA-F]+\): ", "", part.strip())
+            part = re.sub(r"\s*\(0x[0-9a-fA-F]+\)", "", part).strip().rstrip(". ")
+            if part and not any(noise in part for noise in _PIPELINE_NOISE):
+                return part
+    return "VTK could not process it"

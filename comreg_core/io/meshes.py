@@ -96,6 +96,10 @@ def read_mesh(path: str | Path) -> SurfaceMesh:
     """
     path = require_input_file(path, "mesh file")
     ext = require_extension(path, "mesh", MESH_EXTENSIONS)
+    if ext == ".ply":  # VTK's reader allocates what the header claims, and can crash on it
+        from comreg_core.io.pointclouds import check_ply_size
+
+        check_ply_size(path)
     import vtk
 
     reader = {

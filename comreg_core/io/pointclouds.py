@@ -134,35 +134,78 @@ _PLY_TYPES = {
 }
 
 
-def _read_ply(path: Path) -> tuple[np.ndarray, str]:
-    """Vertices of a PLY file (faces, if any, are ignored)."""
+def _ply_header(path: Path) -> tuple[str, list[tuple[str, int, list]], list[str], int]:
+    """``(format, elements, header lines, data offset)`` of a PLY file; each element is
+    ``(name, count, properties)`` with properties ``(name, dtype code)`` or, for lists,
+    ``(name, ("list", count dtype code, item dtype code))``. Checks that the file is large
+    enough for the counts it declares (before anything is allocated)."""
     with open(path, "rb") as f:
-        header_lines = _read_header_lines(f, path, end=b"end_header", first=b"ply")
+        lines = _read_header_lines(f, path, end=b"end_header", first=b"ply")
         data_start = f.tell()
-    fmt, vertex_count, vertex_props, before_vertex = None, None, [], 0
-    current = None
-    for line in header_lines:
+    fmt, elements = None, []
+    for line in lines:
         words = line.split()
         if not words:
             continue
-        if words[0] == "format":
+        if words[0] == "format" and len(words) > 1:
             fmt = words[1]
         elif words[0] == "element":
-            current = words[1]
-            if current == "vertex":
-                vertex_count = int(words[2])
-            elif vertex_count is None:
-                before_vertex += 1
-        elif words[0] == "property" and current == "vertex":
-            if words[1] == "list":
-                raise CorruptFileError(path, "list properties on vertices are not supported")
-            vertex_props.append((words[-1], _PLY_TYPES.get(words[1], "")))
+            try:
+                count = int(words[2])
+            except (IndexError, ValueError):
+                raise CorruptFileError(path, f"bad PLY element line {line[:60]!r}") from None
+            if count < 0:
+                raise CorruptFileError(path, f"the PLY header declares {count} {words[1]}s")
+            elements.append((words[1], count, []))
+        elif words[0] == "property" and elements and len(words) >= 3:
+            if words[1] == "list" and len(words) >= 5:
+                kind = ("list", _PLY_TYPES.get(words[2], ""), _PLY_TYPES.get(words[3], ""))
+                if not kind[1] or not kind[2]:
+                    raise CorruptFileError(path, "unknown PLY property type")
+                elements[-1][2].append((words[-1], kind))
+            else:
+                elements[-1][2].append((words[-1], _PLY_TYPES.get(words[1], "")))
+    if fmt is None:
+        raise CorruptFileError(path, "the PLY header has no 'format' line")
+    needed = sum(count * _ply_min_record_bytes(props, fmt == "ascii")
+                 for _, count, props in elements)
+    available = path.stat().st_size - data_start
+    if needed > available + 1:  # +1: an ASCII file may end without its last newline
+        declared = ", ".join(f"'{e}' x {n:,}" for e, n, _ in elements)
+        raise CorruptFileError(path, f"its header declares {declared}, which need at least "
+                                     f"{needed:,} bytes, but only {available:,} follow it")
+    return fmt, elements, lines, data_start
+
+
+def _ply_min_record_bytes(props: list, ascii_format: bool) -> int:
+    """The fewest bytes one record of these properties can take (an empty list for lists)."""
+    if ascii_format:  # one character and one separator per value
+        return 2 * len(props)
+    return sum(np.dtype(kind[1]).itemsize if isinstance(kind, tuple) else
+               np.dtype(kind or "u1").itemsize for _, kind in props)
+
+
+def check_ply_size(path: str | Path) -> None:
+    """Raise :class:`CorruptFileError` if a PLY file is shorter than its header's counts need
+    (run before handing it to VTK, whose reader allocates what the header says)."""
+    _ply_header(Path(path))
+
+
+def _read_ply(path: Path) -> tuple[np.ndarray, str]:
+    """Vertices of a PLY file (faces, if any, are ignored)."""
+    fmt, elements, header_lines, data_start = _ply_header(path)
+    names = [e[0] for e in elements]
+    if "vertex" not in names:
+        raise CorruptFileError(path, "the PLY header has no vertex element with x, y, z")
+    if names.index("vertex") > 0:
+        raise CorruptFileError(path, "elements before 'vertex' are not supported")
+    _, vertex_count, vertex_props = elements[0]
+    if any(isinstance(t, tuple) for _, t in vertex_props):
+        raise CorruptFileError(path, "list properties on vertices are not supported")
     space = _space_from_comments(header_lines)
     names = [name for name, _ in vertex_props]
-    if fmt is None or vertex_count is None or not {"x", "y", "z"} <= set(names):
+    if not {"x", "y", "z"} <= set(names):
         raise CorruptFileError(path, "the PLY header has no vertex element with x, y, z")
-    if before_vertex:
-        raise CorruptFileError(path, "elements before 'vertex' are not supported")
     if any(not t for _, t in vertex_props):
         raise CorruptFileError(path, "unknown PLY property type")
     if fmt == "ascii":
@@ -176,6 +219,8 @@ def _read_ply(path: Path) -> tuple[np.ndarray, str]:
             table = np.asarray([[float(v) for v in row[:len(names)]] for row in rows])
         except ValueError:
             raise CorruptFileError(path, "non-numeric vertex values") from None
+        if table.ndim != 2 or table.shape[1] != len(names):
+            raise CorruptFileError(path, f"vertex rows do not hold {len(names)} values each")
         columns = {name: table[:, i] for i, name in enumerate(names)}
     else:
         order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(fmt)
@@ -224,6 +269,8 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, str]:
         raise CorruptFileError(path, f"incomplete PCD header ({exc})") from None
     if not {"x", "y", "z"} <= set(fields):
         raise CorruptFileError(path, "the PCD file has no x, y, z fields")
+    if n_points < 0:
+        raise CorruptFileError(path, f"the PCD header declares {n_points} points")
     if data_kind == "ascii":
         with open(path, "rb") as f:
             f.seek(data_start)
@@ -255,6 +302,10 @@ def _read_pcd_compressed(path: Path, start: int, dtype: np.dtype, n_points: int)
         if len(sizes) < 8:
             raise CorruptFileError(path, "truncated compressed PCD data")
         compressed_size, raw_size = struct.unpack("<II", sizes)
+        if raw_size != dtype.itemsize * n_points or compressed_size > path.stat().st_size - start:
+            raise CorruptFileError(path, f"the compressed PCD data ({compressed_size:,} bytes "
+                                         f"for {raw_size:,}) does not match the header's "
+                                         f"{n_points:,} points")
         raw = _lzf_decompress(f.read(compressed_size), raw_size, path)
     columns, offset = {}, 0
     for name in dtype.names:
@@ -324,12 +375,15 @@ def _read_header_lines(f, path: Path, *, end: bytes, first: bytes | None = None)
 
 
 def _read_binary_records(path: Path, start: int, dtype: np.dtype, count: int) -> np.ndarray:
+    """``count`` records of ``dtype`` from ``start``; the file size is checked first, so a
+    header claiming billions of points is refused without allocating them."""
+    needed, available = dtype.itemsize * count, path.stat().st_size - start
+    if count < 0 or needed > available:
+        raise CorruptFileError(path, f"its header declares {count:,} points ({needed:,} "
+                                     f"bytes), but only {max(available, 0):,} bytes follow it")
     with open(path, "rb") as f:
         f.seek(start)
-        data = f.read(dtype.itemsize * count)
-    if len(data) < dtype.itemsize * count:
-        raise CorruptFileError(path, f"expected {count} points ({dtype.itemsize * count} bytes), "
-                                     f"found {len(data)} bytes: the file is truncated")
+        data = f.read(needed)
     return np.frombuffer(data, dtype=dtype, count=count)
 
 
