@@ -598,18 +598,26 @@ def read_segmentation(path: str | Path) -> Segmentation:
 
     Slicer files without ``Segment{i}_Layer``/``_LabelValue`` fields are the legacy layout
     (segment i in layer i, label value 1) when there is one layer per segment, else segment i is
-    label value i+1 in layer 0.
+    label value i+1 in layer 0. A ``.seg.nrrd`` without any ``Segment{i}_*`` field is read as a
+    label map: one segment per non-zero value (and layer).
     """
     ext = require_extension(path, "segmentation", SEGMENTATION_READ_EXTENSIONS)
     path = require_input_file(path, "segmentation file")
     if ext in (".seg.nrrd", ".nrrd", ".nhdr"):
         array, header, ijk_to_space, space, list_kind = _read_nrrd(path)
-        if ext == ".seg.nrrd" or any(_SEGMENT_KEY.match(key) for key in header):
+        if any(_SEGMENT_KEY.match(key) for key in header):
             _require_labels(path, array)
             layers = array if array.ndim == 4 else array[np.newaxis]
             with _parsing(path):
                 segments = _slicer_segments(header, len(layers))
             return Segmentation(layers, ijk_to_space, space, segments, path)
+        if ext == ".seg.nrrd" and array.ndim == 4:  # layers without segment fields
+            _require_labels(path, array)
+            segments = [Segment(f"Layer {layer} label {int(v)}", int(v), layer,
+                                f"Layer_{layer}_Label_{int(v)}")
+                        for layer in range(len(array)) for v in np.unique(array[layer]) if v]
+            return Segmentation(array, ijk_to_space, space, segments, path)
+        # a .seg.nrrd without Slicer's segment fields is a plain label map: a segment per value
         volume = Volume(_as_volume_array(path, array, list_kind, False), ijk_to_space, space,
                         path)
     else:
