@@ -13,11 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
+from comreg_core.surfaces.ct import MIN_EXTENT_MM, check_millimetres  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
-
-#: Smallest bounding-box extent (mm) a bone may have; smaller ones look like metres.
-MIN_EXTENT_MM = 1.0
 
 
 class BoneModel:
@@ -242,12 +240,7 @@ def _checked_trimesh(vertices: np.ndarray, faces: np.ndarray, path):
 
     where = f" '{path}'" if path else ""
     extent = np.ptp(vertices[np.unique(faces)], axis=0)
-    if extent.max() < MIN_EXTENT_MM:
-        raise InvalidGeometryError(
-            f"The bone mesh{where} is only {extent.max():.3g} units across, which looks like "
-            "metres rather than millimetres.",
-            "Scale it by 1000 (ComReg works in millimetres), e.g. in 3D Slicer's Transforms "
-            "module, and export it again.")
+    check_millimetres(vertices[np.unique(faces)], where)
     tm = trimesh.Trimesh(vertices, faces, process=True, validate=False)
     areas = tm.area_faces
     good = areas > 1e-10 * max(extent.max(), 1.0) ** 2

@@ -34,6 +34,21 @@ METHODS = ("flying_edges", "surface_nets")
 SMOOTHING_ITERATIONS = 20
 #: Holes whose boundary has at most this many edges are filled by :func:`prepare_bone_mesh`.
 MAX_HOLE_EDGES = 8
+#: Smallest bounding-box extent (mm) a bone may have; smaller ones look like metres.
+MIN_EXTENT_MM = 1.0
+
+
+def check_millimetres(vertices: np.ndarray, where: str = "") -> float:
+    """The largest bounding-box extent (mm) of a bone's ``(N, 3)`` vertices; raises
+    :class:`InvalidGeometryError` below :data:`MIN_EXTENT_MM` (a bone in metres)."""
+    extent = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    if extent < MIN_EXTENT_MM:
+        raise InvalidGeometryError(
+            f"The bone mesh{where} is only {extent:.3g} units across, which looks like "
+            "metres rather than millimetres.",
+            "Scale it by 1000 (ComReg works in millimetres), e.g. in 3D Slicer's Transforms "
+            "module, and export it again.")
+    return extent
 
 
 @dataclass(frozen=True)
@@ -152,7 +167,9 @@ def prepare_bone_mesh(mesh: SurfaceMesh, *, largest_component: bool = False) -> 
     """``mesh`` checked and trivially repaired: vertices merged, degenerate and duplicate faces
     and unreferenced vertices dropped, winding made consistent and outward, small holes filled.
 
-    Logs each repair; logs a warning (and still returns the mesh) if it stays open.
+    Logs each repair; logs a warning (and still returns the mesh) if it stays open. Raises
+    :class:`InvalidGeometryError` for a mesh in metres (:func:`check_millimetres`) or one that
+    encloses no volume (fewer than 4 triangles, or closed but flat, e.g. a single triangle).
     """
     tm = mesh.to_trimesh()
     n_vertices, n_faces = len(tm.vertices), len(tm.faces)
@@ -167,6 +184,7 @@ def prepare_bone_mesh(mesh: SurfaceMesh, *, largest_component: bool = False) -> 
         raise InvalidGeometryError(f"All {n_faces} triangles of the mesh{where} have zero area.",
                                    "Export the bone model again; it holds no surface.")
     vertices, faces = _compact(np.asarray(tm.vertices), np.asarray(tm.faces))
+    extent = check_millimetres(vertices, where)
 
     dropped = 0
     if largest_component:
@@ -182,6 +200,11 @@ def prepare_bone_mesh(mesh: SurfaceMesh, *, largest_component: bool = False) -> 
     done = ", ".join(f"{n} {what}" for what, n in repairs.items() if n)
     if done:
         log.info("Repaired mesh%s: %s.", where, done)
+    if len(faces) < 4 or (_is_closed(faces) and
+                          abs(_signed_volume(vertices, faces)) < 1e-9 * extent ** 3):
+        raise InvalidGeometryError(
+            f"The mesh{where} encloses no volume ({len(faces)} triangles): it is not a bone "
+            "surface.", "Export the closed bone surface, e.g. from its segmentation.")
     if not _is_closed(faces):
         log.warning("Mesh%s is not closed (watertight) after repair; distances and inside/outside "
                     "tests near its holes may be wrong.", where)
