@@ -1,13 +1,14 @@
 """The ``comreg`` command line. Thin: every command calls library functions and prints results.
 
-Heavy imports (VTK, torch) happen inside commands so ``comreg --help`` stays fast. Errors a user
-can fix (:class:`comreg_core.errors.ComRegError`) are printed as one message and exit with status 2.
+Heavy imports (VTK, torch) happen inside commands so ``comreg --help`` stays fast. Every command
+checks its output places before any work; errors a user can fix (:class:`comreg_core.errors.
+ComRegError`, and what the operating system refuses) are printed as one line and exit with status
+2, in one place for all commands (:mod:`comreg_core.cli_errors`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import logging
 import sys
 from enum import Enum
@@ -17,8 +18,9 @@ from typing import Optional
 import typer
 
 from comreg_core import __version__
+from comreg_core.cli_errors import CommandApp, set_verbose
 
-app = typer.Typer(
+app = CommandApp(
     name="comreg",
     help="ComReg: patient-specific CT-ultrasound bone surface registration.\n\n"
     "Extract the CT bone surface, pretrain on ultrasound sweeps simulated from it, then register "
@@ -42,24 +44,9 @@ def _main(
                                  help="Print the version and exit."),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
 ) -> None:
+    set_verbose(verbose)
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-
-
-def _user_errors(command):
-    """Turn ComRegError into a one-line message on stderr and exit status 2."""
-
-    @functools.wraps(command)
-    def wrapper(*args, **kwargs):
-        from comreg_core.errors import ComRegError
-
-        try:
-            return command(*args, **kwargs)
-        except ComRegError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from None
-
-    return wrapper
 
 
 class SurfaceMethod(str, Enum):
@@ -68,7 +55,6 @@ class SurfaceMethod(str, Enum):
 
 
 @app.command("extract-ct")
-@_user_errors
 def extract_ct(
     segmentation: Path = typer.Argument(
         ..., help="CT bone segmentation: label map (.nrrd, .nhdr, .mha, .mhd), 3D Slicer "
@@ -93,10 +79,12 @@ def extract_ct(
     system, tagged SPACE=LPS/RAS like 3D Slicer models. A mesh input is validated and repaired.
     """
     from comreg_core.io import MESH_EXTENSIONS, read_mesh, read_segmentation, write_mesh
-    from comreg_core.io._files import file_extension
+    from comreg_core.io._files import check_output_file, file_extension, require_extension
     from comreg_core.surfaces.ct import (SurfaceExtractionOptions, extract_bone_surface,
                                          prepare_bone_mesh)
 
+    require_extension(out, "mesh", MESH_EXTENSIONS)
+    check_output_file(out, inputs=[segmentation], what="output mesh")
     if file_extension(segmentation) in MESH_EXTENSIONS:
         mesh = prepare_bone_mesh(read_mesh(segmentation), largest_component=largest_component)
     else:
@@ -113,7 +101,6 @@ def extract_ct(
 
 
 @app.command("simulate")
-@_user_errors
 def simulate(
     ct_mesh: Path = typer.Argument(..., help="CT bone mesh (.stl, .ply, .obj, .vtk, .vtp), in mm."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
@@ -145,7 +132,6 @@ class CompoundMode(str, Enum):
 
 
 @app.command("extract-us")
-@_user_errors
 def extract_us(
     sweep: Path = typer.Argument(
         ..., help="Tracked US sweep: PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd, .seq.nrrd), a "
@@ -178,9 +164,10 @@ def extract_us(
     """
     from comreg_core.io import write_volume
     from comreg_core.io.tracked_us import read_tracked_sweep
-    from comreg_core.surfaces.us import (compound_sweep, extract_us_to_file,
+    from comreg_core.surfaces.us import (check_us_outputs, compound_sweep, extract_us_to_file,
                                          load_us_extraction_config)
 
+    check_us_outputs(out, compound, inputs=[sweep, calibration, masks, config])
     settings = load_us_extraction_config(config)
     tracked = read_tracked_sweep(sweep, calibration=calibration, reference=settings.reference)
     with _progress_bar(len(tracked.frames), "detecting bone") as advance:
@@ -206,7 +193,6 @@ class Device(str, Enum):
 
 
 @app.command("pretrain")
-@_user_errors
 def pretrain(
     ct_mesh: Path = typer.Argument(..., help="The patient's CT bone mesh (mm), a closed surface."),
     out: Path = typer.Option(..., "--out", "-o", help="Run folder (checkpoint, config.yaml, "
@@ -253,7 +239,6 @@ def pretrain(
 
 
 @app.command("register")
-@_user_errors
 def register(
     run_dir: Path = typer.Argument(..., help="Run folder written by 'comreg pretrain'."),
     us_points: Path = typer.Argument(..., help="US bone surface points (.ply, .pcd, .xyz, .npy, "
@@ -307,7 +292,6 @@ class Perturbation(str, Enum):
 
 
 @app.command("evaluate")
-@_user_errors
 def evaluate(
     run_dir: Path = typer.Argument(..., help="Run folder written by 'comreg pretrain'."),
     us_points: str = typer.Argument(..., help="US bone points file, or the word 'simulated' for "
@@ -334,33 +318,52 @@ def evaluate(
     from comreg_core.evaluation.evaluate import evaluate as run_evaluation
     from comreg_core.evaluation.evaluate import write_metrics
     from comreg_core.evaluation.methods import method_names, registration_methods
+    from comreg_core.inference import limit_us_points
     from comreg_core.io import load_transform, read_points
+    from comreg_core.io._files import check_output_folder
     from comreg_core.training import run_ct_mesh
 
+    simulated = us_points == "simulated"
+    check_output_folder(out, inputs=[run_dir, gt] + ([] if simulated else [us_points]))
+    cloud = None if simulated else read_points(us_points)  # the cheap inputs first
     ct = run_ct_mesh(run_dir)
+    T_gt = load_transform(gt, space=ct.space) if gt is not None else None
+    clouds = "simulated" if simulated else limit_us_points(cloud.in_space(ct.space).points, seed)
     names = method_names([m.value for m in method])
     methods = registration_methods(names, run_dir, ct, device=device.value, seed=seed)
-    clouds = "simulated" if us_points == "simulated" else \
-        read_points(us_points).in_space(ct.space).points
-    T_gt = load_transform(gt, space=ct.space) if gt is not None else None
     with _progress_bar(trials * len(methods), "evaluating") as advance:
         result = run_evaluation(methods, clouds, ct, trials=trials, seed=seed,
                                 perturbation=perturbation.value, T_gt=T_gt,
                                 progress=lambda done, total: advance(done))
+    failed = [row["error"] for row in result["trials"] if row["error"] is not None]
+    if result["trials"] and len(failed) == len(result["trials"]):
+        from comreg_core.errors import ComRegError
+
+        raise ComRegError(f"Every trial failed, so there is nothing to measure; the first: "
+                          f"{failed[0]}", "Fix the input above and run again.")
     path = write_metrics(result, Path(out) / "metrics.json")
     typer.echo(f"wrote {path}")
     for name, summary in result["summary"].items():
-        flagged = "" if summary["ambiguous_rate"] is None else (
-            f", flagged ambiguous {summary['ambiguous_rate']:.1%} (unflagged flips "
-            f"{summary['unflagged_flip_rate']:.1%})")
-        typer.echo(f"  {name}: success {summary['success_rate']:.1%}, flips "
-                   f"{summary['flip_rate']:.1%}, median RTE {summary['RTE_mm']['median']:.2f} mm, "
-                   f"median RRE {summary['RRE_deg']['median']:.2f} deg, mean runtime "
-                   f"{summary['runtime_s']['mean']:.2f} s{flagged}")
+        typer.echo(f"  {name}: {_summary_line(summary)}")
+
+
+def _summary_line(summary: dict) -> str:
+    """One line of an evaluation summary; "n/a" where no trial gave a value."""
+    def number(value, fmt: str) -> str:
+        return "n/a" if value is None else format(value, fmt)
+
+    flagged = "" if summary["ambiguous_rate"] is None else (
+        f", flagged ambiguous {number(summary['ambiguous_rate'], '.1%')} (unflagged flips "
+        f"{number(summary['unflagged_flip_rate'], '.1%')})")
+    failures = f", {summary['failures']} failed" if summary.get("failures") else ""
+    return (f"success {number(summary['success_rate'], '.1%')}, flips "
+            f"{number(summary['flip_rate'], '.1%')}, median RTE "
+            f"{number(summary['RTE_mm']['median'], '.2f')} mm, median RRE "
+            f"{number(summary['RRE_deg']['median'], '.2f')} deg, mean runtime "
+            f"{number(summary['runtime_s']['mean'], '.2f')} s{flagged}{failures}")
 
 
 @app.command("report")
-@_user_errors
 def report(
     out_dir: Path = typer.Argument(..., help="Folder written by 'comreg register'."),
     ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="CT mesh (default: the one the "
@@ -376,7 +379,6 @@ def report(
 
 
 @app.command("demo")
-@_user_errors
 def demo(
     out: Path = typer.Option(Path("out/demo"), "--out", "-o", help="Output folder."),
     device: Device = typer.Option(Device.auto, help="Where to run the network."),
@@ -402,7 +404,6 @@ def demo(
 
 
 @app.command("info")
-@_user_errors
 def info(path: Path = typer.Argument(..., help="Any file ComReg reads.")) -> None:
     """Show what ComReg reads from a file: kind, size, spatial metadata, coordinate system."""
     from comreg_core.io import describe_file
@@ -412,12 +413,16 @@ def info(path: Path = typer.Argument(..., help="Any file ComReg reads.")) -> Non
 
 @contextlib.contextmanager
 def _progress_bar(total: int, label: str):
-    """A progress bar on stderr; yields ``advance(done)`` taking the number of items done."""
-    with typer.progressbar(length=total, label=label, file=sys.stderr) as bar:
-        state = {"done": 0}
+    """A progress bar on stderr; yields ``advance(done)`` taking the number of items done. The
+    bar appears at the first progress, so an error found before the work stays one line."""
+    with contextlib.ExitStack() as stack:
+        state = {"done": 0, "bar": None}
 
         def advance(done: int) -> None:
-            bar.update(done - state["done"])
+            if state["bar"] is None:
+                state["bar"] = stack.enter_context(
+                    typer.progressbar(length=total, label=label, file=sys.stderr))
+            state["bar"].update(done - state["done"])
             state["done"] = done
 
         yield advance

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from comreg_core.errors import ComRegError
-from comreg_core.io._files import atomic_output
+from comreg_core.io._files import atomic_output, check_output_folder
 
 log = logging.getLogger(__name__)
 
@@ -141,9 +141,7 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
 
     step = step or (lambda line: log.info("%s", line))
     _sample_files()
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ComRegError(f"'{out}' exists and is not a folder.", "Choose another --out.")
+    out = check_output_folder(out_dir)
     out.mkdir(parents=True, exist_ok=True)
 
     step(f"extracting the CT bone surface from {SAMPLE_SEGMENTATION.name}")

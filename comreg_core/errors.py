@@ -20,14 +20,23 @@ class ComRegError(Exception):
 
 
 class InputFileNotFoundError(ComRegError, FileNotFoundError):
-    """An input path does not exist or is not a regular file."""
+    """An input path does not exist or is not a regular file (e.g. a folder)."""
 
     def __init__(self, path: str | Path, what: str = "input file"):
-        super().__init__(
-            f"The {what} '{path}' does not exist.",
-            "Check the path (relative paths are resolved from the current directory).",
-        )
+        if Path(path).is_dir():
+            super().__init__(f"The {what} '{path}' is a folder, not a file.",
+                             "Pass the file inside it.")
+        else:
+            super().__init__(
+                f"The {what} '{path}' does not exist.",
+                "Check the path (relative paths are resolved from the current directory).",
+            )
         self.path = Path(path)
+
+
+class OutputPlaceError(ComRegError):
+    """An output path cannot be used: it exists as the wrong kind, cannot be written, is one of
+    the inputs, or lies in a pretraining run folder. Raised before any work is done."""
 
 
 class UnsupportedFormatError(ComRegError):

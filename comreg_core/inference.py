@@ -44,7 +44,7 @@ import torch
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.hypotheses import (HypothesisConfig, HypothesisResult, HypothesisTarget,
                                     as_hypothesis_config, search_hypotheses)
-from comreg_core.io._files import atomic_output
+from comreg_core.io._files import atomic_output, check_output_folder
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.diff_icp import differentiable_icp
 from comreg_core.model.normalization import Normalization
@@ -59,6 +59,10 @@ log = logging.getLogger(__name__)
 
 #: A US cloud whose largest bounding-box extent is below this (mm) is taken to be in metres.
 MIN_US_EXTENT_MM = 1.0
+#: The most US points a registration uses: a larger cloud is replaced by a uniform random
+#: subset of this size (seeded, with a logged notice and a warning in the result), so 10 million
+#: points cost about what 100,000 do. The network itself only sees a few thousand.
+MAX_US_POINTS = 100_000
 #: Registered points within this distance (mm) of the CT surface count as inliers.
 INLIER_MM = 2.0
 
@@ -215,8 +219,14 @@ class Registrar:
         model_cfg = cfg.model
         if icp_points is not None:
             model_cfg = replace(model_cfg, icp=replace(model_cfg.icp, num_points=int(icp_points)))
-        model = ComRegNet(model_cfg)
-        model.load_state_dict(state["model"])
+        try:  # the stored weights must fit the network the stored config describes
+            model = ComRegNet(model_cfg)
+            model.load_state_dict(state["model"])
+        except (RuntimeError, ValueError, TypeError, KeyError) as exc:
+            raise CheckpointError(
+                f"The checkpoint in '{run_dir}' does not fit its own network config "
+                f"({type(exc).__name__}: {' '.join(str(exc).split())[:200]}).",
+                "Train again (comreg pretrain), or use an intact run folder.") from None
         norm = Normalization(center=state["norm_center"].numpy(),
                              scale=float(state["norm_scale"]))
         return cls(model, state["ct_points"].numpy(), norm,
@@ -254,15 +264,22 @@ class Registrar:
                                                            self.device)
         return self._targets[n_points]
 
-    def check_points(self, points) -> np.ndarray:
-        """The US cloud as ``(N, 3)`` float64, or a clear :class:`InvalidGeometryError`."""
-        pts = as_points(points, "US points")
+    def check_points(self, points, seed: int = 0) -> np.ndarray:
+        """The US cloud as ``(N, 3)`` float64 (at most :data:`MAX_US_POINTS`, see
+        :func:`limit_us_points`), or a clear :class:`InvalidGeometryError`."""
+        pts = limit_us_points(as_points(points, "US points"), seed)
         need = max(self.model.completion.min_points, 3)
         if len(pts) < need:
             raise InvalidGeometryError(
                 f"The US cloud has {len(pts)} points; this model needs at least {need}.",
                 "Extract a denser US bone surface (more frames, less denoising).")
         extent = float((pts.max(0) - pts.min(0)).max())
+        distinct = len(np.unique(pts, axis=0)) if extent < MIN_US_EXTENT_MM else len(pts)
+        if distinct < need:
+            raise InvalidGeometryError(
+                f"The US cloud has only {distinct} distinct point(s) among its {len(pts)}; "
+                f"this model needs at least {need} different points.",
+                "Check the export: the points should cover the bone surface seen in the sweep.")
         if extent < MIN_US_EXTENT_MM:
             raise InvalidGeometryError(
                 f"The US cloud spans only {extent:.3g} mm; its coordinates look like metres.",
@@ -294,7 +311,11 @@ class Registrar:
         if target is not None and hyp_cfg.polish:
             target.matcher  # likewise
         start = time.perf_counter()
-        pts = self.check_points(points)
+        n_given = len(points) if hasattr(points, "__len__") else None
+        pts = self.check_points(points, seed)
+        warnings = list(self.warnings)
+        if n_given is not None and n_given > len(pts):
+            warnings.append(_subset_notice(n_given, len(pts)))
         torch.manual_seed(int(seed))
         norm = self.normalization
         model, cfg = self.model, self.model.config
@@ -307,10 +328,12 @@ class Registrar:
             coarse = pose.transform
             self._sync()
             t["completion_and_coarse_pose"] = time.perf_counter() - mark
+            _check_finite_output(completion.dense, coarse)  # before the ICP searches with them
             mark = time.perf_counter()
             icp = model.refine(subsample(src, cfg.icp.num_points, 0), encoding, coarse)
             self._sync()
             t["icp"] = time.perf_counter() - mark
+        _check_finite_output(icp.transform)
         mark = time.perf_counter()
         T = norm.transform_to_mm(orthonormalize(icp.transform[0].double().cpu().numpy()))
         T_coarse = norm.transform_to_mm(orthonormalize(coarse[0].double().cpu().numpy()))
@@ -335,7 +358,7 @@ class Registrar:
         residuals = self.residuals(registered)
         t["residuals"] = time.perf_counter() - mark
         info = {"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(t),
-                "residuals_mm": residuals, "warnings": list(self.warnings),
+                "residuals_mm": residuals, "warnings": warnings,
                 "hypotheses": None if hyp is None else hyp.to_json()}
         if hyp is not None:  # the flag where other consumers (the plugin) look for it
             info.update(ambiguous=hyp.ambiguous, confidence=hyp.confidence)
@@ -367,6 +390,32 @@ class Registrar:
                 "inlier_fraction": float(np.mean(d <= INLIER_MM))}
 
 
+def limit_us_points(points: np.ndarray, seed: int = 0,
+                    limit: int | None = None) -> np.ndarray:
+    """``points`` unchanged up to ``limit`` (default :data:`MAX_US_POINTS`), else a uniform
+    random subset of ``limit`` of them (drawn from ``seed``, original order kept), with a
+    logged notice."""
+    limit = MAX_US_POINTS if limit is None else int(limit)
+    if len(points) <= limit:
+        return points
+    log.warning("%s", _subset_notice(len(points), limit))
+    keep = np.sort(np.random.default_rng(int(seed)).choice(len(points), limit, replace=False))
+    return points[keep]
+
+
+def _subset_notice(given: int, used: int) -> str:
+    return (f"The US cloud has {given:,} points; registered a uniform random subset of "
+            f"{used:,} (the limit, comreg_core.inference.MAX_US_POINTS).")
+
+
+def _check_finite_output(*tensors: torch.Tensor) -> None:
+    """Raise :class:`CheckpointError` if the network's output holds NaN or inf."""
+    if not all(bool(torch.isfinite(t).all()) for t in tensors):
+        raise CheckpointError("The network gave NaN or infinite output for these points.",
+                              "Its weights are unusable (a diverged or damaged training): "
+                              "train again with 'comreg pretrain'.")
+
+
 def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
                           out_dir: str | Path, *, device: str = "auto", seed: int = 0,
                           ct_mesh: str | Path | None = None, icp_points: int | None = None,
@@ -389,6 +438,8 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
       ``us_points``, ``files``.
 
     The US cloud is converted into the CT's patient space first (PLY/PCD ``SPACE=`` tag).
+    ``out_dir`` is checked before any work (:func:`~comreg_core.io._files.check_output_folder`:
+    never a run folder or inside one, never an input, writable).
     """
     import yaml
 
@@ -396,13 +447,11 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
     from comreg_core.io.pointclouds import PointCloud, read_points, write_points
     from comreg_core.io.transform_files import save_transform
 
+    out = check_output_folder(out_dir, inputs=[run_dir, us_points_path, ct_mesh])
+    cloud = read_points(us_points_path)  # the cheap input first
     registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
                                    hypotheses=hypotheses)
-    cloud = read_points(us_points_path).in_space(registrar.space)
-    result = registrar.register(cloud.points, seed=seed)
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise CheckpointError(f"'{out}' exists and is not a folder.", "Choose another --out.")
+    result = registrar.register(cloud.in_space(registrar.space).points, seed=seed)
     out.mkdir(parents=True, exist_ok=True)
     files = {"transform": "transform.tfm", "registered_us": "registered_us.ply",
              "completion_ct": "completion_ct.ply", "config": "config.yaml"}

@@ -1,4 +1,5 @@
-"""File helpers shared by every reader and writer: extension lookup, input checks, atomic writes."""
+"""File helpers shared by every reader and writer: extension lookup, input checks, output-place
+checks (made before any work), atomic writes."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from comreg_core.errors import InputFileNotFoundError, UnsupportedFormatError
+from comreg_core.errors import InputFileNotFoundError, OutputPlaceError, UnsupportedFormatError
 
 # Multi-part extensions first so ".seg.nrrd" wins over ".nrrd".
 _COMPOUND_SUFFIXES = (".seg.nrrd", ".igs.nrrd", ".seq.nrrd", ".igs.mha", ".seq.mha", ".nii.gz")
@@ -41,6 +42,82 @@ def require_input_file(path: str | Path, what: str = "input file") -> Path:
     if not path.is_file():
         raise InputFileNotFoundError(path, what)
     return path
+
+
+#: Files ``comreg pretrain`` writes first into a run folder; a folder holding one of them is a run
+#: folder, into which no other command writes.
+RUN_FOLDER_MARKERS = ("checkpoint.pt", "ct_fingerprint.json")
+
+
+def is_run_folder(path: str | Path) -> bool:
+    """Whether ``path`` is a folder written by ``comreg pretrain``."""
+    path = Path(path)
+    return path.is_dir() and any((path / name).exists() for name in RUN_FOLDER_MARKERS)
+
+
+def check_output_file(path: str | Path, *, inputs=(), what: str = "output file") -> Path:
+    """Check, before any work, that ``path`` can be written as a file: not an existing folder,
+    inside a folder that exists (or can be made) and is writable, not one of ``inputs``, not in
+    a run folder. Returns ``path`` as a Path; raises :class:`OutputPlaceError`."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputPlaceError(f"The {what} '{path}' is an existing folder, not a file.",
+                               "Give a file name (with its extension) that is not a folder.")
+    _check_place(path, path.parent, inputs, what, run_folder_ok=False)
+    return path
+
+
+def check_output_folder(path: str | Path, *, inputs=(), what: str = "output folder",
+                        run_folder_ok: bool = False) -> Path:
+    """Check, before any work, that ``path`` can be used as an output folder: not an existing
+    file, writable (or creatable in a writable folder), not one of ``inputs``, and neither a run
+    folder nor inside one unless ``run_folder_ok`` (``comreg pretrain`` itself). Returns ``path``
+    as a Path; raises :class:`OutputPlaceError`."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputPlaceError(f"The {what} '{path}' exists and is a file, not a folder.",
+                               "Choose a folder name that is not taken by a file.")
+    _check_place(path, path, inputs, what, run_folder_ok=run_folder_ok)
+    return path
+
+
+def _check_place(path: Path, folder: Path, inputs, what: str, *, run_folder_ok: bool) -> None:
+    """The shared part of the output checks: ``folder`` is where ``path`` will be written."""
+    existing = folder.absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent  # the nearest folder that exists: the new ones go in there
+    if not existing.is_dir():
+        raise OutputPlaceError(f"Cannot write the {what} '{path}': '{existing}' is a file, not a "
+                               "folder.", "Choose an output place inside a folder.")
+    problem = _unwritable(existing)
+    if problem:
+        raise OutputPlaceError(f"Cannot write the {what} '{path}': '{existing}' is not writable "
+                               f"({problem}).", "Choose a folder you can write to.")
+    target = path.resolve()
+    if not run_folder_ok:
+        for candidate in (target, *target.parents):
+            if is_run_folder(candidate):
+                where = "is" if candidate == target else "is inside"
+                raise OutputPlaceError(
+                    f"The {what} '{path}' {where} the pretraining run folder '{candidate}'.",
+                    "Only 'comreg pretrain' writes into a run folder; choose an output place "
+                    "outside it.")
+    for given in inputs:  # paths only (an input may also be an object, e.g. a mesh)
+        if isinstance(given, (str, os.PathLike)) and Path(given).resolve() == target:
+            raise OutputPlaceError(f"The {what} '{path}' is also an input of this command.",
+                                   "Write the output somewhere else, so the input is kept.")
+
+
+def _unwritable(folder: Path) -> str:
+    """Why no file can be created in ``folder`` ("" if one can): tried with an anonymous
+    temporary file, which leaves nothing behind (read-only or immutable folders fail here even
+    for root, where permission bits do not)."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        return (exc.strerror or str(exc)).lower()
+    return ""
 
 
 @contextlib.contextmanager

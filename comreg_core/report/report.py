@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from comreg_core import __version__
+from comreg_core.io._files import check_output_folder
 from comreg_core.io.meshes import SurfaceMesh, read_mesh
 from comreg_core.report.backend import ensure_offscreen_rendering
 from comreg_core.report.cameras import VIEW_NAMES
@@ -106,7 +107,7 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
         OpenGLUnavailableError: no off-screen OpenGL; says what to install. Nothing is written.
         InvalidGeometryError, InputFileNotFoundError, ...: bad inputs. Nothing is written.
     """
-    out_dir = Path(out_dir)
+    out_dir = check_output_folder(out_dir, what="report folder")
     if not isinstance(ct_mesh, SurfaceMesh):
         ct_mesh = read_mesh(ct_mesh)
     data = SceneData(ct_mesh, us_before, us_after, completion)
@@ -321,6 +322,7 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
 
     out_dir = Path(out_dir)
     result_path = require_input_file(out_dir / "result.json", "registration result")
+    check_output_folder(out_dir, what="report folder")  # before reading and rendering
     try:
         result = json.loads(result_path.read_text(encoding="utf-8"))
         T_ct_us = np.asarray(result["T_ct_us"], dtype=np.float64)

@@ -207,10 +207,12 @@ def simulate_to_directory(ct_mesh_path: str | Path, out_dir: str | Path, *, coun
     import yaml
 
     from comreg_core.config import ConfigError, to_dict
-    from comreg_core.io._files import atomic_output
+    from comreg_core.io._files import atomic_output, check_output_folder
     from comreg_core.io.meshes import read_mesh
     from comreg_core.io.pointclouds import PointCloud, write_points
 
+    out_dir = check_output_folder(out_dir, inputs=[ct_mesh_path] + (
+        [config] if isinstance(config, (str, Path)) else []))
     if isinstance(config, (str, Path)):
         from comreg_core.simulation.config import load_simulation_config
 
@@ -226,7 +228,6 @@ def simulate_to_directory(ct_mesh_path: str | Path, out_dir: str | Path, *, coun
                           "Pass --seed 0 or another whole number.")
     mesh = read_mesh(ct_mesh_path)
     bone = BoneModel(mesh)
-    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths, names = [], []
     for i in range(int(count)):

@@ -839,10 +839,9 @@ def extract_us_to_file(sweep: str | Path | TrackedSweep, out: str | Path, *,
     """``comreg extract-us SWEEP --out POINTS [--calibration FILE] [--masks DIR] [--config FILE]``:
     read the sweep, extract and denoise its bone surface, write the points (``.ply``, ``.pcd``,
     ``.xyz``, ``.npy``, ... in the sweep's reference frame, tagged LPS) atomically."""
-    from comreg_core.io.pointclouds import POINT_CLOUD_EXTENSIONS, PointCloud, write_points
-    from comreg_core.io._files import require_extension
+    from comreg_core.io.pointclouds import PointCloud, write_points
 
-    require_extension(out, "point cloud", POINT_CLOUD_EXTENSIONS)  # fail before the work
+    check_us_outputs(out, inputs=[sweep, calibration, masks, config])  # fail before the work
     if not isinstance(config, USExtractionConfig):
         config = load_us_extraction_config(config)
     if not isinstance(sweep, TrackedSweep):
@@ -852,6 +851,25 @@ def extract_us_to_file(sweep: str | Path | TrackedSweep, out: str | Path, *,
     result.output = write_points(PointCloud(result.points.points, "LPS"), out)
     log.info("%s", result.summary())
     return result
+
+
+def check_us_outputs(out: str | Path, compound: str | Path | None = None, *, inputs=()) -> None:
+    """Check the outputs of ``comreg extract-us`` before any work: the point cloud ``out`` and
+    the optional compounded volume ``compound`` (extensions, places, not an input, distinct)."""
+    from comreg_core.errors import OutputPlaceError
+    from comreg_core.io._files import check_output_file, require_extension
+    from comreg_core.io.pointclouds import POINT_CLOUD_EXTENSIONS
+    from comreg_core.io.volumes import VOLUME_WRITE_EXTENSIONS
+
+    inputs = [i for i in inputs if isinstance(i, (str, Path))]
+    require_extension(out, "point cloud", POINT_CLOUD_EXTENSIONS)
+    check_output_file(out, inputs=inputs, what="output point cloud")
+    if compound is not None:
+        require_extension(compound, "compounded volume", VOLUME_WRITE_EXTENSIONS)
+        check_output_file(compound, inputs=inputs, what="compounded volume")
+        if Path(compound).absolute() == Path(out).absolute():
+            raise OutputPlaceError(f"--out and --compound are the same file '{out}'.",
+                                   "Give them different names.")
 
 
 # --------------------------------------------------------------------------------------------

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -87,18 +89,69 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"
                               f"{CHECKPOINT_NAME}), or train one first.")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
+    except MemoryError:
+        raise
     except Exception as exc:  # unpickling errors of every kind: the file is not ours or broken
-        raise CheckpointError(f"Cannot read the checkpoint '{path}' ({type(exc).__name__}: "
-                              f"{str(exc).splitlines()[0] if str(exc) else ''}).",
-                              "The file is corrupt, truncated or not a ComReg checkpoint; "
-                              "train again or resume from an intact run.") from None
+        # torch's own text is not quoted: it suggests weights_only=False, which would run code
+        # from the file; ComReg never does that.
+        what = ("is not a plain file of tensors, numbers and strings"
+                if isinstance(exc, pickle.UnpicklingError) else "cannot be unpacked")
+        raise CheckpointError(f"Cannot read the checkpoint '{path}': it {what} "
+                              f"({type(exc).__name__}).",
+                              "The file is corrupt, truncated or not a ComReg checkpoint "
+                              "(ComReg never runs code from a file); train again or resume from "
+                              "an intact run.") from None
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"'{path}' is not a ComReg checkpoint.",
                               "Pass the checkpoint written by 'comreg pretrain'.")
     if int(state.get("version", 0)) > CHECKPOINT_VERSION:
         raise CheckpointError(f"'{path}' was written by a newer ComReg (checkpoint version "
                               f"{state['version']}).", "Update ComReg.")
+    check_state(state, path)
     return state
+
+
+# --- validation of what a checkpoint holds -------------------------------------------------------
+
+#: Entries every checkpoint holds, with their type.
+_REQUIRED = {"config_yaml": str, "ct_fingerprint": str, "ct_vertices": torch.Tensor,
+             "ct_faces": torch.Tensor, "ct_points": torch.Tensor, "norm_center": torch.Tensor,
+             "norm_scale": (float, int), "model": dict}
+
+
+def check_state(state: dict[str, Any], path: str | Path = "checkpoint") -> None:
+    """Raise :class:`CheckpointError` unless a loaded checkpoint holds what a registration needs:
+    every entry of the right type, CT arrays of the right shapes, finite numbers, a positive
+    scale and finite network weights (a diverged or tampered run holds NaN or inf)."""
+    def broken(detail: str) -> CheckpointError:
+        return CheckpointError(f"The checkpoint '{path}' is unusable: {detail}.",
+                               "Train again (comreg pretrain), or resume from an intact run.")
+
+    for key, kind in _REQUIRED.items():
+        if not isinstance(state.get(key), kind):
+            raise broken(f"its entry '{key}' is missing or of the wrong type")
+    for key, width in (("ct_vertices", 3), ("ct_faces", 3), ("ct_points", 3)):
+        t = state[key]
+        if t.ndim != 2 or t.shape[1] != width or t.shape[0] == 0:
+            raise broken(f"'{key}' has shape {tuple(t.shape)}, expected (N, {width})")
+    if tuple(state["norm_center"].shape) != (3,):
+        raise broken(f"'norm_center' has shape {tuple(state['norm_center'].shape)}")
+    for key in ("ct_vertices", "ct_points", "norm_center"):
+        if not bool(torch.isfinite(state[key]).all()):
+            raise broken(f"'{key}' holds NaN or infinite values")
+    faces = state["ct_faces"]
+    if faces.is_floating_point() or int(faces.min()) < 0 or \
+            int(faces.max()) >= len(state["ct_vertices"]):
+        raise broken("'ct_faces' index vertices that do not exist")
+    scale = float(state["norm_scale"])
+    if not (math.isfinite(scale) and scale > 0):
+        raise broken(f"'norm_scale' is {scale}, not a positive length")
+    for name, tensor in state["model"].items():
+        if not isinstance(tensor, torch.Tensor):
+            raise broken(f"the network entry '{name}' is not a tensor")
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise broken(f"the network weights '{name}' hold NaN or infinite values (a diverged "
+                         "or damaged training)")
 
 
 def check_fingerprint(expected: str, actual: dict[str, Any] | str, where: str = "") -> None:

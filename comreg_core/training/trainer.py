@@ -44,7 +44,7 @@ from comreg_core.errors import ComRegError
 from comreg_core.evaluation.metrics import (FLIP_RRE_DEG, SurfaceReference, completion_metrics,
                                             is_success, rotation_error_deg,
                                             translation_error_mm)
-from comreg_core.io._files import atomic_output, require_input_file
+from comreg_core.io._files import atomic_output, check_output_folder, require_input_file
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.losses import in_fine_gate, output_loss
 from comreg_core.model.normalization import Normalization
@@ -292,9 +292,15 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     """
     command_start = time.monotonic()  # the budget covers the whole call, set-up included
     ct_mesh_path = require_input_file(ct_mesh_path, "CT mesh file")
-    run_dir = Path(run_dir)
-    if run_dir.exists() and not run_dir.is_dir():
-        raise ComRegError(f"'{run_dir}' exists and is not a folder.", "Choose another --out.")
+    # --- set-up checks: everything is validated before the run folder is made or touched ---
+    run_dir = check_output_folder(run_dir, inputs=[ct_mesh_path, config], what="run folder",
+                                  run_folder_ok=True)
+    if (not resume and (run_dir / CONFIG_NAME).exists()
+            and not (run_dir / CHECKPOINT_NAME).exists()):
+        raise ComRegError(f"'{run_dir}' already holds a {CONFIG_NAME} but no {CHECKPOINT_NAME} "
+                          "(another command's output, or a run stopped before its first "
+                          "checkpoint).", "Choose an empty --out folder, so nothing is "
+                          "overwritten.")
     from comreg_core.io.meshes import read_mesh
 
     mesh = read_mesh(ct_mesh_path)
@@ -302,6 +308,8 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     cfg, state = _prepare_config(ct_mesh_path, run_dir, preset, config, seed, resume)
     if state is not None:
         check_fingerprint(state["ct_fingerprint"], fingerprint, f" in '{run_dir}'")
+    # the simulator's checks of the mesh (closed, millimetres, a volume) before any file is made
+    ct = TrainingCT.from_mesh(mesh.vertices, mesh.faces, cfg.data.ct_points, cfg.seed)
     training_overrides: dict[str, Any] = {}
     if epochs is not None:
         training_overrides["epochs"] = int(epochs)
@@ -321,7 +329,6 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     write_fingerprint(fingerprint, run_dir)
 
     torch.manual_seed(cfg.seed)
-    ct = TrainingCT.from_mesh(mesh.vertices, mesh.faces, cfg.data.ct_points, cfg.seed)
     norm = ct.normalization
     model = ComRegNet(cfg.model).to(dev)
     model.train()

@@ -1,0 +1,94 @@
+"""The one place where the ``comreg`` command turns exceptions into a one-line message.
+
+Every command of :data:`comreg_core.cli.app` is wrapped by :func:`user_errors` (the app's
+:class:`CommandApp` does it on registration, so a new command cannot forget it):
+
+- :class:`~comreg_core.errors.ComRegError` (bad input, a refused output place, ...) and
+  ``OSError`` (permissions, read-only file systems, a path of the wrong kind, a full disk) and
+  ``MemoryError``: ``error: <message>`` on stderr, exit status 2;
+- any other exception is a bug in ComReg: ``error: internal error ...`` on stderr, exit status 1,
+  and the traceback only with ``comreg --verbose``.
+"""
+
+from __future__ import annotations
+
+import errno
+import functools
+
+import typer
+
+#: Exit status of errors a user can fix.
+USER_ERROR_EXIT = 2
+#: Exit status of bugs (an unexpected exception).
+INTERNAL_ERROR_EXIT = 1
+
+_OS_HINTS = {
+    errno.EACCES: "Choose a place you may write to (or read from).",
+    errno.EPERM: "The file or folder is protected (immutable or not yours); choose another place.",
+    errno.EROFS: "The file system is read-only; choose a place on a writable disk.",
+    errno.ENOSPC: "The disk is full; free some space or choose another disk.",
+    errno.EISDIR: "A folder is in the way; give a file name that is not a folder.",
+    errno.ENOTDIR: "A file is in the way where a folder is needed; choose another path.",
+    errno.EEXIST: "Something is in the way; choose another path.",
+    errno.ENOENT: "Check the path (relative paths are resolved from the current directory).",
+}
+
+
+_state = {"verbose": False}
+
+
+def set_verbose(verbose: bool) -> None:
+    """With ``verbose``, bugs show their traceback (``comreg --verbose``)."""
+    _state["verbose"] = bool(verbose)
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line on what the operating system refused, where, and what to do."""
+    what = exc.strerror or str(exc) or type(exc).__name__
+    if exc.filename is not None:
+        what += f": '{exc.filename}'" + ("" if exc.filename2 is None else
+                                         f" -> '{exc.filename2}'")
+    return f"{what}. {_OS_HINTS.get(exc.errno, '')}".strip()
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def user_errors(command):
+    """Run ``command``; print errors as one line on stderr and exit 2 (1 for bugs)."""
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        from comreg_core.errors import ComRegError
+
+        try:
+            return command(*args, **kwargs)
+        except (typer.Exit, typer.Abort, KeyboardInterrupt):
+            raise
+        except ComRegError as exc:
+            message = str(exc)
+        except OSError as exc:
+            message = os_error_message(exc)
+        except MemoryError:
+            message = ("Out of memory: the input is too large for this machine, or a file "
+                       "declares more data than it holds. Check the input files.")
+        except Exception as exc:
+            if _state["verbose"]:  # --verbose: show the bug's traceback
+                raise
+            typer.echo(f"error: internal error ({type(exc).__name__}: {_one_line(exc)}). This "
+                       "is a bug in ComReg; run with --verbose for the traceback and report it.",
+                       err=True)
+            raise typer.Exit(INTERNAL_ERROR_EXIT) from None
+        typer.echo(f"error: {_one_line(message)}", err=True)
+        raise typer.Exit(USER_ERROR_EXIT) from None
+
+    return wrapper
+
+
+class CommandApp(typer.Typer):
+    """A ``typer.Typer`` whose commands are all wrapped by :func:`user_errors`."""
+
+    def command(self, *args, **kwargs):
+        register = super().command(*args, **kwargs)
+        return lambda function: register(user_errors(function))
