@@ -33,6 +33,7 @@ import json
 import logging
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -44,7 +45,8 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from comreg_core.errors import ComRegError, CorruptFileError, UnsupportedFormatError
-from comreg_core.io._files import atomic_output, file_extension, require_input_file
+from comreg_core.io._files import (atomic_output, check_output_file, check_output_folder,
+                                   file_extension, require_input_file)
 from comreg_core.transforms import apply_transform, check_rigid, space_change
 from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModuleLogic,
                                          _StandInLogic, parameterNodeWrapper,
@@ -134,8 +136,28 @@ def arrayFromVtkMatrix(matrix) -> np.ndarray:
     return np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
 
 
+def requireNode(node, className: str, what: str, hint: str = ""):
+    """``node`` if it is an MRML node of ``className`` (or a subclass), else a
+    :class:`ComRegError` naming what was given instead (never an AttributeError later)."""
+    if node is None or not hasattr(node, "IsA") or not node.IsA(className):
+        given = "nothing" if node is None else (
+            f"the {node.GetClassName()} '{node.GetName()}'" if hasattr(node, "GetName")
+            else f"a {type(node).__name__}")
+        kind = _NODE_KINDS.get(className, className)
+        raise ComRegError(f"The {what} must be {kind}, but {given} was given.",
+                          hint or f"Pick {kind}.")
+    return node
+
+
+#: How :func:`requireNode` names the node classes it asks for.
+_NODE_KINDS = {"vtkMRMLModelNode": "a model node (vtkMRMLModelNode)",
+               "vtkMRMLLinearTransformNode": "a linear transform node "
+                                              "(vtkMRMLLinearTransformNode)"}
+
+
 def transformToParentRAS(transformNode) -> np.ndarray:
     """The ``(4, 4)`` to-parent matrix (RAS) of a linear transform node."""
+    requireNode(transformNode, "vtkMRMLLinearTransformNode", "transform")
     matrix = vtk.vtkMatrix4x4()
     transformNode.GetMatrixTransformToParent(matrix)
     return arrayFromVtkMatrix(matrix)
@@ -169,10 +191,10 @@ def polyDataFromArrays(points: np.ndarray, faces: Optional[np.ndarray] = None):
 def arrayFromModelPoints(modelNode) -> np.ndarray:
     """``(N, 3)`` float64 point coordinates of a model node (its own frame, RAS, without the
     parent transform)."""
-    polydata = modelNode.GetPolyData() if modelNode is not None else None
+    requireNode(modelNode, "vtkMRMLModelNode", "points or bone model")
+    polydata = modelNode.GetPolyData()
     if polydata is None or polydata.GetPoints() is None or polydata.GetNumberOfPoints() == 0:
-        name = modelNode.GetName() if modelNode is not None else "(none)"
-        raise ComRegError(f"The model '{name}' has no points.",
+        raise ComRegError(f"The model '{modelNode.GetName()}' has no points.",
                           "Load the data again (its file may be missing or empty).")
     return numpy_support.vtk_to_numpy(polydata.GetPoints().GetData()).astype(np.float64)
 
@@ -484,6 +506,8 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
                  color=BONE_COLOR, pointSize: float = 3.0, node=None):
         """A model node (with display node) of RAS ``points`` and triangle ``faces`` (or of
         vertices only when ``faces`` is None); ``node`` is updated in place if given."""
+        if node is not None:
+            requireNode(node, "vtkMRMLModelNode", "node to update")
         polydata = polyDataFromArrays(points_ras, faces)
         if node is None:
             node = self.scene.AddNewNodeByClass("vtkMRMLModelNode", self._uniqueName(name))
@@ -690,10 +714,8 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         if not runDirectory:
             raise ComRegError("No run folder for the pretraining.",
                               "Choose an (empty) output folder.")
-        runDirectory = Path(runDirectory).resolve()
-        if runDirectory.exists() and not runDirectory.is_dir():
-            raise ComRegError(f"'{runDirectory}' exists and is not a folder.",
-                              "Choose another output folder.")
+        runDirectory = check_output_folder(Path(runDirectory).resolve(), what="run folder",
+                                           run_folder_ok=True)
         checkpoint = runDirectory / PretrainingJob.CHECKPOINT_NAME
         if checkpoint.exists() and not resume:
             raise ComRegError(f"'{runDirectory}' already holds a training run.",
@@ -702,16 +724,42 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         if ctModel is None:
             raise ComRegError("No CT bone model to pretrain on.",
                               "Load a CT segmentation or bone mesh first.")
-        runDirectory.mkdir(parents=True, exist_ok=True)
+        # every check before the run folder is made, so a refusal leaves nothing behind
         if isinstance(ctModel, (str, Path)):
-            meshPath = require_input_file(ctModel, "CT mesh file")
+            meshPath, mesh = require_input_file(ctModel, "CT mesh file"), None
         else:
-            meshPath = self._writeModelMesh(ctModel, runDirectory / "ct_bone.vtk")
-        preset = preset or p.preset
-        device = device or p.device
-        maxMinutes = p.maxMinutes if maxMinutes is None else maxMinutes
-        epochs = (p.epochs or None) if epochs is None else epochs
-        seed = p.seed if seed is None else seed
+            requireNode(ctModel, "vtkMRMLModelNode", "CT bone model",
+                        "Pick the CT bone model (loaded from a segmentation or mesh).")
+            meshPath, mesh = runDirectory / "ct_bone.vtk", self._modelMesh(ctModel)
+        if config is not None and not isinstance(config, dict):
+            require_input_file(config, "pretraining config")
+        created = not runDirectory.exists()
+        runDirectory.mkdir(parents=True, exist_ok=True)
+        try:
+            job = self._launchPretraining(
+                mesh, meshPath, runDirectory, preset=preset or p.preset,
+                device=device or p.device,
+                maxMinutes=p.maxMinutes if maxMinutes is None else maxMinutes,
+                epochs=(p.epochs or None) if epochs is None else epochs,
+                seed=p.seed if seed is None else seed, config=config, resume=resume,
+                python=python)
+        except BaseException:
+            if created:  # a failed start leaves no folder of its own behind
+                shutil.rmtree(runDirectory, ignore_errors=True)
+            raise
+        self.pretrainingJob = job
+        p.runDirectory = str(runDirectory)
+        p.pretrainingState = "running"
+        p.pretrainingProgress = 0.0
+        return job
+
+    def _launchPretraining(self, mesh, meshPath: Path, runDirectory: Path, *, preset, device,
+                           maxMinutes, epochs, seed, config, resume, python) -> "PretrainingJob":
+        """Write the CT mesh and overrides into the run folder and start the process."""
+        if mesh is not None:
+            from comreg_core.io.meshes import write_mesh
+
+            write_mesh(mesh, meshPath)
         command = [python or sys.executable, "-m", "comreg_core.cli", "pretrain", str(meshPath),
                    "--out", str(runDirectory), "--device", device]
         if resume:
@@ -734,20 +782,15 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         env["PYTHONPATH"] = os.pathsep.join(
             [str(REPO_ROOT)] + [x for x in env.get("PYTHONPATH", "").split(os.pathsep) if x])
         env["PYTHONUNBUFFERED"] = "1"
-        job = PretrainingJob(command, runDirectory, totalEpochs=epochs or None,
-                             maxMinutes=maxMinutes or None, env=env)
-        self.pretrainingJob = job
-        p.runDirectory = str(runDirectory)
-        p.pretrainingState = "running"
-        p.pretrainingProgress = 0.0
-        return job
+        return PretrainingJob(command, runDirectory, totalEpochs=epochs or None,
+                              maxMinutes=maxMinutes or None, env=env)
 
-    def _writeModelMesh(self, modelNode, path: Path) -> Path:
-        from comreg_core.io.meshes import SurfaceMesh, write_mesh
+    def _modelMesh(self, modelNode):
+        """The triangle mesh of a model node as a LPS :class:`~comreg_core.io.SurfaceMesh`."""
+        from comreg_core.io.meshes import SurfaceMesh
 
         vertices, faces = arraysFromModelMesh(modelNode)
-        mesh = SurfaceMesh(vertices, faces, "RAS").in_space("LPS")
-        return write_mesh(mesh, path)
+        return SurfaceMesh(vertices, faces, "RAS").in_space("LPS")
 
     def pollPretraining(self) -> PretrainingStatus:
         """The running (or last) pretraining's status, also stored in the parameter node."""
@@ -790,6 +833,8 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         unchanged)."""
         from comreg_core.evaluation.baselines import RansacIcpBaseline
 
+        requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
+                    "Pick the CT bone model (loaded from a segmentation or mesh).")
         polydata = ctModelNode.GetPolyData()
         key = (ctModelNode.GetID(), polydata.GetMTime() if polydata else 0, int(seed))
         if key not in self._baselines:
@@ -828,6 +873,11 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         if usPointsNode is None:
             raise ComRegError("There are no US points to register.",
                               "Load a tracked sweep or a US point cloud first.")
+        requireNode(usPointsNode, "vtkMRMLModelNode", "US points",
+                    "Pick the US bone points model (from a sweep or a point cloud file).")
+        if ctModelNode is not None:
+            requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
+                        "Pick the CT bone model (loaded from a segmentation or mesh).")
         method = method if method is not None else p.method
         seed = int(seed)
         device = device or p.device
@@ -911,9 +961,12 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         from comreg_core.io import TRANSFORM_EXTENSIONS, save_transform
         from comreg_core.io._files import require_extension
 
-        if transformNode is None or not transformNode.IsA("vtkMRMLLinearTransformNode"):
+        if transformNode is None:
             raise ComRegError("There is no linear transform to save.", "Register first.")
+        requireNode(transformNode, "vtkMRMLLinearTransformNode", "transform to save",
+                    "Pick the registration's transform (register first).")
         require_extension(path, "transform", TRANSFORM_EXTENSIONS)
+        check_output_file(path, what="transform file")
         return save_transform(transformToParentRAS(transformNode), path, space="RAS")
 
     def saveScene(self, path) -> Path:
@@ -924,6 +977,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         path = Path(path)
         if file_extension(path) not in SCENE_EXTENSIONS:
             raise UnsupportedFormatError(path, "scene", SCENE_EXTENSIONS)
+        check_output_file(path, what="scene file")  # before any data file is written
         folder = path.resolve().parent
         folder.mkdir(parents=True, exist_ok=True)
         used: set = set()
