@@ -331,6 +331,8 @@ def evaluate(
     clouds = "simulated" if simulated else limit_us_points(cloud.in_space(ct.space).points, seed)
     names = method_names([m.value for m in method])
     methods = registration_methods(names, run_dir, ct, device=device.value, seed=seed)
+    if not simulated:
+        _check_us_cloud(methods, clouds)
     with _progress_bar(trials * len(methods), "evaluating") as advance:
         result = run_evaluation(methods, clouds, ct, trials=trials, seed=seed,
                                 perturbation=perturbation.value, T_gt=T_gt,
@@ -345,6 +347,17 @@ def evaluate(
     typer.echo(f"wrote {path}")
     for name, summary in result["summary"].items():
         typer.echo(f"  {name}: {_summary_line(summary)}")
+
+
+def _check_us_cloud(methods: dict, points) -> None:
+    """The network's checks of the US cloud before any trial (a bad cloud fails them all)."""
+    from comreg_core.inference import Registrar
+
+    for method in methods.values():
+        owner = getattr(getattr(method, "func", method), "__self__", method)  # partial/bound
+        if isinstance(owner, Registrar):
+            owner.check_points(points)
+            return
 
 
 def _summary_line(summary: dict) -> str:
