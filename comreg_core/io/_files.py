@@ -75,7 +75,7 @@ def check_output_folder(path: str | Path, *, inputs=(), what: str = "output fold
     as a Path; raises :class:`OutputPlaceError`."""
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise OutputPlaceError(f"The {what} '{path}' exists and is a file, not a folder.",
+        raise OutputPlaceError(f"The {what} '{path}' exists and is not a folder (a file).",
                                "Choose a folder name that is not taken by a file.")
     _check_place(path, path, inputs, what, run_folder_ok=run_folder_ok)
     return path

@@ -288,7 +288,7 @@ def test_outputs_of_the_wrong_kind(tmp_path):
     (tmp_path / "x.stl").mkdir()
     _refused(["extract-ct", FIBULA_STL, "--out", tmp_path / "x.stl"], "is an existing folder")
     (tmp_path / "taken").write_text("a file")
-    _refused(["simulate", FIBULA_STL, "--out", tmp_path / "taken"], "is a file, not a folder")
+    _refused(["simulate", FIBULA_STL, "--out", tmp_path / "taken"], "is not a folder")
     (tmp_path / "u.ply").mkdir()
     _refused(["extract-us", SAMPLE_SWEEP, "--out", tmp_path / "u.ply"], "is an existing folder")
     assert _files(tmp_path) == {"x.stl", "taken", "u.ply"}
