@@ -261,7 +261,9 @@ def register(
 
     Writes result.json (T_ct_us 4x4 in mm, the coarse transform, timings, residuals, the
     chosen hypothesis, confidence and the ambiguous flag), transform.tfm (ITK, LPS, as 3D Slicer
-    reads it), registered_us.ply and completion_ct.ply in the CT frame.
+    reads it), registered_us.ply and completion_ct.ply in the CT frame. A cloud of more than
+    100,000 points is registered as a seeded uniform subset of 100,000 (said in a warning).
+    --out must not be the run folder or inside it.
     """
     from comreg_core.inference import register_to_directory
 

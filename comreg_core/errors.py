@@ -26,6 +26,9 @@ class InputFileNotFoundError(ComRegError, FileNotFoundError):
         if Path(path).is_dir():
             super().__init__(f"The {what} '{path}' is a folder, not a file.",
                              "Pass the file inside it.")
+        elif Path(path).exists():  # a device, a pipe, a socket
+            super().__init__(f"The {what} '{path}' is not a regular file.",
+                             "Pass a file saved on disk.")
         else:
             super().__init__(
                 f"The {what} '{path}' does not exist.",

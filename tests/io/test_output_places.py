@@ -81,6 +81,9 @@ def test_a_folder_given_as_an_input_file_is_called_a_folder(tmp_path):
         require_input_file(tmp_path, "mesh file")
     with pytest.raises(InputFileNotFoundError, match="does not exist"):
         require_input_file(tmp_path / "nope.stl", "mesh file")
+    if Path("/dev/null").exists():
+        with pytest.raises(InputFileNotFoundError, match="is not a regular file"):
+            require_input_file("/dev/null", "mesh file")
 
 
 # --- declared counts against the file size ---------------------------------------------------------
