@@ -1,0 +1,98 @@
+"""The verdict (comreg_core.evaluation.verdict): OK on correct registrations, CHECK on a slide
+along the shaft, a 15 % scale error and an ambiguous pose; judged from points, transform and CT."""
+
+import numpy as np
+import pytest
+
+from comreg_core.evaluation import SurfaceReference
+from comreg_core.evaluation.verdict import judge_registration
+from comreg_core.transforms import apply_transform
+from tests.helpers import FIBULA_STL
+
+
+@pytest.fixture(scope="module")
+def fibula():
+    return SurfaceReference(FIBULA_STL)
+
+
+@pytest.fixture(scope="module")
+def axis(fibula):
+    centred = fibula.vertices - fibula.vertices.mean(0)
+    return np.linalg.svd(centred, full_matrices=False)[2][0]
+
+
+@pytest.fixture(scope="module")
+def real_sweep(shared_data, fibula):
+    """The shared real fibula sweep's bone points and the pose a correct registration gives
+    (exact ICP from the recorded tracking, as ComReg's final polish)."""
+    from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.surface_icp import SurfaceMatcher, point_to_plane_icp
+    from comreg_core.surfaces.us import extract_us_surface
+
+    points = extract_us_surface(read_tracked_sweep(
+        shared_data / "ultrabones100k-fibula")).points.points
+    T, _ = point_to_plane_icp(points, SurfaceMatcher(fibula, n_samples=50_000), np.eye(4))
+    return points, T
+
+
+@pytest.fixture(scope="module")
+def simulated_sweep(fibula):
+    from comreg_core.simulation.bone import BoneModel
+    from comreg_core.simulation.simulator import simulate_sweep
+
+    bone = BoneModel((fibula.vertices, fibula.faces))
+    return simulate_sweep(bone, rng=np.random.default_rng(100)).points
+
+
+def slid(T, mm, axis):
+    S = np.eye(4)
+    S[:3, 3] = mm * axis
+    return S @ T
+
+
+def test_correct_registrations_are_ok(fibula, real_sweep, simulated_sweep):
+    points, T = real_sweep
+    real = judge_registration(points, T, fibula)
+    assert real.verdict == "ok", real.reasons
+    assert real.reasons == [] and real.headline == "Verdict: OK"
+    sim = judge_registration(simulated_sweep, np.eye(4), fibula)
+    assert sim.verdict == "ok", sim.reasons
+    assert sim.figures["median_mm"] < 0.1 and sim.figures["within_2mm"] > 0.9
+
+
+def test_slide_of_20_mm_along_the_shaft_is_check(fibula, axis, real_sweep, simulated_sweep):
+    points, T = real_sweep
+    for cloud, pose in ((points, T), (simulated_sweep, np.eye(4))):
+        verdict = judge_registration(cloud, slid(pose, 20.0, axis), fibula)
+        assert verdict.verdict == "check"
+        assert any("better" in r and "mm away" in r for r in verdict.reasons), verdict.reasons
+
+
+def test_scale_error_of_15_percent_is_check(fibula, real_sweep):
+    """The US cloud 15 % too small (a calibration error), rigidly fitted as well as it goes."""
+    from comreg_core.surface_icp import SurfaceMatcher, point_to_plane_icp
+
+    points, T = real_sweep
+    registered = apply_transform(T, points)
+    centre = registered.mean(0)
+    shrunk = centre + 0.85 * (registered - centre)
+    T_fit, _ = point_to_plane_icp(shrunk, SurfaceMatcher(fibula, n_samples=50_000), np.eye(4))
+    verdict = judge_registration(shrunk, T_fit, fibula)
+    assert verdict.verdict == "check", verdict.figures
+    assert verdict.figures["refit_scale"] > 1.06
+
+
+def test_ambiguous_pose_is_check(fibula, simulated_sweep):
+    verdict = judge_registration(simulated_sweep, np.eye(4), fibula, confidence=0.1,
+                                 ambiguous=True)
+    assert verdict.verdict == "check"
+    assert verdict.to_json()["verdict"] == "check"
+    assert any(r.startswith("Ambiguous pose") for r in verdict.to_json()["verdict_reasons"])
+
+
+def test_points_off_the_bone_are_check(fibula, simulated_sweep):
+    T = np.eye(4)
+    T[:3, 3] = (0.0, 6.0, 0.0)  # 6 mm sideways: off the surface
+    verdict = judge_registration(simulated_sweep, T, fibula)
+    assert verdict.verdict == "check"
+    assert any("lie off the CT bone" in r for r in verdict.reasons)
