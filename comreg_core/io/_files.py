@@ -126,7 +126,8 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
 
     The temporary file keeps the final extension (writers choose their format from it). If the
     block raises, the temporary file is removed and ``path`` is left as it was, so a failed write
-    never leaves half-written output.
+    never leaves half-written output. The file gets the mode of any newly created file (0666
+    less the user's umask, e.g. 0644 under umask 022), not mkstemp's private 0600.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -136,7 +137,17 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
+        if tmp.exists():  # a writer may have replaced the file: set the mode on what is there
+            os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def current_umask() -> int:
+    """The process's umask (set and restored at once: the os module has no getter)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
