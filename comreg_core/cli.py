@@ -384,12 +384,17 @@ def report(
     ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="CT mesh (default: the one the "
                                            "run was trained on)."),
     embed_images: bool = typer.Option(False, "--embed-images", help="One self-contained HTML."),
+    transform: Optional[Path] = typer.Option(
+        None, "--transform", help="Judge and show this T_ct_us (ITK .tfm/.h5, e.g. edited or "
+        "from another tool) on the folder's US points and CT instead of the registration's."),
 ) -> None:
-    """Render off-screen screenshots (CT mesh, US points before/after, completion coloured by
-    distance to the CT) and write report.html with the metrics, inputs, versions, seed, device."""
+    """Judge the registration (Verdict: OK or CHECK, from the US points, the transform and the
+    CT alone), render off-screen screenshots (US points coloured by distance to the CT, before
+    and after, completion) and write report.html with the verdict, metrics, inputs, versions."""
     from comreg_core.report import write_report_for_registration
 
-    path = write_report_for_registration(out_dir, ct_mesh=ct_mesh, embed_images=embed_images)
+    path = write_report_for_registration(out_dir, ct_mesh=ct_mesh, transform=transform,
+                                         embed_images=embed_images)
     typer.echo(f"wrote {path}")
 
 

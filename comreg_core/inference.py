@@ -392,6 +392,19 @@ class Registrar:
                 "inlier_fraction": float(np.mean(d <= INLIER_MM))}
 
 
+def registration_verdict(result: RegistrationResult, registrar: Registrar):
+    """The :class:`~comreg_core.evaluation.verdict.Verdict` of ``result`` on the registrar's CT
+    mesh (its CT cloud's surface is unknown without one: then the residuals are to the cloud)."""
+    from comreg_core.evaluation.verdict import judge_registration
+
+    from comreg_core.transforms import invert_rigid
+
+    mesh = (registrar._ct_vertices, registrar._ct_faces)
+    points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
+    return judge_registration(points, result.T_ct_us, mesh, confidence=result.confidence,
+                              ambiguous=result.ambiguous)
+
+
 def limit_us_points(points: np.ndarray, seed: int = 0,
                     limit: int | None = None) -> np.ndarray:
     """``points`` unchanged up to ``limit`` (default :data:`MAX_US_POINTS`), else a uniform
@@ -436,8 +449,10 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
     - ``result.json``: ``T_ct_us``, ``T_ct_us_coarse`` (4x4 mm), ``timings_s`` (per stage),
       ``runtime_s``, ``device``, ``seed``, ``n_points``, ``residuals_mm``, ``icp_rmse_mm``,
       ``confidence``, ``ambiguous`` and ``hypotheses`` (:meth:`RegistrationResult.to_json`;
-      null with ``hypotheses=False``), ``space``, ``ct_fingerprint``, ``run_dir``,
-      ``us_points``, ``files``.
+      null with ``hypotheses=False``), ``verdict`` ("ok"/"check"), ``verdict_reasons`` and
+      ``verdict_figures`` (:mod:`comreg_core.evaluation.verdict`), ``space``,
+      ``ct_fingerprint``, ``run_dir``, ``us_points`` and ``ct_mesh`` (absolute paths, so
+      ``comreg report`` works from any directory), ``files``.
 
     The US cloud is converted into the CT's patient space first (PLY/PCD ``SPACE=`` tag).
     ``out_dir`` is checked before any work (:func:`~comreg_core.io._files.check_output_folder`:
@@ -467,15 +482,21 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
                 "hypotheses": to_dict(registrar.hypothesis_config)}
     with atomic_output(out / files["config"]) as tmp:
         tmp.write_text(yaml.safe_dump({"register": settings}, sort_keys=False), encoding="utf-8")
-    payload = {**result.to_json(), "space": registrar.space,
-               "ct_fingerprint": registrar.fingerprint, "run_dir": str(run_dir),
-               "us_points": str(us_points_path), "files": files}
+    verdict = registration_verdict(result, registrar)
+    payload = {**result.to_json(), **verdict.to_json(), "space": registrar.space,
+               "ct_fingerprint": registrar.fingerprint,
+               "run_dir": str(Path(run_dir).absolute()),
+               "us_points": str(Path(us_points_path).absolute()),
+               "ct_mesh": None if ct_mesh is None else str(Path(ct_mesh).absolute()),
+               "files": files}
     with atomic_output(out / "result.json") as tmp:
         tmp.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
     log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
              result.runtime_s, result.device, out)
     for warning in registrar.warnings:
         log.warning("%s", warning)
+    if not verdict.ok:
+        log.warning("%s: %s", verdict.headline, " ".join(verdict.reasons))
     if result.ambiguous:
         log.warning("Ambiguous registration: hypothesis '%s' fits the US points within %.2f mm "
                     "of '%s' (confidence %.2f); check the result visually.",

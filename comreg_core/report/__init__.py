@@ -11,14 +11,15 @@ Before VTK makes its first render window, :func:`ensure_offscreen_rendering` che
 subprocess which OpenGL backend works (EGL, then OSMesa, then VTK's default) and raises
 :class:`OpenGLUnavailableError` with install instructions if none does, so a missing OpenGL is a
 clear error, not a segfault. Modules: ``backend`` (that check), ``cameras`` (principal-axis view
-presets and framing), ``scenes`` (the overlays), ``html`` (the page), ``report`` (writing it).
+presets and framing), ``scenes`` (the overlays), ``html`` (the page), ``report`` (writing it), ``registration`` (the report of a
+``comreg register`` folder, with its verdict).
 """
 
 from comreg_core.report.backend import (OpenGLUnavailableError, RenderBackend,
                                         ensure_offscreen_rendering, reset_backend_cache)
 from comreg_core.report.cameras import VIEW_NAMES, BoneFrame, CameraView, bone_frame, view_presets
-from comreg_core.report.report import (IMAGES_DIR, REPORT_NAME, image_name, write_report,
-                                       write_report_for_registration)
+from comreg_core.report.registration import write_report_for_registration
+from comreg_core.report.report import IMAGES_DIR, REPORT_NAME, image_name, write_report
 from comreg_core.report.scenes import (DEFAULT_STYLE, SCENES, SceneData, SceneRenderer,
                                        Screenshot, Style, render_scene, render_screenshots)
 

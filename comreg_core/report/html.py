@@ -117,6 +117,9 @@ figcaption { font-size: 0.9em; color: #333; }
 .swatch { display: inline-block; width: 0.9em; height: 0.9em; border-radius: 50%;
           vertical-align: -0.1em; margin-right: 0.25em; }
 code { font-size: 0.95em; }
+.verdict { font-size: 1.8em; font-weight: bold; margin: 0.2em 0; }
+.verdict.ok { color: #007a3d; }
+.verdict.check { color: #b00020; }
 """
 
 
@@ -147,8 +150,12 @@ def build_html(*, title: str, sections: Sequence[Section], metrics: Mapping[str,
                inputs: Sequence[tuple[str, Any]], run: Sequence[tuple[str, Any]],
                versions: Sequence[tuple[str, Any]], notes: Sequence[str] = (),
                legend: Sequence[tuple[str, Sequence[int]]] = (),
-               generated: _dt.datetime | None = None) -> str:
+               generated: _dt.datetime | None = None,
+               verdict: tuple[str, Sequence[str]] | None = None) -> str:
     """The whole page as a string. Everything given is escaped, keys and values alike.
+
+    ``verdict``: ``(headline, reasons)``, e.g. ``("Verdict: CHECK", [...])``: the first line of
+    the page, green for OK and red for CHECK, its reasons listed under it.
 
     ``notes`` are paragraphs (plain text, escaped) for the "How to read the images" section;
     ``legend`` names the colours (label, 0-255 RGB).
@@ -156,8 +163,15 @@ def build_html(*, title: str, sections: Sequence[Section], metrics: Mapping[str,
     generated = generated or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
     parts = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
              '<meta name="viewport" content="width=device-width, initial-scale=1">',
-             f"<title>{esc(title)}</title>", f"<style>{_STYLE}</style>", "</head>", "<body>",
-             f"<h1>{esc(title)}</h1>",
+             f"<title>{esc(title)}</title>", f"<style>{_STYLE}</style>", "</head>", "<body>"]
+    if verdict is not None:
+        headline, reasons = verdict
+        kind = "ok" if headline.upper().endswith("OK") else "check"
+        parts.append(f'<p class="verdict {kind}">{esc(headline)}</p>')
+        if reasons:
+            parts.append('<ul class="reasons">' + "".join(f"<li>{esc(r)}</li>" for r in reasons)
+                         + "</ul>")
+    parts += [f"<h1>{esc(title)}</h1>",
              f'<p class="meta">Generated {esc(generated.isoformat())} by ComReg.</p>']
     if legend:
         items = " &nbsp; ".join(f"{swatch(rgb)}{esc(label)}" for label, rgb in legend)

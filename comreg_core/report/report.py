@@ -72,7 +72,7 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
                  views: Sequence[str] = VIEW_NAMES, scenes: Sequence[str] | None = None,
                  window_size: tuple[int, int] = (800, 800), embed_images: bool = False,
                  lateral_side: str = "left", style: Style = DEFAULT_STYLE,
-                 progress: Progress | None = None) -> Path:
+                 progress: Progress | None = None, verdict=None) -> Path:
     """Render the overlay screenshots and write ``report.html`` into ``out_dir``.
 
     Args:
@@ -99,6 +99,8 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
         lateral_side: "left" or "right": the side the lateral view looks from.
         style: colours and sizes.
         progress: ``progress(done, total)`` after each screenshot.
+        verdict: a :class:`~comreg_core.evaluation.verdict.Verdict`: the page then starts with
+            ``Verdict: OK`` or ``Verdict: CHECK`` and its reasons.
 
     Returns:
         The path of ``report.html``.
@@ -142,7 +144,8 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
             run=[("Seed", seed), ("Device", device)],
             versions=_versions(backend, len(shots), render_s, window_size),
             notes=_notes(data, lateral_side, style),
-            legend=_legend(data, style))
+            legend=_legend(data, style),
+            verdict=None if verdict is None else (verdict.headline, verdict.reasons))
         with open(staging / REPORT_NAME, "w", encoding="utf-8", newline="\n") as f:
             f.write(page)
         _publish(staging, out_dir, with_images=not embed_images)
@@ -301,73 +304,3 @@ def _notes(data: SceneData, lateral_side: str, style: Style) -> list[str]:
         f"(range {lo:g}-{hi:g} mm).",
     ]
 
-
-def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | None = None,
-                                  embed_images: bool = False,
-                                  progress: Progress | None = None) -> Path:
-    """``comreg report OUT_DIR``: the report of a folder written by ``comreg register``.
-
-    Reads ``result.json`` (``T_ct_us``, timings, residuals, the run folder and US file it names),
-    the US points as given, ``completion_ct.ply`` and, if present, ``metrics.json``; the CT mesh is
-    ``ct_mesh`` or the run's own (its ``config.yaml``). When the hypotheses stage ran, a "pose"
-    block shows whether the pose is ambiguous, its confidence, the chosen hypothesis, the
-    runner-up and what the final polish did. Returns the path of ``report.html``.
-    """
-    import json
-
-    from comreg_core.errors import ComRegError
-    from comreg_core.io import read_mesh, read_points
-    from comreg_core.io._files import require_input_file
-    from comreg_core.transforms import apply_transform
-
-    out_dir = Path(out_dir)
-    result_path = require_input_file(out_dir / "result.json", "registration result")
-    check_output_folder(out_dir, what="report folder")  # before reading and rendering
-    try:
-        result = json.loads(result_path.read_text(encoding="utf-8"))
-        T_ct_us = np.asarray(result["T_ct_us"], dtype=np.float64)
-        run_dir, us_path = Path(result["run_dir"]), Path(result["us_points"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ComRegError(f"'{result_path}' is not a ComReg registration result ({exc}).",
-                          "Run 'comreg register' into this folder first.") from None
-    if ct_mesh is None:
-        from comreg_core.training import run_ct_mesh
-
-        ct = run_ct_mesh(run_dir)
-    else:
-        ct = read_mesh(ct_mesh)
-    us_points = read_points(us_path).in_space(ct.space).points
-    completion_path = out_dir / "completion_ct.ply"
-    completion = read_points(completion_path).in_space(ct.space).points \
-        if completion_path.is_file() else None
-    metrics: dict[str, Any] = {"runtime_s": result.get("runtime_s"),
-                               "timings_s": result.get("timings_s", {}),
-                               "residuals_mm": result.get("residuals_mm", {})}
-    if result.get("warnings"):
-        metrics["warnings"] = " ".join(result["warnings"])
-    hypotheses = result.get("hypotheses")
-    if hypotheses:  # the pose check of the hypotheses stage (comreg_core.hypotheses)
-        metrics["pose"] = {
-            "ambiguous": ("YES: another, different pose fits nearly as well; check the images"
-                          if hypotheses.get("ambiguous") else "no"),
-            "confidence": hypotheses.get("confidence"),
-            "chosen hypothesis": hypotheses.get("chosen"),
-            "runner-up": hypotheses.get("runner_up"),
-            "score_mm": hypotheses.get("score_mm"),
-            "score_gap_mm": hypotheses.get("score_gap_mm")}
-        polish = hypotheses.get("polish")
-        if polish:
-            metrics["pose"]["polish"] = (
-                f"moved {polish['moved_mm']:.2f} mm in {polish['iterations']} iterations, "
-                f"{100 * polish['inlier_fraction']:.0f} % of the points matched, "
-                f"RMS {polish['rmse_mm']:.2f} mm")
-    metrics_path = out_dir / "metrics.json"
-    if metrics_path.is_file():
-        metrics["evaluation"] = json.loads(metrics_path.read_text(encoding="utf-8"))["summary"]
-    return write_report(
-        out_dir, ct_mesh=ct, us_before=us_points, us_after=apply_transform(T_ct_us, us_points),
-        completion=completion, metrics=metrics,
-        inputs={"run folder": str(run_dir), "US points": str(us_path),
-                "CT mesh": str(ct_mesh or f"stored in {run_dir}")},
-        seed=result.get("seed"), device=result.get("device"), embed_images=embed_images,
-        progress=progress)
