@@ -50,8 +50,9 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     from comreg_core.transforms import apply_transform
 
     out_dir = Path(out_dir)
-    result = read_registration_result(out_dir)
+    require_input_file(out_dir / "result.json", "registration result")
     check_output_folder(out_dir, what="report folder")  # before reading and rendering
+    result = read_registration_result(out_dir)
     run_dir, us_path = Path(result["run_dir"]), Path(result["us_points"])
     ct_path = ct_mesh or result.get("ct_mesh")
     if ct_path is None:
