@@ -30,8 +30,11 @@ registration can do with that cloud). Measured (median / p90 / within 2 mm / ref
 refit scale):
 
 - correct, simulated: 0.00-0.01 mm / 0.01 mm / 0.97 / < 0.1 mm / 1.000;
-- correct, real (ICP from the recorded pose): see the figures in the calibration output quoted
-  in :data:`CALIBRATION`;
+- correct, real: ICP from the recorded pose 0.29 mm / 0.88 mm / 0.95 / 0.2 mm / 1.00; the
+  recorded pose itself 0.42 / 1.21 / 0.95 / 3.3 mm / 1.00 (OK too); coverage 0.19-0.20;
+- slide 10 / 20 mm, real: refit shift 6.9-10.2 / 16.8-22.6 mm, p90 2.0-4.9 mm;
+- scale 0.85 / 0.90 / 1.10 / 1.15 after rigid ICP, real: median 0.39-0.71 mm (as low as the
+  correct pose's), best scale 1.16 / 1.08 / 0.92 / 0.88, fitting 19-58 % closer than scale 1;
 - slide 20 mm, simulated: median 0.35-0.69 mm, p90 2.0-6.6 mm, within 2 mm 0.77-0.90, refit
   shift ~20 mm;
 - scale 0.85 / 1.15 after rigid ICP, simulated: median 0.19-0.54 mm, p90 0.65-12.7 mm: the
