@@ -20,9 +20,9 @@
    by default; ``hypotheses=False`` (``comreg register --no-hypotheses``) is the paper's plain
    pipeline, bit for bit.
 
-Timings per stage (seconds): ``preprocess`` (checks, normalisation, transfer), ``completion``
-(``f`` on the US cloud), ``coarse_pose`` (``g``), ``icp`` (FPS subset + ICP), ``hypotheses``
-(0.0 when off), ``postprocess`` (back to mm, the completion), ``total`` (their sum, =
+Timings per stage (seconds): ``preprocess`` (checks, normalisation, transfer),
+``completion_and_coarse_pose`` (``f`` on the US cloud and ``g``), ``icp`` (FPS subset + ICP),
+``hypotheses`` (0.0 when off), ``postprocess`` (back to mm, the completion), ``total`` (their sum, =
 ``runtime_s``), and ``residuals`` (distance statistics; outside ``total``). On CUDA each stage
 ends with a synchronisation. Preparing the CT side (its encoding, the hypotheses' dense CT
 cloud, closest-point grid and mesh matcher) happens once per Registrar, outside the timings.

@@ -6,8 +6,9 @@ and returns the completion of ``S^t``, the coarse transform ``T_coarse^-1`` (sou
 predicted from ``H(S^t) (+) H(T)``, and its ICP refinement ``T_fine^-1``.
 
 With ``input_frame: centroid`` the source is shifted so the centroid of its network input is at
-0 before ``f`` and ``g``; the completion and the coarse transform are shifted back, so every
-output is in the same frame as with ``input_frame: ct``.
+0 before ``f`` and ``g`` (``principal``: also turned onto its principal axes); the completion
+and the coarse transform are mapped back, so every output is in the same frame as with
+``input_frame: ct``.
 
 ``encode_target`` runs the target half once (e.g. at inference, where the CT is fixed); its
 result can be passed as ``target``. In training the CT goes through ``f`` every step (with
@@ -26,8 +27,19 @@ from comreg_core.errors import InvalidGeometryError
 from comreg_core.model.adapointr import AdaPoinTr, CompletionOutput
 from comreg_core.model.config import ModelConfig
 from comreg_core.model.diff_icp import ICPResult, differentiable_icp
-from comreg_core.model.ops import check_points, subsample, transform_points
+from comreg_core.model.ops import (check_points, matrix_to_quaternion, subsample,
+                                   transform_points)
 from comreg_core.model.pose_head import Correspondences, PoseOutput, build_pose_head
+
+
+def invert_frame(frame: Tensor) -> Tensor:
+    """Inverse of rigid ``(B, 4, 4)`` transforms: ``[R^T | -R^T t]``."""
+    R_t = frame[:, :3, :3].transpose(1, 2)
+    inverse = torch.zeros_like(frame)
+    inverse[:, :3, :3] = R_t
+    inverse[:, :3, 3] = -(R_t @ frame[:, :3, 3:]).squeeze(-1)
+    inverse[:, 3, 3] = 1
+    return inverse
 
 
 class TargetEncoding(NamedTuple):
@@ -98,33 +110,53 @@ class ComRegNet(nn.Module):
             return out.decoded, out.centres
         return out.encoded, out.proxies
 
-    def _input_offset(self, src_in: Tensor) -> Tensor:
-        """``(B, 1, 3)`` the shift taken off the source before ``f`` (0 in the CT frame)."""
-        if self.config.input_frame == "centroid":
-            return src_in.detach().mean(dim=1, keepdim=True)
-        return src_in.new_zeros(src_in.shape[0], 1, 3)
+    def _input_frame(self, src_in: Tensor) -> Tensor:
+        """``(B, 4, 4)`` the rigid map ``F`` applied to the source before ``f`` and ``g``
+        (``model.input_frame``): identity (``ct``), the shift of the input's centroid to 0
+        (``centroid``), or that shift followed by the rotation onto the input's principal axes
+        (``principal``: largest spread first, each axis pointed where the cloud's third moment
+        along it is positive, right-handed). No gradient flows through ``F``."""
+        B = src_in.shape[0]
+        F = torch.eye(4, dtype=src_in.dtype, device=src_in.device).repeat(B, 1, 1)
+        if self.config.input_frame == "ct":
+            return F
+        x = src_in.detach().double()
+        centre = x.mean(dim=1, keepdim=True)  # B 1 3
+        R = torch.eye(3, dtype=x.dtype, device=x.device).repeat(B, 1, 1)
+        if self.config.input_frame == "principal":
+            centred = x - centre
+            _, vectors = torch.linalg.eigh(centred.transpose(1, 2) @ centred)  # ascending
+            axes = vectors.flip(-1).transpose(1, 2)  # B 3 3, rows: axes, largest spread first
+            skew = ((centred @ axes.transpose(1, 2)) ** 3).mean(dim=1)  # B 3
+            axes = axes * torch.where(skew < 0, -1.0, 1.0).unsqueeze(-1)
+            axes[:, 2] = torch.cross(axes[:, 0], axes[:, 1], dim=-1)  # right-handed
+            R = axes
+        F[:, :3, :3] = R.to(F.dtype)
+        F[:, :3, 3] = -(R @ centre.transpose(1, 2)).squeeze(-1).to(F.dtype)
+        return F
 
-    def _coarse(self, completion: CompletionOutput, offset: Tensor,
+    def _coarse(self, completion: CompletionOutput, frame: Tensor,
                 encoding: TargetEncoding) -> PoseOutput:
-        """The pose head on a completion made in the shifted frame, composed with the shift:
-        ``T = T' . (x - offset)``; correspondence positions moved back to the source frame."""
+        """The pose head on a completion made in the input frame, composed with the frame:
+        ``T = T' F``; correspondence positions moved back to the source frame."""
         tokens, positions = self._tokens(completion)
         pose = self.pose_head(tokens, positions, encoding.tokens, encoding.positions)
-        R = pose.transform[:, :3, :3]  # B 3 3
-        shift = (R @ offset.transpose(1, 2)).squeeze(-1)  # B 3
-        transform = torch.cat([pose.transform[:, :3], pose.transform[:, 3:]], dim=1).clone()
-        transform[:, :3, 3] = pose.transform[:, :3, 3] - shift
+        transform = pose.transform @ frame  # B 4 4
         corr = pose.correspondences
         if corr is not None:
-            corr = corr._replace(positions=corr.positions + offset)
-        return PoseOutput(transform, pose.quaternion, transform[:, :3, 3], corr)
+            corr = corr._replace(positions=transform_points(invert_frame(frame),
+                                                            corr.positions))
+        return PoseOutput(transform, matrix_to_quaternion(transform[:, :3, :3].detach()),
+                          transform[:, :3, 3], corr)
 
     @staticmethod
-    def _unshift(completion: CompletionOutput, offset: Tensor) -> CompletionOutput:
-        """The completion's points moved from the shifted frame back to the source frame."""
+    def _unframe(completion: CompletionOutput, frame: Tensor) -> CompletionOutput:
+        """The completion's points moved from the input frame back to the source frame."""
+        back = invert_frame(frame)
         return completion._replace(
-            centres=completion.centres + offset, proxies=completion.proxies + offset,
-            dense=None if completion.dense is None else completion.dense + offset)
+            centres=transform_points(back, completion.centres),
+            proxies=transform_points(back, completion.proxies),
+            dense=None if completion.dense is None else transform_points(back, completion.dense))
 
     def coarse_pose(self, source: Tensor, target: TargetEncoding
                     ) -> tuple[CompletionOutput, PoseOutput]:
@@ -139,10 +171,10 @@ class ComRegNet(nn.Module):
         """
         self._check_cloud(source, "source")
         src_in = subsample(source, self.config.completion.input_points, self._start())
-        offset = self._input_offset(src_in)  # B 1 3
-        completion = self.completion(src_in - offset)
-        pose = self._coarse(completion, offset, target)
-        return self._unshift(completion, offset), pose
+        frame = self._input_frame(src_in)  # B 4 4
+        completion = self.completion(transform_points(frame, src_in))
+        pose = self._coarse(completion, frame, target)
+        return self._unframe(completion, frame), pose
 
     def encode_target(self, target: Tensor) -> TargetEncoding:
         """Run the target half: ``f(T)`` up to the decoded features, and its ICP subset.
@@ -182,8 +214,8 @@ class ComRegNet(nn.Module):
         B = source.shape[0]
         start = self._start()
         src_in = subsample(source, cfg.completion.input_points, start)  # B n 3
-        offset = self._input_offset(src_in)  # B 1 3
-        src_in = src_in - offset
+        frame = self._input_frame(src_in)  # B 4 4
+        src_in = transform_points(frame, src_in)
         if isinstance(target, TargetEncoding):
             encoding = target
             completion = self.completion(src_in)
@@ -205,8 +237,8 @@ class ComRegNet(nn.Module):
                 tokens, positions = self._tokens(self.completion(tgt_in, rebuild=False))
             encoding = TargetEncoding(tokens, positions,
                                       subsample(target, cfg.icp.num_points, start))
-        pose = self._coarse(completion, offset, encoding)
-        completion = self._unshift(completion, offset)
+        pose = self._coarse(completion, frame, encoding)
+        completion = self._unframe(completion, frame)
         icp_source = subsample(source, cfg.icp.num_points, start)  # B N_c 3
         if refine_only is None:
             icp = self.refine(icp_source, encoding, pose.transform)

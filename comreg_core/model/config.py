@@ -114,6 +114,9 @@ class PoseHeadConfig:
             the CT (normalised CT coordinates) and a weight; the coarse pose is the weighted
             Procrustes fit of the centres to those points (see :mod:`.pose_head`). Not in the
             paper; the ``cpu`` preset uses it because it learns within a CPU budget.
+        correspondence: how the correspondence head predicts CT points: ``"regress"`` (three
+            coordinates per token) or ``"match"`` (scores against the CT's tokens, see
+            :mod:`.pose_head`).
         rotation: the ``mlp`` head's rotation output: ``"quaternion"`` (the paper) or ``"6d"``
             (the continuous 6-D representation of Zhou et al. 2019).
         token_dim: width of the shared per-token layer applied before pooling.
@@ -123,6 +126,7 @@ class PoseHeadConfig:
 
     features: Literal["decoded", "encoded"] = "decoded"
     head: Literal["mlp", "correspondence"] = "mlp"
+    correspondence: Literal["regress", "match"] = "regress"
     rotation: Literal["quaternion", "6d"] = "quaternion"
     token_dim: int = 512
     hidden_dim: int = 512
@@ -219,9 +223,12 @@ class ModelConfig:
             centroid of its network input lies at 0 (the shift is undone on every output), so
             the network never has to learn where the cloud happens to sit: its outputs are
             the same for a cloud translated anywhere. Not in the paper; used by ``cpu``.
+            ``"principal"``: also turned onto the input's principal axes (signs from its third
+            moments), so the outputs are the same for a cloud moved anywhere, turned included
+            (up to the axes' ambiguities when two spreads are about equal).
     """
 
-    input_frame: Literal["ct", "centroid"] = "ct"
+    input_frame: Literal["ct", "centroid", "principal"] = "ct"
     completion: CompletionConfig = field(default_factory=CompletionConfig)
     pose: PoseHeadConfig = field(default_factory=PoseHeadConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)

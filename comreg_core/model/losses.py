@@ -137,7 +137,9 @@ def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transf
 
 
 def correspondence_loss(correspondences: Correspondences | None, gt_transform: Tensor) -> Tensor:
-    """Mean distance of the predicted CT points ``y_i`` from ``T^-1 c_i`` (0 when None).
+    """Mean distance of the predicted CT points ``y_i`` from ``T^-1 c_i`` (0 when None), plus,
+    for matched correspondences, the cross-entropy of each token's scores towards the CT token
+    nearest ``T^-1 c_i``.
 
     Args:
         correspondences: positions ``c_i`` ``(B, T, 3)`` (source frame) and predictions ``y_i``.
@@ -146,7 +148,14 @@ def correspondence_loss(correspondences: Correspondences | None, gt_transform: T
     if correspondences is None:
         return gt_transform.new_zeros(())
     truth = transform_points(gt_transform, correspondences.positions.detach())  # B T 3
-    return safe_norm(correspondences.predicted - truth, dim=-1).mean()
+    loss = safe_norm(correspondences.predicted - truth, dim=-1).mean()
+    if correspondences.logits is not None:
+        anchors = correspondences.anchors.expand(truth.shape[0], -1, -1)  # B T' 3
+        nearest = torch.cdist(truth, anchors).argmin(dim=-1)  # B T
+        logits = correspondences.logits
+        loss = loss + torch.nn.functional.cross_entropy(
+            logits.reshape(-1, logits.shape[-1]), nearest.reshape(-1))
+    return loss
 
 
 def output_loss(output: ComRegOutput, gt_points: Tensor, gt_transform: Tensor,

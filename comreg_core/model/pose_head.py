@@ -25,6 +25,11 @@ the points instead: each source token (query centre ``c_i``, feature ``H_i``) ge
 source and target vectors appended and a per-token MLP (the same blocks) predicts ``y_i``, where
 ``c_i`` lies on the CT (normalised CT coordinates), and a weight logit. The coarse transform is
 the weighted Procrustes fit ``c_i -> y_i`` (weights: softmax over the tokens), differentiable.
+With ``correspondence: match``, ``y_i`` is not regressed but matched: each source token scores
+every target (CT) token (scaled dot product of a query from the source MLP and a key from the
+target token), and ``y_i`` is the softmax-weighted mean of the CT tokens' positions; the scores
+are also trained by cross-entropy towards the CT token nearest the truth, so a token unsure
+between two places along a shaft keeps two peaks instead of regressing to their mean.
 Every token is supervised (``y_i`` against ``T^-1 c_i``), so each sample gives ``Q`` targets
 instead of one pose: a dense signal that learns within a CPU budget, where the pooled MLP's
 rotation had not moved from the initial poses' error after 30 minutes.
@@ -51,11 +56,17 @@ class Correspondences(NamedTuple):
         positions: ``(B, T, 3)`` the source tokens' positions (query centres), source frame.
         predicted: ``(B, T, 3)`` where each lies on the CT, CT frame.
         weights: ``(B, T)`` Procrustes weights (sum 1 per sample).
+        logits: ``(B, T, T')`` matching scores against the target's tokens (``correspondence:
+            match``), None when regressed.
+        anchors: ``(B | 1, T', 3)`` the target tokens' positions (CT frame) the scores refer
+            to, None when regressed.
     """
 
     positions: Tensor
     predicted: Tensor
     weights: Tensor
+    logits: Tensor | None = None
+    anchors: Tensor | None = None
 
 
 class PoseOutput(NamedTuple):
@@ -177,6 +188,9 @@ class CorrespondencePoseHead(nn.Module):
         self.token = nn.Linear(feature_dim + 3, P)
         self.mlp = _mlp_blocks(5 * P, config)  # [token, source max, mean, target max, mean]
         self.out = nn.Linear(config.hidden_dim, 4)  # CT point (3) + weight logit
+        if config.correspondence == "match":
+            self.match_query = nn.Linear(config.hidden_dim, P)
+            self.match_key = nn.Linear(P, P)
         _init_linear(self)
 
     def forward(self, source_tokens: Tensor, source_positions: Tensor, target_tokens: Tensor,
@@ -190,11 +204,20 @@ class CorrespondencePoseHead(nn.Module):
         pooled = torch.cat([h_src.amax(1), h_src.mean(1), h_tgt.amax(1).expand(B, -1),
                             h_tgt.mean(1).expand(B, -1)], dim=-1)  # B 4P
         x = torch.cat([h_src, pooled.unsqueeze(1).expand(-1, T, -1)], dim=-1)  # B T 5P
-        out = self.out(self.mlp(x.reshape(B * T, -1))).reshape(B, T, 4)  # B T 4
-        predicted = out[..., :3]  # B T 3
+        hidden = self.mlp(x.reshape(B * T, -1))  # B*T H
+        out = self.out(hidden).reshape(B, T, 4)  # B T 4
+        logits = anchors = None
+        if self.config.correspondence == "match":
+            query = self.match_query(hidden).reshape(B, T, -1)  # B T P
+            key = self.match_key(h_tgt)  # Bt T' P
+            logits = query @ key.transpose(1, 2) / key.shape[-1] ** 0.5  # B T T'
+            anchors = target_positions.detach()  # Bt T' 3
+            predicted = torch.softmax(logits, dim=-1) @ anchors  # B T 3
+        else:
+            predicted = out[..., :3]  # B T 3
         weights = torch.softmax(out[..., 3], dim=1)  # B T
         positions = source_positions.detach()
         R, t = weighted_procrustes(positions, predicted, weights)  # B 3 3, B 3
         transform = make_transform(R, t)  # B 4 4
         return PoseOutput(transform, matrix_to_quaternion(R.detach()), t,
-                          Correspondences(positions, predicted, weights))
+                          Correspondences(positions, predicted, weights, logits, anchors))

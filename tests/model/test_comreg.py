@@ -93,13 +93,13 @@ def test_cached_target_and_shared_target_batch_agree(cpu_batch):
         cached = net(source[:2], net.encode_target(target))
         paired = net(source[:2], target.expand(2, -1, -1))  # f over [S, T] in one batch
     assert torch.equal(direct.coarse_transform, cached.coarse_transform)
-    assert_close(paired.coarse_transform, direct.coarse_transform, atol=1e-5)
+    assert_close(paired.coarse_transform, direct.coarse_transform, atol=1e-4)
     assert_close(paired.completion.dense, direct.completion.dense, atol=1e-5)
 
 
 def test_encoded_feature_switch_feeds_v_to_the_pose_head(cpu_batch):
     torch.manual_seed(3)
-    cfg = model_preset("cpu", {"completion": {"decoder_dim": 96},
+    cfg = model_preset("cpu", {"completion": {"decoder_dim": 96}, "input_frame": "ct",
                                "pose": {"features": "encoded"}})
     net = ComRegNet(cfg).eval()
     assert net.pose_head.token.in_features == cfg.completion.encoder_dim + 3

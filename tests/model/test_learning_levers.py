@@ -119,6 +119,22 @@ def test_centroid_frame_makes_the_network_translation_equivariant(tiny_batch):
             assert error > 1e-3, error
 
 
+def test_principal_frame_makes_the_network_rigid_motion_equivariant(tiny_batch):
+    torch.manual_seed(0)
+    source, target, _, _ = tiny_batch
+    M = make_transform(torch.tensor(Rotation.from_rotvec([0.3, -1.2, 0.8]).as_matrix(),
+                                    dtype=torch.float32), torch.tensor([0.2, -0.1, 0.15]))
+    moved = transform_points(M.expand(4, 4, 4), source)
+    net = tiny_model(input_frame="principal").eval()
+    with torch.no_grad():
+        a = net(source, target)
+        b = net(moved, target)
+    expected = a.coarse_transform @ torch.linalg.inv(M)  # the moved cloud's pose
+    assert float((b.coarse_transform - expected).abs().max()) < 1e-3
+    assert_close(b.completion.dense.numpy(),
+                 transform_points(M.expand(4, 4, 4), a.completion.dense).numpy(), atol=1e-3)
+
+
 def test_icp_only_inside_the_gate_gives_the_same_fine_poses_and_loss(tiny_batch):
     source, target, gt, gt_points = tiny_batch
     net = tiny_model().train()
@@ -164,3 +180,31 @@ def test_a_few_steps_lower_the_completion_and_pose_losses_on_a_tiny_bone(tiny_ba
     assert last[0] < 0.7 * first[0]
     assert last[1] < 0.8 * first[1]
     assert last[2] < 0.8 * first[2]
+
+
+def test_matched_correspondences_are_mixtures_of_ct_tokens_and_learn(tiny_batch):
+    """``correspondence: match``: every predicted CT point is a convex combination of the CT
+    tokens' positions, and a few steps raise the share of tokens whose best match is the CT
+    token nearest their true place."""
+    source, target, gt, gt_points = tiny_batch
+    torch.manual_seed(0)
+    net = tiny_model(pose={**TINY["model"]["pose"], "head": "correspondence",
+                           "correspondence": "match"}).train()
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    hits = []
+    for step in range(25):
+        opt.zero_grad()
+        out = net(source, target)
+        c = out.correspondences
+        if step == 0:
+            lo = c.anchors.amin(dim=1, keepdim=True) - 1e-6
+            hi = c.anchors.amax(dim=1, keepdim=True) + 1e-6
+            assert bool(((c.predicted >= lo) & (c.predicted <= hi)).all())
+        truth = transform_points(gt, c.positions)
+        nearest = torch.cdist(truth, c.anchors.expand(4, -1, -1)).argmin(-1)
+        hits.append(float((c.logits.argmax(-1) == nearest).float().mean()))
+        terms = output_loss(out, gt_points, gt, net.config.loss)
+        terms.total.backward()
+        opt.step()
+    print("share of tokens matched to the right CT token:", hits[0], "->", hits[-1])
+    assert np.mean(hits[-3:]) > np.mean(hits[:3]) + 0.05

@@ -1,6 +1,8 @@
 """Model presets and config validation; the normalised-coordinate helper."""
 
 import numpy as np
+from dataclasses import replace
+
 import pytest
 
 from comreg_core.config import ConfigError, load_config, write_config
@@ -28,7 +30,11 @@ def test_cpu_preset_is_smaller_and_keeps_the_method_constants():
     assert cpu.completion.input_points < paper.completion.input_points
     assert cpu.completion.encoder_dim < paper.completion.encoder_dim
     assert cpu.icp.sigma == paper.icp.sigma and cpu.icp.iterations == paper.icp.iterations
-    assert cpu.loss == paper.loss and cpu.pose.hidden_dim == 512 and cpu.pose.num_blocks == 5
+    assert cpu.pose.hidden_dim == 512 and cpu.pose.num_blocks == 5
+    # the loss is the paper's but for rho, the share of the registration term
+    assert cpu.loss.rho == 1.0 and replace(cpu.loss, rho=paper.loss.rho) == paper.loss
+    assert (paper.input_frame, paper.pose.head, paper.pose.rotation) == ("ct", "mlp",
+                                                                         "quaternion")
 
 
 def test_overrides_yaml_round_trip_and_errors(tmp_path):
