@@ -46,7 +46,6 @@ from comreg_core.hypotheses import (HypothesisConfig, HypothesisResult, Hypothes
                                     as_hypothesis_config, search_hypotheses)
 from comreg_core.io._files import atomic_output, check_output_folder
 from comreg_core.model.comreg import ComRegNet
-from comreg_core.model.diff_icp import differentiable_icp
 from comreg_core.model.normalization import Normalization
 from comreg_core.model.ops import subsample
 from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, ct_fingerprint,

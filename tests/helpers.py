@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -71,3 +72,21 @@ def tibia_like_mesh(length: float = 360.0, n_rings: int = 180, n_around: int = 9
     faces.append(np.stack([np.full(n, bottom), (ring0 + 1) % n, ring0], 1))
     faces.append(np.stack([np.full(n, top), ring1, (n_rings - 1) * n + (np.arange(n) + 1) % n], 1))
     return vertices, np.concatenate(faces).astype(np.int64)
+
+
+@contextlib.contextmanager
+def immutable(folder: Path):
+    """Make ``folder`` immutable (``chattr +i``: refused even to root, which plain permissions
+    are not) for the ``with`` block; skips the test where chattr is unavailable or not allowed."""
+    import shutil
+    import subprocess
+
+    import pytest
+
+    if shutil.which("chattr") is None or subprocess.run(
+            ["chattr", "+i", str(folder)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not available here")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["chattr", "-i", str(folder)], check=True)

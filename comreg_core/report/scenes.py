@@ -8,8 +8,9 @@ anything, and a theme of its own (the process-wide pyvista theme is neither read
 
 Scenes (:data:`SCENES`):
 
-* ``registered``: CT + US points after registration, framed on the CT: do the points sit on the
-  bone?
+* ``registered``: CT + US points after registration coloured by their distance to the CT
+  surface (the same 0-5 mm viridis map and colour bar in every view: a wrong registration shows
+  green-yellow points), framed on the CT: do the points sit on the bone?
 * ``overlay``: CT + US points before (vermillion) and after (blue) registration, framed on all of
   them: where did the points start and where did they go?
 * ``completion``: CT + the completed bone coloured by its distance to the CT surface (mm, viridis:
@@ -131,6 +132,7 @@ class SceneData:
         completion: ``(M, 3)`` completed bone points, or None.
         completion_distance_mm: ``(M,)`` unsigned distance of each completion point to the CT
             surface (computed if not given).
+        us_after_distance_mm: ``(N,)`` the same for the registered US points.
     """
 
     ct: SurfaceMesh
@@ -138,6 +140,7 @@ class SceneData:
     us_after: np.ndarray | None = None
     completion: np.ndarray | None = None
     completion_distance_mm: np.ndarray | None = None
+    us_after_distance_mm: np.ndarray | None = None
     frame: BoneFrame = field(init=False)
 
     def __post_init__(self) -> None:
@@ -146,11 +149,13 @@ class SceneData:
         self.us_before = _points_or_none(self.us_before, "US points before registration")
         self.us_after = _points_or_none(self.us_after, "US points after registration")
         self.completion = _points_or_none(self.completion, "completion points")
-        if self.completion is not None and self.completion_distance_mm is None:
-            from comreg_core.evaluation.metrics import SurfaceReference
+        from comreg_core.evaluation.metrics import SurfaceReference
 
-            self.completion_distance_mm = SurfaceReference(
-                (self.ct.vertices, self.ct.faces)).distance(self.completion)
+        surface = SurfaceReference((self.ct.vertices, self.ct.faces))
+        if self.completion is not None and self.completion_distance_mm is None:
+            self.completion_distance_mm = surface.distance(self.completion)
+        if self.us_after is not None and self.us_after_distance_mm is None:
+            self.us_after_distance_mm = surface.distance(self.us_after)
         if self.completion_distance_mm is not None:
             self.completion_distance_mm = np.asarray(self.completion_distance_mm, np.float64)
             n = None if self.completion is None else len(self.completion)
@@ -251,25 +256,19 @@ class SceneRenderer:
             point_sets.append(data.us_before)
             legend.append((f"US before registration ({len(data.us_before)})",
                            style.us_before_rgb))
-        if self.scene in ("overlay", "registered") and data.us_after is not None:
+        if self.scene == "registered" and data.us_after is not None:
+            self._distance_points(pv, data.us_after, data.us_after_distance_mm, point_px,
+                                  "US points: distance to the CT surface", "us_after")
+            point_sets.append(data.us_after)
+        if self.scene == "overlay" and data.us_after is not None:
             p.add_points(data.us_after, color=_unit(style.us_after_rgb), point_size=point_px,
                          render_points_as_spheres=True, name="us_after")
             point_sets.append(data.us_after)
             legend.append((f"US after registration ({len(data.us_after)})", style.us_after_rgb))
         if self.scene == "completion":
-            cloud = pv.PolyData(data.completion)
-            cloud["distance_mm"] = data.completion_distance_mm
-            lo, hi = style.distance_range_mm
-            p.add_mesh(cloud, scalars="distance_mm", cmap=_lookup_table(style), clim=(lo, hi),
-                       point_size=max(3.0, height * style.completion_point_size_fraction),
-                       render_points_as_spheres=True, name="completion",
-                       show_scalar_bar=self.show_text,
-                       scalar_bar_args=dict(
-                           title=f"Completion: distance to CT surface (mm; >= {hi:g} in yellow)",
-                           vertical=False, position_x=0.2, position_y=0.015, width=0.6,
-                           height=0.085, n_labels=6, fmt="%.1f", color=_unit(style.text_rgb),
-                           title_font_size=self._font, label_font_size=self._font, bold=False,
-                           shadow=False))
+            self._distance_points(pv, data.completion, data.completion_distance_mm,
+                                  max(3.0, height * style.completion_point_size_fraction),
+                                  "Completion: distance to CT surface", "completion")
             point_sets.append(data.completion)
         self._point_sets = point_sets
         self._slab_actor, self._slab_vertices = None, None
@@ -280,7 +279,24 @@ class SceneRenderer:
             self._slab_vertices = np.asarray(slab.points, np.float64)
         if self.show_text:
             self._add_legend(legend)
-        self._content = _CONTENT_WITH_BAR if self.scene == "completion" else _CONTENT
+        self._content = (_CONTENT_WITH_BAR if self.scene in ("completion", "registered")
+                         else _CONTENT)
+
+    def _distance_points(self, pv, points, distance_mm, size_px: float, title: str, name: str):
+        """Points coloured by their distance to the CT (the one fixed 0-5 mm map), with a
+        horizontal colour bar in mm at the bottom."""
+        cloud = pv.PolyData(points)
+        cloud["distance_mm"] = distance_mm
+        lo, hi = self.style.distance_range_mm
+        self.plotter.add_mesh(
+            cloud, scalars="distance_mm", cmap=_lookup_table(self.style), clim=(lo, hi),
+            point_size=size_px, render_points_as_spheres=True, name=name,
+            show_scalar_bar=self.show_text,
+            scalar_bar_args=dict(
+                title=f"{title} (mm; >= {hi:g} in yellow)", vertical=False, position_x=0.2,
+                position_y=0.015, width=0.6, height=0.085, n_labels=6, fmt="%.1f",
+                color=_unit(self.style.text_rgb), title_font_size=self._font,
+                label_font_size=self._font, bold=False, shadow=False))
 
     def _slab(self, ct):
         """The CT cut to the registered US points' span along the bone axis, or None."""
@@ -387,7 +403,7 @@ class SceneRenderer:
         self._text(self.view_title(camera.name), 0.012 * width, 0.988 * height, size=font,
                    name="title", valign="top")
         labels = camera.orientation_labels()
-        bottom = 0.115 if self.scene == "completion" else 0.012
+        bottom = 0.115 if self.scene in ("completion", "registered") else 0.012
         places = {"left": (0.012, 0.5, "left", "center"),
                   "right": (0.988, 0.5, "right", "center"),
                   "top": (0.5, 0.875, "center", "bottom"),
@@ -395,6 +411,29 @@ class SceneRenderer:
         for edge, (x, y, halign, valign) in places.items():
             self._text(labels[edge], x * width, y * height, size=big, name=f"orient_{edge}",
                        halign=halign, valign=valign)
+        self._scale_bar(camera)
+
+    def _scale_bar(self, camera: CameraView) -> None:
+        """A scale bar in the lower left: a round length (mm) about a sixth of the width."""
+        import vtk
+
+        width, height = self.window_size
+        mm_per_px = camera.mm_per_pixel
+        target = width / 6 * mm_per_px
+        length = max(v for v in (1, 2, 5, 10, 20, 50, 100, 200, 500) if v <= max(target, 1))
+        x0, y0 = 0.03 * width, (0.20 if self._content is _CONTENT_WITH_BAR else 0.10) * height
+        line = vtk.vtkLineSource()
+        line.SetPoint1(x0, y0, 0.0)
+        line.SetPoint2(x0 + length / mm_per_px, y0, 0.0)
+        mapper = vtk.vtkPolyDataMapper2D()
+        mapper.SetInputConnection(line.GetOutputPort())
+        actor = vtk.vtkActor2D()
+        actor.SetMapper(mapper)
+        actor.GetProperty().SetColor(*_unit(self.style.text_rgb))
+        actor.GetProperty().SetLineWidth(max(2.0, height / 250))
+        self.plotter.add_actor(actor, name="scale_bar", reset_camera=False, pickable=False)
+        self._text(f"{length:g} mm", x0, y0 + 0.01 * height, size=self._font,
+                   name="scale_bar_label")
 
     def close(self) -> None:
         self.plotter.close()

@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.io import PointCloud, SurfaceMesh, write_mesh, write_points
-from tests.helpers import FIBULA_STL
+from tests.helpers import FIBULA_STL, immutable
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE_MODEL = REPO / "resources" / "sample" / "fibula_cpu.pt"
@@ -168,14 +168,6 @@ def test_every_command_refuses_an_output_place_it_cannot_write(command, sample, 
     assert _files(tmp_path) == before
 
 
-def _make_immutable(folder: Path) -> bool:
-    """``chattr +i folder`` (refused even to root); False where chattr is unavailable."""
-    if shutil.which("chattr") is None:
-        return False
-    made = subprocess.run(["chattr", "+i", str(folder)], capture_output=True)
-    return made.returncode == 0
-
-
 @pytest.mark.parametrize("command", _every_command())
 def test_every_command_refuses_an_immutable_folder(command, sample, tmp_path, no_model_loading):
     """The issue's case: an immutable folder (``chattr +i``, which stops root too; skipped
@@ -187,13 +179,9 @@ def test_every_command_refuses_an_immutable_folder(command, sample, tmp_path, no
         (locked / "result.json").write_text("{}")
     out = locked if command == "report" else locked / "out"
     before = _files(tmp_path)
-    if not _make_immutable(locked):
-        pytest.skip("chattr +i is not available here")
-    try:
+    with immutable(locked):
         _refused(_command_args(command, out, run, us), "not writable")
         assert _files(tmp_path) == before
-    finally:
-        subprocess.run(["chattr", "-i", str(locked)], check=True)
 
 
 # --- 3. checkpoints that load but are unusable ----------------------------------------------------

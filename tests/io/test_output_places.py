@@ -3,9 +3,7 @@ that compare the counts a header declares with the file size before allocating."
 
 from __future__ import annotations
 
-import shutil
 import struct
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +13,7 @@ from comreg_core.errors import CorruptFileError, InputFileNotFoundError, OutputP
 from comreg_core.io import read_mesh, read_points
 from comreg_core.io._files import (check_output_file, check_output_folder, is_run_folder,
                                    require_input_file)
-from tests.helpers import assert_close
+from tests.helpers import assert_close, immutable
 
 
 def _run_folder(path: Path) -> Path:
@@ -64,16 +62,11 @@ def test_inputs_and_run_folders_are_refused(tmp_path):
 def test_an_immutable_folder_is_refused_even_for_root(tmp_path):
     locked = tmp_path / "locked"
     locked.mkdir()
-    if shutil.which("chattr") is None or subprocess.run(
-            ["chattr", "+i", str(locked)], capture_output=True).returncode != 0:
-        pytest.skip("chattr +i is not available here")
-    try:
+    with immutable(locked):
         with pytest.raises(OutputPlaceError, match="not writable .operation not permitted"):
             check_output_folder(locked / "out")
         with pytest.raises(OutputPlaceError, match="not writable"):
             check_output_file(locked / "bone.stl")
-    finally:
-        subprocess.run(["chattr", "-i", str(locked)], check=True)
 
 
 def test_a_folder_given_as_an_input_file_is_called_a_folder(tmp_path):

@@ -86,22 +86,16 @@ def test_save_transform_and_scene_with_bad_nodes_or_places(logic, tmp_path):
 
 
 def test_save_into_an_immutable_folder(logic, tmp_path):
-    import shutil
-    import subprocess
+    from tests.helpers import immutable
 
     locked = tmp_path / "locked"
     locked.mkdir()
-    if shutil.which("chattr") is None or subprocess.run(
-            ["chattr", "+i", str(locked)], capture_output=True).returncode != 0:
-        pytest.skip("chattr +i is not available here")
-    try:
+    with immutable(locked):
         transform = _node(logic, "vtkMRMLLinearTransformNode")
         with pytest.raises(ComRegError, match="not writable"):
             logic.saveTransform(transform, locked / "t.tfm")
         with pytest.raises(ComRegError, match="not writable"):
             logic.saveScene(locked / "scene.mrml")
-    finally:
-        subprocess.run(["chattr", "-i", str(locked)], check=True)
     assert list(locked.iterdir()) == []
 
 
