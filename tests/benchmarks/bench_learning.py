@@ -1,7 +1,7 @@
 """Benchmark: the learning curve of per-patient pretraining against wall-clock minutes.
 
 Run: ``.venv/bin/python -m tests.benchmarks.bench_learning [--minutes 30] [--preset cpu]
-[--bone PATH] [--set model.pose.head=mlp ...] [--threads N] [--out DIR]``
+[--bone PATH|tibia-like] [--set model.pose.head=mlp ...] [--threads N] [--out DIR]``
 
 Pretrains on ``--bone`` (default: the shared real fibula CT) for ``--minutes`` of wall clock and
 prints, per validated epoch, on the run's fixed held-out simulated sweeps: completion CD (mm, the
@@ -61,6 +61,16 @@ def print_curve(rows: list[dict[str, str]]) -> None:
         print("  ".join(cells))
 
 
+def write_tibia_like(path: Path) -> Path:
+    """The tibia-like bone of :func:`tests.helpers.tibia_like_mesh` as a mesh file."""
+    from comreg_core.io.meshes import SurfaceMesh, write_mesh
+    from tests.helpers import tibia_like_mesh
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_mesh(SurfaceMesh(*tibia_like_mesh()), path)
+    return path
+
+
 def write_untrained_control(run_dir: Path, out_dir: Path) -> Path:
     """``out_dir/checkpoint.pt``: the run's checkpoint with the network's weights as they were
     before the first step (the trainer seeds torch with the run seed right before building the
@@ -94,7 +104,8 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--minutes", type=float, default=30.0)
     p.add_argument("--preset", default="cpu")
-    p.add_argument("--bone", type=Path, default=FIBULA_STL)
+    p.add_argument("--bone", type=Path, default=FIBULA_STL,
+                   help="CT bone mesh, or 'tibia-like' for tests.helpers.tibia_like_mesh()")
     p.add_argument("--set", type=parse_setting, action="append", default=[], dest="settings")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--seed", type=int, default=0)
@@ -106,6 +117,8 @@ def main(argv: list[str] | None = None) -> None:
     overrides: dict = {}
     for setting in args.settings:
         overrides = deep_merge(overrides, setting)
+    if str(args.bone) == "tibia-like":
+        args.bone = write_tibia_like(Path("out/bones/tibia_like.stl"))
     if args.out.exists():
         shutil.rmtree(args.out)
     start = time.perf_counter()
