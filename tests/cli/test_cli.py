@@ -244,9 +244,11 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     result = runner.invoke(app, ["report", str(out)])
     assert result.exit_code == 0, result.output
     html = (out / "report.html").read_text()
-    assert "icp-gt" in html and "registered_anterior.png" in html
+    # the evaluation's metrics.json was not made for this registration: the report leaves it out
+    assert "icp-gt" not in html and "registered_anterior.png" in html
+    assert "Verdict: OK" in html or "Verdict: CHECK" in html
     # the pose check of the hypotheses stage is in the report
     hypotheses = json.loads((out / "result.json").read_text())["hypotheses"]
-    assert "pose / confidence" in html and hypotheses["chosen"] in html
+    assert "Pose check / confidence (0-1; below 0.3 is ambiguous)" in html
     assert f"in {hypotheses['polish']['iterations']} iterations" in html
-    assert ("YES: another, different pose" in html) == hypotheses["ambiguous"]
+    assert ("YES: check the images" in html) == hypotheses["ambiguous"]
