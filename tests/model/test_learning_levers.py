@@ -173,8 +173,8 @@ def test_a_few_steps_lower_the_completion_and_pose_losses_on_a_tiny_bone(tiny_ba
         terms = output_loss(out, gt_points, gt, net.config.loss)
         terms.total.backward()
         opt.step()
-        history.append([float(terms.completion), float(terms.reg_coarse),
-                        float(terms.correspondence)])
+        history.append([float(terms.completion.detach()), float(terms.reg_coarse.detach()),
+                        float(terms.correspondence.detach())])
     first, last = np.mean(history[:3], axis=0), np.mean(history[-3:], axis=0)
     print("completion, coarse pose, correspondence losses:", first, "->", last)
     assert last[0] < 0.7 * first[0]
