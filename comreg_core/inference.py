@@ -371,20 +371,26 @@ class Registrar:
 
     __call__ = register
 
+    @property
+    def surface(self):
+        """The CT mesh as a :class:`~comreg_core.evaluation.metrics.SurfaceReference` (built
+        once, shared by the residuals and the verdict), or None when no mesh is known."""
+        if self._surface is None and self._ct_vertices is not None:
+            from comreg_core.evaluation.metrics import SurfaceReference
+
+            self._surface = SurfaceReference((self._ct_vertices, self._ct_faces))
+        return self._surface
+
     def residuals(self, registered: np.ndarray) -> dict[str, float]:
         """Distance statistics (mm) of registered US points to the CT surface (the mesh when
         known, else the CT cloud)."""
-        if self._surface is None:
-            if self._ct_vertices is not None:
-                from comreg_core.evaluation.metrics import SurfaceReference
+        if self.surface is not None:
+            d = self.surface.distance(registered)
+        else:
+            from scipy.spatial import cKDTree
 
-                self._surface = SurfaceReference((self._ct_vertices, self._ct_faces)).distance
-            else:
-                from scipy.spatial import cKDTree
-
-                tree = cKDTree(self.ct_points)
-                self._surface = lambda p: tree.query(p)[0]
-        d = np.asarray(self._surface(registered), dtype=np.float64)
+            d = cKDTree(self.ct_points).query(registered)[0]
+        d = np.asarray(d, dtype=np.float64)
         return {"mean": float(d.mean()), "median": float(np.median(d)),
                 "p90": float(np.percentile(d, 90)), "p95": float(np.percentile(d, 95)),
                 "max": float(d.max()), "rmse": float(np.sqrt(np.mean(d ** 2))),
@@ -393,15 +399,17 @@ class Registrar:
 
 def registration_verdict(result: RegistrationResult, registrar: Registrar):
     """The :class:`~comreg_core.evaluation.verdict.Verdict` of ``result`` on the registrar's CT
-    mesh (its CT cloud's surface is unknown without one: then the residuals are to the cloud)."""
+    mesh (:attr:`Registrar.surface`); the points judged are the US points the registration
+    used (``registered_points`` moved back by ``T_ct_us``)."""
     from comreg_core.evaluation.verdict import judge_registration
-
     from comreg_core.transforms import invert_rigid
 
-    mesh = (registrar._ct_vertices, registrar._ct_faces)
+    if registrar.surface is None:
+        raise InvalidGeometryError("No CT mesh is known for this model, so the registration "
+                                   "cannot be judged.", "Load the run folder with its CT mesh.")
     points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
-    return judge_registration(points, result.T_ct_us, mesh, confidence=result.confidence,
-                              ambiguous=result.ambiguous)
+    return judge_registration(points, result.T_ct_us, registrar.surface,
+                              confidence=result.confidence, ambiguous=result.ambiguous)
 
 
 def limit_us_points(points: np.ndarray, seed: int = 0,

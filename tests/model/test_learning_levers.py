@@ -52,7 +52,7 @@ def test_matrix_to_quaternion_matches_scipy():
                  np.hstack([np.zeros((3, 1)), np.eye(3)]), atol=1e-9)
 
 
-def test_heads_and_their_identity_start():
+def test_heads_by_config_give_proper_rotations():
     cfg = model_preset("cpu").pose
     assert isinstance(build_pose_head(32, cfg), CorrespondencePoseHead)
     mlp = build_pose_head(32, model_preset("paper").pose)
