@@ -17,6 +17,7 @@ from typing import Optional
 
 import typer
 
+from comreg_core import runs
 from comreg_core import __version__
 from comreg_core.cli_errors import CommandApp, set_verbose
 
@@ -345,7 +346,7 @@ def evaluate(
 
         raise ComRegError(f"Every trial failed, so there is nothing to measure; the first: "
                           f"{failed[0]}", "Fix the input above and run again.")
-    path = write_metrics(result, Path(out) / "metrics.json")
+    path = write_metrics(result, Path(out) / runs.METRICS)
     typer.echo(f"wrote {path}")
     for name, summary in result["summary"].items():
         typer.echo(f"  {name}: {_summary_line(summary)}")

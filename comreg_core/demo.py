@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from comreg_core import runs
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import atomic_output, check_output_folder
 
@@ -105,7 +106,7 @@ def _model_for(ct_path: Path, out_dir: Path, device: str, train_minutes: float,
         log.warning("The bundled model '%s' was trained for another CT surface (this VTK "
                     "extracts a slightly different mesh); training a new one", SAMPLE_MODEL)
     run_dir = out_dir / "run"
-    if (run_dir / "checkpoint.pt").is_file():
+    if (run_dir / runs.CHECKPOINT).is_file():
         try:
             if load_checkpoint(run_dir)["ct_fingerprint"] == fingerprint:
                 return run_dir, False
@@ -132,7 +133,7 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
         step: called with a line before each stage (the CLI prints it).
     """
     from comreg_core.evaluation.evaluate import evaluate, write_metrics
-    from comreg_core.evaluation.metrics import registration_metrics
+    from comreg_core.registration.metrics import registration_metrics
     from comreg_core.inference import Registrar, register_to_directory
     from comreg_core.io import PointCloud, read_mesh, save_transform, write_points
     from comreg_core.report import write_report_for_registration
@@ -178,7 +179,7 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
         metrics.update(evaluate({"comreg": registrar}, us_points, ct, trials=trials, seed=seed))
         success_rate = metrics["summary"]["comreg"]["success_rate"]
         flip_rate = metrics["summary"]["comreg"]["flip_rate"]
-    write_metrics(metrics, registration_dir / "metrics.json")
+    write_metrics(metrics, registration_dir / runs.METRICS)
 
     step("rendering the report")
     report = write_report_for_registration(registration_dir, ct_mesh=ct_path)

@@ -10,7 +10,7 @@
    the completed bone in the CT frame, and residual statistics of the registered US points
    (exact distances to the CT mesh surface).
 
-4. unless turned off, the test-time **hypotheses** stage (:mod:`comreg_core.hypotheses`): the
+4. unless turned off, the test-time **hypotheses** stage (:mod:`comreg_core.registration.search`): the
    network's pose, its coarse pose and the principal-axes solve of the completion vs the CT,
    each with its alternatives (flipped end to end, turned about and slid along the shaft),
    screened together, the best few refined (one batched ICP) and scored by the trimmed distance
@@ -41,10 +41,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from comreg_core import runs
+from comreg_core.config import to_dict
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.hypotheses import (HypothesisConfig, HypothesisResult, HypothesisTarget,
-                                    as_hypothesis_config, search_hypotheses)
+from comreg_core.registration import (CTSurface, HypothesisConfig, HypothesisResult,
+                                      SurfaceCloud, as_hypothesis_config, judge_registration,
+                                      search_hypotheses)
 from comreg_core.io._files import atomic_output, check_output_folder
+from comreg_core.io.pointclouds import PointCloud, read_points, write_points
+from comreg_core.io.transform_files import save_transform
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.normalization import Normalization
 from comreg_core.model.ops import subsample
@@ -52,7 +57,7 @@ from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint,
                                              load_checkpoint, mesh_fingerprint, network_warning)
 from comreg_core.training.config import PretrainConfig, config_from_yaml
 from comreg_core.training.trainer import resolve_device
-from comreg_core.transforms import apply_transform, as_points, orthonormalize
+from comreg_core.transforms import apply_transform, as_points, invert_rigid, orthonormalize
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +94,7 @@ class RegistrationResult:
             polish's RMS distance of the matched points to the mesh (the chosen hypothesis'
             point-to-plane residual when there was no polish).
         n_points: points in the US cloud.
-        hypotheses: the :class:`~comreg_core.hypotheses.HypothesisResult` (chosen hypothesis,
+        hypotheses: the :class:`~comreg_core.registration.HypothesisResult` (chosen hypothesis,
             every score, runner-up, gap, confidence, ambiguous), None when the stage was off.
         info: JSON-able extras (what the evaluation harness records per trial): the coarse
             pose, timings, residuals, ``hypotheses`` (the block of :meth:`to_json`, None when
@@ -154,7 +159,7 @@ class Registrar:
         device: torch device.
         config: the run's training config (kept for reference).
         hypotheses: the test-time hypotheses stage: None or True = on with the defaults of
-            :class:`~comreg_core.hypotheses.HypothesisConfig`, False = off (the paper's plain
+            :class:`~comreg_core.registration.HypothesisConfig`, False = off (the paper's plain
             pipeline), or a ``HypothesisConfig`` (its ``enabled`` decides).
         warnings: what the run's own validation says against its network
             (:func:`~comreg_core.training.checkpoint.network_warning`); copied into every
@@ -179,7 +184,7 @@ class Registrar:
         self.hypothesis_config = as_hypothesis_config(hypotheses)
         self._surface = None
         self._encoding = None
-        self._targets: dict[int, HypothesisTarget] = {}
+        self._bare_cloud: SurfaceCloud | None = None
 
     @classmethod
     def from_run(cls, run_dir: str | Path, device: str = "auto", *, ct_mesh=None,
@@ -196,7 +201,7 @@ class Registrar:
             icp_points: ICP points per cloud at inference (default: the trained value; ICP has
                 no weights, so e.g. 4096 with a model trained at 2048 is valid).
             hypotheses: the hypotheses stage (see the class): None/True = on (defaults), False
-                = off, or a :class:`~comreg_core.hypotheses.HypothesisConfig`. Not part of the
+                = off, or a :class:`~comreg_core.registration.HypothesisConfig`. Not part of the
                 run: the network is the same either way.
 
         Raises:
@@ -208,7 +213,7 @@ class Registrar:
         expected = state["ct_fingerprint"]
         stored = ct_fingerprint(state["ct_vertices"].numpy(), state["ct_faces"].numpy())
         check_fingerprint(expected, stored, " (its stored CT mesh)")
-        fp_file = Path(run_dir) / "ct_fingerprint.json" if Path(run_dir).is_dir() else None
+        fp_file = Path(run_dir) / runs.FINGERPRINT if Path(run_dir).is_dir() else None
         if fp_file is not None and fp_file.is_file():
             check_fingerprint(expected, json.loads(fp_file.read_text(encoding="utf-8")),
                               f" in '{run_dir}' (ct_fingerprint.json)")
@@ -249,19 +254,15 @@ class Registrar:
                 self._encoding = self.model.encode_target(ct[None].to(self.device))
         return self._encoding
 
-    def hypothesis_target(self, n_points: int) -> HypothesisTarget:
-        """The CT side of the hypotheses stage: ``n_points`` area-uniform samples of the CT mesh
-        (the run's CT cloud when no mesh is known), with the network's normalisation (built
-        once per size, cached)."""
-        if n_points not in self._targets:
-            if self._ct_vertices is not None:
-                self._targets[n_points] = HypothesisTarget.from_mesh(
-                    (self._ct_vertices, self._ct_faces), n_points,
-                    normalization=self.normalization, device=self.device)
-            else:
-                self._targets[n_points] = HypothesisTarget(self.ct_points, self.normalization,
-                                                           self.device)
-        return self._targets[n_points]
+    def hypothesis_target(self, n_points: int) -> SurfaceCloud:
+        """The CT side of the pose search: ``n_points`` area-uniform samples of the CT mesh
+        (:meth:`CTSurface.cloud`; the run's CT cloud with estimated normals when no mesh is
+        known), built once and cached."""
+        if self.surface is not None:
+            return self.surface.cloud(n_points)
+        if self._bare_cloud is None:
+            self._bare_cloud = SurfaceCloud(self.ct_points)
+        return self._bare_cloud
 
     def check_points(self, points, seed: int = 0) -> np.ndarray:
         """The US cloud as ``(N, 3)`` float64 (at most :data:`MAX_US_POINTS`, see
@@ -311,8 +312,8 @@ class Registrar:
         target = self.hypothesis_target(hyp_cfg.target_points) if hyp_cfg.enabled else None
         if target is not None and hyp_cfg.refine_top:
             target.closest_point_grid  # built once per CT: not part of a registration's time
-        if target is not None and hyp_cfg.polish:
-            target.matcher  # likewise
+        if target is not None and hyp_cfg.polish and self.surface is not None:
+            self.surface.closest(self.ct_points[:1])  # likewise (its KD-tree)
         start = time.perf_counter() - check_s  # the checks count as preprocessing
         warnings = list(self.warnings)
         if n_given is not None and n_given > len(pts):
@@ -373,12 +374,10 @@ class Registrar:
 
     @property
     def surface(self):
-        """The CT mesh as a :class:`~comreg_core.evaluation.metrics.SurfaceReference` (built
+        """The CT mesh as a :class:`~comreg_core.registration.surface.CTSurface` (built
         once, shared by the residuals and the verdict), or None when no mesh is known."""
         if self._surface is None and self._ct_vertices is not None:
-            from comreg_core.evaluation.metrics import SurfaceReference
-
-            self._surface = SurfaceReference((self._ct_vertices, self._ct_faces))
+            self._surface = CTSurface((self._ct_vertices, self._ct_faces))
         return self._surface
 
     def residuals(self, registered: np.ndarray) -> dict[str, float]:
@@ -398,12 +397,9 @@ class Registrar:
 
 
 def registration_verdict(result: RegistrationResult, registrar: Registrar):
-    """The :class:`~comreg_core.evaluation.verdict.Verdict` of ``result`` on the registrar's CT
+    """The :class:`~comreg_core.registration.verdict.Verdict` of ``result`` on the registrar's CT
     mesh (:attr:`Registrar.surface`); the points judged are the US points the registration
     used (``registered_points`` moved back by ``T_ct_us``)."""
-    from comreg_core.evaluation.verdict import judge_registration
-    from comreg_core.transforms import invert_rigid
-
     if registrar.surface is None:
         raise InvalidGeometryError("No CT mesh is known for this model, so the registration "
                                    "cannot be judged.", "Load the run folder with its CT mesh.")
@@ -457,7 +453,7 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
       ``runtime_s``, ``device``, ``seed``, ``n_points``, ``residuals_mm``, ``icp_rmse_mm``,
       ``confidence``, ``ambiguous`` and ``hypotheses`` (:meth:`RegistrationResult.to_json`;
       null with ``hypotheses=False``), ``verdict`` ("ok"/"check"), ``verdict_reasons`` and
-      ``verdict_figures`` (:mod:`comreg_core.evaluation.verdict`), ``space``,
+      ``verdict_figures`` (:mod:`comreg_core.registration.verdict`), ``space``,
       ``ct_fingerprint``, ``run_dir``, ``us_points`` and ``ct_mesh`` (absolute paths, so
       ``comreg report`` works from any directory), ``files``.
 
@@ -467,18 +463,14 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
     """
     import yaml
 
-    from comreg_core.config import to_dict
-    from comreg_core.io.pointclouds import PointCloud, read_points, write_points
-    from comreg_core.io.transform_files import save_transform
-
     out = check_output_folder(out_dir, inputs=[run_dir, us_points_path, ct_mesh])
     cloud = read_points(us_points_path)  # the cheap input first
     registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
                                    hypotheses=hypotheses)
     result = registrar.register(cloud.in_space(registrar.space).points, seed=seed)
     out.mkdir(parents=True, exist_ok=True)
-    files = {"transform": "transform.tfm", "registered_us": "registered_us.ply",
-             "completion_ct": "completion_ct.ply", "config": "config.yaml"}
+    files = {"transform": runs.TRANSFORM, "registered_us": runs.REGISTERED_US,
+             "completion_ct": runs.COMPLETION_CT, "config": runs.CONFIG}
     save_transform(result.T_ct_us, out / files["transform"], space=registrar.space)
     write_points(PointCloud(result.registered_points, registrar.space),
                  out / files["registered_us"])
@@ -496,7 +488,7 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
                "us_points": str(Path(us_points_path).absolute()),
                "ct_mesh": None if ct_mesh is None else str(Path(ct_mesh).absolute()),
                "files": files}
-    with atomic_output(out / "result.json") as tmp:
+    with atomic_output(out / runs.RESULT) as tmp:
         tmp.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
     log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
              result.runtime_s, result.device, out)

@@ -1,4 +1,4 @@
-"""Figures behind the verdict thresholds (comreg_core/evaluation/verdict.py).
+"""Figures behind the verdict thresholds (comreg_core/registration/verdict.py).
 
     .venv/bin/python scripts/calibrate_verdict.py [--sims N] [--real-points FILE.npy]
 
@@ -17,9 +17,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from comreg_core.evaluation.metrics import SurfaceReference  # noqa: E402
-from comreg_core.evaluation.verdict import judge_registration  # noqa: E402
-from comreg_core.surface_icp import SurfaceMatcher, point_to_plane_icp  # noqa: E402
+from comreg_core.registration.icp import point_to_plane_icp  # noqa: E402
+from comreg_core.registration.surface import CTSurface  # noqa: E402
+from comreg_core.registration.verdict import judge_registration  # noqa: E402
 from comreg_core.transforms import apply_transform  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "ultrabones100k-fibula"
@@ -49,7 +49,8 @@ def cases(points, T_correct, surface, matcher, axis):
         yield f"slide {mm:+d} mm", points, slide(mm, axis) @ T_correct
     for s in (0.85, 0.9, 1.1, 1.15):
         moved = scaled(apply_transform(T_correct, points), s)
-        T, _ = point_to_plane_icp(moved, matcher, np.eye(4))
+        T = point_to_plane_icp(moved, np.eye(4), matcher, iterations=100,
+                               tolerance_mm=1e-5).T
         yield f"scale {s:.2f} + ICP", moved, T
 
 
@@ -59,8 +60,8 @@ def main() -> None:
     parser.add_argument("--real-points", type=Path, default=None,
                         help="the real sweep's extracted points (.npy), to skip the extraction")
     args = parser.parse_args()
-    surface = SurfaceReference(SHARED / "fibula.stl")
-    matcher = SurfaceMatcher(surface, n_samples=100_000)
+    surface = CTSurface(SHARED / "fibula.stl")
+    matcher = surface.matcher(5.0, n_samples=100_000)  # ICP pairs within 5 mm
     axis = long_axis(surface.vertices)
     sweeps = []
     if args.real_points is not None:
@@ -71,7 +72,7 @@ def main() -> None:
 
         real = extract_us_surface(read_tracked_sweep(SHARED)).points.points
     sweeps.append(("real (recorded pose)", real, np.eye(4)))
-    T_icp, _ = point_to_plane_icp(real, matcher, np.eye(4))
+    T_icp = point_to_plane_icp(real, np.eye(4), matcher, iterations=100, tolerance_mm=1e-5).T
     sweeps.append(("real (ICP from it)", real, T_icp))
     from comreg_core.simulation.bone import BoneModel
     from comreg_core.simulation.simulator import simulate_sweep

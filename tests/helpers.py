@@ -90,3 +90,17 @@ def immutable(folder: Path):
         yield folder
     finally:
         subprocess.run(["chattr", "-i", str(folder)], check=True)
+
+
+# --- an axis-aligned box "bone" with analytic distances ---
+
+BOX_CENTRE = np.array([100.0, -50.0, 300.0])
+BOX_HALF = np.array([20.0, 10.0, 5.0])
+
+
+def box_distance(points: np.ndarray) -> np.ndarray:
+    """Exact unsigned distance of points to the surface of the box (analytic)."""
+    q = np.abs(np.asarray(points, dtype=np.float64) - BOX_CENTRE) - BOX_HALF
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+    inside = -q.max(axis=1)
+    return np.where((q > 0).any(axis=1), outside, inside)

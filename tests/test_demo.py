@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from comreg_core.demo import SAMPLE_MODEL, run_demo
-from comreg_core.evaluation.metrics import SurfaceReference
+from comreg_core.registration.surface import CTSurface
 from comreg_core.io import load_transform, read_mesh, read_points
 
 
@@ -55,7 +55,7 @@ def test_demo_errors_match_an_independent_computation(demo):
 def test_registered_us_points_lie_on_the_ct_bone(demo):
     _, out, _ = demo
     registered = read_points(out / "registration" / "registered_us.ply").points
-    distances = SurfaceReference(read_mesh(out / "ct_bone.stl")).distance(registered)
+    distances = CTSurface(read_mesh(out / "ct_bone.stl")).distance(registered)
     # the real sweep's points sit on the bone after registration (median, mm)
     assert np.median(distances) < 1.0
 

@@ -4,7 +4,7 @@ mesh of tibia size that the simulator sweeps like a real bone."""
 import numpy as np
 import trimesh
 
-from comreg_core.evaluation.metrics import SurfaceReference
+from comreg_core.registration.surface import CTSurface
 from comreg_core.simulation.bone import BoneModel
 from comreg_core.simulation.config import SimulationConfig
 from comreg_core.simulation.simulator import simulate_sweep
@@ -20,5 +20,5 @@ def test_tibia_like_mesh_is_a_closed_bone_that_the_simulator_sweeps():
     sweep = simulate_sweep(BoneModel((vertices, faces)), SimulationConfig(n_points=2048),
                            np.random.default_rng(0))
     assert sweep.points.shape == (2048, 3)
-    d = SurfaceReference((vertices, faces)).distance(sweep.points)
+    d = CTSurface((vertices, faces)).distance(sweep.points)
     assert np.median(d) < 0.5  # the sweep's points lie on the bone (false echoes aside)

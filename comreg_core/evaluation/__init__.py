@@ -1,6 +1,8 @@
-"""Evaluation: the paper's metrics, the RANSAC and ICP baselines, and the trial harness.
+"""Evaluation: the RANSAC and ICP baselines, the methods by name and the trial harness.
 
-- :mod:`.metrics`: RTE, RRE, CD, HD95 of a registration; CD, HD95 of a completion; success/flip.
+The metrics themselves (RTE, RRE, CD, HD95, success, flip) are defined in
+:mod:`comreg_core.registration.metrics`, below training, which validates with them.
+
 - :mod:`.baselines`: Open3D RANSAC (FPFH) + ICP (Open3D imported lazily), the ICP pseudo
   ground truth ``icp-gt`` (numpy/scipy), :class:`BaselineConfig`.
 - :mod:`.evaluate`: :func:`evaluate` (random initial poses -> methods -> ``metrics.json`` dict),
@@ -17,30 +19,19 @@ Typical use::
 
 from comreg_core.evaluation.baselines import (BASELINES, BaselineConfig, IcpGtBaseline,
                                               IcpGtConfig, RansacConfig, RansacIcpBaseline,
-                                              SurfaceMatcher, closest_points_on_triangles,
                                               baseline_config_from_dict, baseline_methods,
-                                              point_to_plane_icp, require_open3d)
+                                              require_open3d)
 from comreg_core.evaluation.evaluate import (EVALUATION_SEED_NAMESPACE, PERTURBATIONS,
                                              evaluate, evaluation_rng, simulated_us_clouds,
                                              summarize, write_metrics)
 from comreg_core.evaluation.methods import (COMREG_METHODS, METHODS, method_names,
                                             registration_methods)
-from comreg_core.evaluation.metrics import (FLIP_RRE_DEG, SUCCESS_RRE_DEG, SUCCESS_RTE_MM,
-                                            SurfaceReference, as_surface, chamfer_l1,
-                                            completion_metrics, hd95, is_flip, is_success,
-                                            nearest_distances, registration_metrics,
-                                            rotation_error_deg, translation_error_mm)
 from comreg_core.evaluation.outputs import RegistrationOutput, as_registration_output
 
 __all__ = [
     "BASELINES", "BaselineConfig", "IcpGtBaseline", "IcpGtConfig", "RansacConfig",
-    "RansacIcpBaseline", "SurfaceMatcher", "closest_points_on_triangles",
-    "baseline_config_from_dict", "baseline_methods", "point_to_plane_icp",
-    "require_open3d", "EVALUATION_SEED_NAMESPACE", "PERTURBATIONS", "evaluate",
-    "evaluation_rng", "simulated_us_clouds", "summarize", "write_metrics", "FLIP_RRE_DEG",
-    "SUCCESS_RRE_DEG", "SUCCESS_RTE_MM", "SurfaceReference", "as_surface", "chamfer_l1",
-    "completion_metrics", "hd95", "is_flip", "is_success", "nearest_distances",
-    "registration_metrics", "rotation_error_deg", "translation_error_mm",
-    "RegistrationOutput", "as_registration_output", "COMREG_METHODS", "METHODS", "method_names",
-    "registration_methods",
+    "RansacIcpBaseline", "baseline_config_from_dict", "baseline_methods", "require_open3d",
+    "EVALUATION_SEED_NAMESPACE", "PERTURBATIONS", "evaluate", "evaluation_rng",
+    "simulated_us_clouds", "summarize", "write_metrics", "RegistrationOutput",
+    "as_registration_output", "COMREG_METHODS", "METHODS", "method_names", "registration_methods",
 ]

@@ -13,15 +13,15 @@
   sweeps: 1 mm gave the most successes, ~1-2 s per 20,000-point cloud on 2 shared cores). The
   CT side is ``ct_samples`` area-uniform points of the CT mesh (with the triangles' exact normals
   for the point-to-plane ICP; the FPFH path re-estimates normals on the down-sampled cloud
-  exactly as for the US cloud, as the tutorial does). One safeguard beyond the tutorial: if ICP ends with a
-  lower fitness than the RANSAC pose had at the ICP distance (point-to-plane ICP can slide along
+  exactly as for the US cloud, as the tutorial does). One safeguard beyond the tutorial: if ICP
+  ends with a lower fitness than the RANSAC pose had at the ICP distance (point-to-plane ICP can slide along
   a near-cylindrical shaft and lose every correspondence), the RANSAC pose is kept.
 - ``"icp-gt"`` (:class:`IcpGtBaseline`): the paper's pseudo ground truth, ICP started from the
   ground truth ("near-perfect initialisation"): point-to-plane ICP in numpy/scipy
-  (:func:`~comreg_core.surface_icp.point_to_plane_icp`, no Open3D) to the (near-)exact closest
-  points of the CT mesh and their triangle normals (:class:`~comreg_core.surface_icp.
-  SurfaceMatcher`), correspondences farther than ``max_distance_mm`` rejected (outliers such as
-  false hits).
+  (:func:`~comreg_core.registration.icp.point_to_plane_icp`, no Open3D) to the (near-)exact
+  closest points of the CT mesh and their triangle normals
+  (:meth:`~comreg_core.registration.surface.CTSurface.matcher`), correspondences farther than
+  ``max_distance_mm`` rejected (outliers such as false hits).
 
 Open3D is imported only here and only when a RANSAC baseline is built; it is an optional
 dependency (``pip install open3d``).
@@ -37,11 +37,10 @@ import numpy as np
 
 from comreg_core.config import from_dict, require
 from comreg_core.errors import ComRegError, InvalidGeometryError
-from comreg_core.evaluation.metrics import as_surface
 from comreg_core.evaluation.outputs import RegistrationOutput
-from comreg_core.surface_icp import (SurfaceMatcher, closest_points_on_triangles,
-                                     point_to_plane_icp, source_points)
-from comreg_core.transforms import check_rigid, orthonormalize
+from comreg_core.registration.icp import point_to_plane_icp
+from comreg_core.registration.surface import as_surface
+from comreg_core.transforms import as_points, check_rigid, orthonormalize
 
 #: Baselines :func:`baseline_methods` can build, by name.
 BASELINES = ("ransac", "icp-gt")
@@ -139,7 +138,8 @@ class RansacIcpBaseline:
     """Open3D RANSAC on FPFH features, then ICP: ``baseline(us_points) -> RegistrationOutput``.
 
     Args:
-        ct_mesh: the CT bone surface (anything :func:`~comreg_core.evaluation.metrics.as_surface`
+        ct_mesh: the CT bone surface (anything
+            :func:`~comreg_core.registration.surface.as_surface`
             accepts), mm, in the space the US points will be given in.
         config: :class:`RansacConfig` (or a whole :class:`BaselineConfig`).
         seed: seeds Open3D's global random generator before every RANSAC run; call ``i`` uses
@@ -200,7 +200,10 @@ class RansacIcpBaseline:
         (source features + RANSAC + ICP)."""
         o3d, c = self._o3d, self.config
         reg = o3d.pipelines.registration
-        pts = source_points(us_points)
+        pts = as_points(us_points, "US points")
+        if len(pts) < 3:
+            raise InvalidGeometryError(f"The US points have {len(pts)} points; registration "
+                                       "needs at least 3.", "Pass a larger cloud.")
         seed = int(self._rng.integers(0, 2**31 - 1))
         t0 = time.perf_counter()
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
@@ -258,17 +261,24 @@ class IcpGtBaseline:
             config = config.icp_gt
         self.config = config or IcpGtConfig()
         t0 = time.perf_counter()
-        self.matcher = SurfaceMatcher(ct_mesh, self.config.ct_samples)
+        self.surface = as_surface(ct_mesh)
+        self.matcher = self.surface.matcher(self.config.max_distance_mm,
+                                            n_samples=self.config.ct_samples)
+        self.matcher(self.surface.vertices[:1])  # build its KD-tree now, outside the timings
         self.prepare_s = time.perf_counter() - t0
 
     def __call__(self, us_points: np.ndarray, T_ct_us_gt: np.ndarray) -> RegistrationOutput:
         c = self.config
         t0 = time.perf_counter()
-        T, info = point_to_plane_icp(us_points, self.matcher, T_ct_us_gt,
-                                     max_distance_mm=c.max_distance_mm,
-                                     max_iterations=c.max_iterations,
-                                     tolerance_mm=c.tolerance_mm)
-        return RegistrationOutput(T, time.perf_counter() - t0, None, info)
+        pts = as_points(us_points, "US points")
+        if len(pts) < 6:
+            raise InvalidGeometryError(f"The US points have {len(pts)} points; ICP needs at "
+                                       "least 6.", "Pass a larger cloud.")
+        fit = point_to_plane_icp(pts, check_rigid(T_ct_us_gt), self.matcher,
+                                 iterations=c.max_iterations, tolerance_mm=c.tolerance_mm)
+        info = {"iterations": int(fit.iterations), "inlier_fraction": float(fit.inlier_fraction),
+                "rmse_mm": float(fit.rmse_mm), "converged": bool(fit.converged)}
+        return RegistrationOutput(orthonormalize(fit.T), time.perf_counter() - t0, None, info)
 
 
 def baseline_methods(names, ct_mesh, config: BaselineConfig | None = None, seed: int = 0

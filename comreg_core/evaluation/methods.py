@@ -1,7 +1,7 @@
 """Registration methods by name, as ``comreg evaluate --method`` offers them.
 
 - ``comreg``: the pretrained run with the test-time hypotheses stage (the default pipeline;
-  :mod:`comreg_core.hypotheses`);
+  :mod:`comreg_core.registration.search`);
 - ``comreg-plain``: the same network without it (the paper's plain pipeline);
 - ``ransac``, ``icp-gt``: the baselines (:mod:`.baselines`);
 - ``all``: every one of them.
@@ -19,6 +19,8 @@ from typing import Any
 
 from comreg_core.errors import ComRegError
 from comreg_core.evaluation.baselines import BASELINES, BaselineConfig, baseline_methods
+from comreg_core.inference import Registrar
+from comreg_core.registration import as_hypothesis_config
 
 COMREG_METHODS = ("comreg", "comreg-plain")
 #: Every method name, in the order ``all`` runs them.
@@ -55,15 +57,12 @@ def registration_methods(names: str | Iterable[str], run_dir, ct_mesh, *, device
         device: where the network runs.
         seed: the baselines' seed.
         hypotheses: the ``comreg`` method's hypotheses settings (None = the defaults; see
-            :class:`~comreg_core.hypotheses.HypothesisConfig`).
+            :class:`~comreg_core.registration.HypothesisConfig`).
         baseline_config: the baselines' settings.
     """
     names = method_names(names)
     methods: dict[str, Any] = {}
     if any(name in COMREG_METHODS for name in names):
-        from comreg_core.hypotheses import as_hypothesis_config
-        from comreg_core.inference import Registrar
-
         config = as_hypothesis_config(hypotheses)
         if "comreg" in names and not config.enabled:
             raise ComRegError("The 'comreg' method was asked for with its hypotheses stage off.",

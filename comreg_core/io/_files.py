@@ -9,6 +9,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from comreg_core import runs
 from comreg_core.errors import InputFileNotFoundError, OutputPlaceError, UnsupportedFormatError
 
 # Multi-part extensions first so ".seg.nrrd" wins over ".nrrd".
@@ -46,13 +47,12 @@ def require_input_file(path: str | Path, what: str = "input file") -> Path:
 
 #: Files ``comreg pretrain`` writes first into a run folder; a folder holding one of them is a run
 #: folder, into which no other command writes.
-RUN_FOLDER_MARKERS = ("checkpoint.pt", "ct_fingerprint.json")
 
 
 def is_run_folder(path: str | Path) -> bool:
     """Whether ``path`` is a folder written by ``comreg pretrain``."""
     path = Path(path)
-    return path.is_dir() and any((path / name).exists() for name in RUN_FOLDER_MARKERS)
+    return path.is_dir() and any((path / name).exists() for name in runs.RUN_FOLDER_MARKERS)
 
 
 def check_output_file(path: str | Path, *, inputs=(), what: str = "output file") -> Path:

@@ -19,13 +19,13 @@ from comreg_core.report.backend import (OpenGLUnavailableError, RenderBackend,
                                         ensure_offscreen_rendering, reset_backend_cache)
 from comreg_core.report.cameras import VIEW_NAMES, BoneFrame, CameraView, bone_frame, view_presets
 from comreg_core.report.registration import write_report_for_registration
-from comreg_core.report.report import IMAGES_DIR, REPORT_NAME, image_name, write_report
+from comreg_core.report.report import IMAGES_DIR, image_name, write_report
 from comreg_core.report.scenes import (DEFAULT_STYLE, SCENES, SceneData, SceneRenderer,
                                        Screenshot, Style, render_scene, render_screenshots)
 
 __all__ = [
     "BoneFrame", "CameraView", "DEFAULT_STYLE", "IMAGES_DIR", "OpenGLUnavailableError",
-    "REPORT_NAME", "RenderBackend", "SCENES", "SceneData", "SceneRenderer", "Screenshot", "Style",
+    "RenderBackend", "SCENES", "SceneData", "SceneRenderer", "Screenshot", "Style",
     "VIEW_NAMES", "bone_frame", "ensure_offscreen_rendering", "image_name", "render_scene",
     "render_screenshots", "reset_backend_cache", "view_presets", "write_report",
     "write_report_for_registration",

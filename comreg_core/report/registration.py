@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from comreg_core import runs
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import check_output_folder, require_input_file
 from comreg_core.report.report import Progress, write_report
@@ -19,7 +20,7 @@ def read_registration_result(out_dir: Path) -> dict[str, Any]:
     """``out_dir/result.json`` checked to hold ``T_ct_us``, ``run_dir`` and ``us_points``.
     Relative paths in it (results written before they were stored absolute) are taken as
     relative to the current directory, as they were written."""
-    path = require_input_file(Path(out_dir) / "result.json", "registration result")
+    path = require_input_file(Path(out_dir) / runs.RESULT, "registration result")
     try:
         result = json.loads(path.read_text(encoding="utf-8"))
         np.asarray(result["T_ct_us"], dtype=np.float64).reshape(4, 4)
@@ -41,16 +42,16 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     registration (it holds ``registration.T_ct_us`` equal to the judged transform, as the demo
     writes it; an evaluation of other starts left in the folder is not shown). The CT mesh is
     ``ct_mesh``, else the one ``result.json`` names, else the run's own. The verdict
-    (:mod:`comreg_core.evaluation.verdict`) is computed again from these files. ``transform``
+    (:mod:`comreg_core.registration.verdict`) is computed again from these files. ``transform``
     (an ITK transform file of ``T_ct_us``) judges and shows that transform instead of the
     folder's (its completion is then left out). Returns the path of ``report.html``.
     """
-    from comreg_core.evaluation.verdict import judge_registration
     from comreg_core.io import read_mesh, read_points
+    from comreg_core.registration.verdict import judge_registration
     from comreg_core.transforms import apply_transform
 
     out_dir = Path(out_dir)
-    require_input_file(out_dir / "result.json", "registration result")
+    require_input_file(out_dir / runs.RESULT, "registration result")
     check_output_folder(out_dir, what="report folder")  # before reading and rendering
     result = read_registration_result(out_dir)
     run_dir, us_path = Path(result["run_dir"]), Path(result["us_points"])
@@ -63,7 +64,7 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
         ct = read_mesh(ct_path)
     us_points = read_points(us_path).in_space(ct.space).points
     T_ct_us = np.asarray(result["T_ct_us"], dtype=np.float64)
-    completion_path = out_dir / "completion_ct.ply"
+    completion_path = out_dir / runs.COMPLETION_CT
     completion = read_points(completion_path).in_space(ct.space).points \
         if completion_path.is_file() else None
     if transform is not None:
@@ -75,7 +76,7 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
                                  confidence=hypotheses.get("confidence"),
                                  ambiguous=hypotheses.get("ambiguous"))
     metrics = registration_metrics_table(result, verdict.figures, judged_file=transform)
-    evaluation = _metrics_for(out_dir / "metrics.json", T_ct_us)
+    evaluation = _metrics_for(out_dir / runs.METRICS, T_ct_us)
     if evaluation is not None:
         metrics.update(evaluation)
     return write_report(
@@ -138,7 +139,7 @@ def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], 
     if judged_file is not None:
         rows["Fit of the US points to the CT bone"]["transform judged"] = str(judged_file)
     hypotheses = result.get("hypotheses")
-    if hypotheses:  # the pose check of the hypotheses stage (comreg_core.hypotheses)
+    if hypotheses:  # the pose check of the hypotheses stage (comreg_core.registration.search)
         pose = {"another pose fits nearly as well (ambiguous)":
                 "YES: check the images" if hypotheses.get("ambiguous") else "no",
                 "confidence (0-1; below 0.3 is ambiguous)": hypotheses.get("confidence"),

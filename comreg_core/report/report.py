@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from comreg_core import runs
 from comreg_core import __version__
 from comreg_core.io._files import check_output_folder
 from comreg_core.io.meshes import SurfaceMesh, read_mesh
@@ -43,7 +44,6 @@ from comreg_core.report.scenes import (DEFAULT_STYLE, SLAB_MARGIN_MM, SceneData,
 
 log = logging.getLogger(__name__)
 
-REPORT_NAME = "report.html"
 IMAGES_DIR = "report_images"
 
 #: ``progress(done, total)``: screenshots written so far.
@@ -99,7 +99,7 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
         lateral_side: "left" or "right": the side the lateral view looks from.
         style: colours and sizes.
         progress: ``progress(done, total)`` after each screenshot.
-        verdict: a :class:`~comreg_core.evaluation.verdict.Verdict`: the page then starts with
+        verdict: a :class:`~comreg_core.registration.verdict.Verdict`: the page then starts with
             ``Verdict: OK`` or ``Verdict: CHECK`` and its reasons.
 
     Returns:
@@ -146,12 +146,12 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
             notes=_notes(data, lateral_side, style),
             legend=_legend(data, style),
             verdict=None if verdict is None else (verdict.headline, verdict.reasons))
-        with open(staging / REPORT_NAME, "w", encoding="utf-8", newline="\n") as f:
+        with open(staging / runs.REPORT, "w", encoding="utf-8", newline="\n") as f:
             f.write(page)
         _publish(staging, out_dir, with_images=not embed_images)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    report = out_dir / REPORT_NAME
+    report = out_dir / runs.REPORT
     log.info("wrote %s (%d screenshots)", report, len(shots))
     return report
 
@@ -174,7 +174,7 @@ def _publish(staging: Path, out_dir: Path, *, with_images: bool) -> None:
         finally:
             if old is not None:
                 shutil.rmtree(old, ignore_errors=True)
-    os.replace(staging / REPORT_NAME, out_dir / REPORT_NAME)
+    os.replace(staging / runs.REPORT, out_dir / runs.REPORT)
 
 
 def _data_uri(path: Path) -> str:

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from comreg_core.io.meshes import SurfaceMesh
+from comreg_core.registration.surface import CTSurface
 from comreg_core.report.backend import ensure_offscreen_rendering
 from comreg_core.report.cameras import (VIEW_NAMES, BoneFrame, CameraView, bone_frame,
                                         frame_points, view_presets)
@@ -149,9 +150,7 @@ class SceneData:
         self.us_before = _points_or_none(self.us_before, "US points before registration")
         self.us_after = _points_or_none(self.us_after, "US points after registration")
         self.completion = _points_or_none(self.completion, "completion points")
-        from comreg_core.evaluation.metrics import SurfaceReference
-
-        surface = SurfaceReference((self.ct.vertices, self.ct.faces))
+        surface = CTSurface((self.ct.vertices, self.ct.faces))
         if self.completion is not None and self.completion_distance_mm is None:
             self.completion_distance_mm = surface.distance(self.completion)
         if self.us_after is not None and self.us_after_distance_mm is None:

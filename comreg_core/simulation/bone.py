@@ -8,11 +8,11 @@ to place the probe at a chosen distance from the bone.
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
+from comreg_core.registration.surface import CTSurface, mesh_arrays, sample_triangles
 from comreg_core.surfaces.ct import MIN_EXTENT_MM, check_millimetres  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
@@ -40,7 +40,7 @@ class BoneModel:
     """
 
     def __init__(self, mesh, *, slab_mm: float = 2.0, n_angles: int = 72):
-        vertices, faces, self.space, self.path = _mesh_arrays(mesh)
+        vertices, faces, self.space, self.path = mesh_arrays(mesh)
         tm = _checked_trimesh(vertices, faces, self.path)
         self.vertices = np.asarray(tm.vertices, dtype=np.float64)
         self.faces = np.asarray(tm.faces, dtype=np.int64)
@@ -183,56 +183,20 @@ class BoneModel:
     # --- sampling and distances -------------------------------------------------------------------
 
     def sample_surface(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """``n`` points uniform over the surface area: points ``(n, 3)`` mm, faces ``(n,)``."""
-        cdf = np.cumsum(self.face_areas)
-        face = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
-        face = np.minimum(face, len(self.faces) - 1)
-        r1, r2 = rng.random(n), rng.random(n)
-        s1 = np.sqrt(r1)
-        w = np.stack([1 - s1, s1 * (1 - r2), s1 * r2], axis=1)
-        tri = self.vertices[self.faces[face]]
-        return np.einsum("nk,nkj->nj", w, tri), face
+        """``n`` points uniform over the surface area: points ``(n, 3)`` mm, faces ``(n,)``
+        (:func:`~comreg_core.registration.surface.sample_triangles`)."""
+        return sample_triangles(self.vertices, self.faces, self.face_areas, n, rng)
 
     def distance(self, points: np.ndarray) -> np.ndarray:
-        """Unsigned distance (mm) from ``(N, 3)`` points to the surface (VTK's implicit
-        poly-data distance, an implementation independent of the ray caster)."""
-        import vtk
-        from vtk.util import numpy_support
-
+        """Unsigned distance (mm) from ``(N, 3)`` points to the surface (exact point-to-triangle,
+        :meth:`CTSurface.distance`: an implementation independent of the ray caster)."""
         if self._distance is None:
-            import pyvista as pv
-
-            function = vtk.vtkImplicitPolyDataDistance()
-            function.SetInput(pv.PolyData.from_regular_faces(self.vertices, self.faces))
-            self._distance = function
-        points = np.ascontiguousarray(points, dtype=np.float64)
-        if len(points) == 0:
-            return np.zeros(0)
-        out = vtk.vtkDoubleArray()
-        self._distance.FunctionValue(numpy_support.numpy_to_vtk(points, deep=True), out)
-        return np.abs(numpy_support.vtk_to_numpy(out).astype(np.float64))
+            self._distance = CTSurface((self.vertices, self.faces))
+        return self._distance.distance(points)
 
     def to_trimesh(self):
         """The checked mesh as a ``trimesh.Trimesh`` (merged vertices, outward winding)."""
         return self._trimesh
-
-
-def _mesh_arrays(mesh):
-    """(vertices, faces, space, path) from the accepted mesh inputs."""
-    from comreg_core.io.meshes import SurfaceMesh, read_mesh
-
-    if isinstance(mesh, (str, Path)):
-        mesh = read_mesh(mesh)
-    if isinstance(mesh, SurfaceMesh):
-        return mesh.vertices, mesh.faces, mesh.space, mesh.path
-    if isinstance(mesh, tuple) and len(mesh) == 2:
-        vertices, faces = mesh
-    elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
-        vertices, faces = mesh.vertices, mesh.faces
-    else:
-        raise TypeError(f"BoneModel needs a mesh, got {type(mesh).__name__}")
-    checked = SurfaceMesh(np.asarray(vertices), np.asarray(faces))  # validates shapes, finiteness
-    return checked.vertices, checked.faces, checked.space, None
 
 
 def _checked_trimesh(vertices: np.ndarray, faces: np.ndarray, path):

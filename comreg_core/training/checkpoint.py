@@ -25,11 +25,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from comreg_core import runs
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import atomic_output
 
-CHECKPOINT_NAME = "checkpoint.pt"
-FINGERPRINT_NAME = "ct_fingerprint.json"
 CHECKPOINT_FORMAT = "comreg-checkpoint"
 CHECKPOINT_VERSION = 1
 
@@ -62,7 +61,7 @@ def mesh_fingerprint(mesh) -> dict[str, Any]:
 
 
 def write_fingerprint(fingerprint: dict[str, Any], run_dir: Path) -> Path:
-    path = Path(run_dir) / FINGERPRINT_NAME
+    path = Path(run_dir) / runs.FINGERPRINT
     with atomic_output(path) as tmp:
         tmp.write_text(json.dumps(fingerprint, indent=2) + "\n", encoding="utf-8")
     return path
@@ -82,11 +81,11 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu"
     """Load a checkpoint with ``weights_only=True`` (never runs code from the file)."""
     path = Path(path)
     if path.is_dir():
-        path = path / CHECKPOINT_NAME
+        path = path / runs.CHECKPOINT
     if not path.is_file():
         raise CheckpointError(f"No checkpoint at '{path}'.",
                               "Pass the folder written by 'comreg pretrain' (it holds "
-                              f"{CHECKPOINT_NAME}), or train one first.")
+                              f"{runs.CHECKPOINT}), or train one first.")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except MemoryError:

@@ -36,13 +36,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from comreg_core import runs
 from comreg_core.config import ConfigError, deep_merge, from_dict, to_dict
 from comreg_core.errors import ComRegError
-from comreg_core.evaluation.metrics import SurfaceReference
 from comreg_core.io._files import atomic_output, check_output_folder, require_input_file
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.losses import in_fine_gate, output_loss
-from comreg_core.training.checkpoint import (CHECKPOINT_NAME, CheckpointError,
+from comreg_core.registration.surface import CTSurface
+from comreg_core.training.checkpoint import (CheckpointError,
                                              check_fingerprint, load_checkpoint,
                                              mesh_fingerprint, save_checkpoint,
                                              write_fingerprint)
@@ -53,8 +54,6 @@ from comreg_core.training.validation import identity_errors, validate
 
 log = logging.getLogger(__name__)
 
-LOG_NAME = "training_log.csv"
-CONFIG_NAME = "config.yaml"
 #: Columns of ``training_log.csv`` (losses are epoch means; ``val_*`` empty when not validated).
 LOG_COLUMNS = (
     "epoch", "samples", "time_s", "epoch_s", "lr_backbone", "lr_head", "loss", "completion",
@@ -166,10 +165,10 @@ class _EpochLog:
 
 def _prepare_config(ct_mesh: Path, run_dir: Path, preset: str, config, seed, resume: bool
                     ) -> tuple[PretrainConfig, dict | None]:
-    ckpt_path = run_dir / CHECKPOINT_NAME
+    ckpt_path = run_dir / runs.CHECKPOINT
     if resume:
         if not ckpt_path.is_file():
-            raise CheckpointError(f"Cannot resume: '{run_dir}' holds no {CHECKPOINT_NAME}.",
+            raise CheckpointError(f"Cannot resume: '{run_dir}' holds no {runs.CHECKPOINT}.",
                                   "Start a new run without --resume, or pass the folder of an "
                                   "interrupted run.")
         state = load_checkpoint(ckpt_path)
@@ -183,7 +182,7 @@ def _prepare_config(ct_mesh: Path, run_dir: Path, preset: str, config, seed, res
                               "Leave --seed out when resuming (or pass the same seed).")
         return cfg, state
     if ckpt_path.exists():
-        raise CheckpointError(f"'{run_dir}' already holds a training run ({CHECKPOINT_NAME}).",
+        raise CheckpointError(f"'{run_dir}' already holds a training run ({runs.CHECKPOINT}).",
                               "Pass --resume to continue it, or choose an empty --out folder.")
     overrides = load_overrides(config)
     extra: dict[str, Any] = {"ct_mesh": str(ct_mesh)}
@@ -220,9 +219,9 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     # --- set-up checks: everything is validated before the run folder is made or touched ---
     run_dir = check_output_folder(run_dir, inputs=[ct_mesh_path, config], what="run folder",
                                   run_folder_ok=True)
-    if (not resume and (run_dir / CONFIG_NAME).exists()
-            and not (run_dir / CHECKPOINT_NAME).exists()):
-        raise ComRegError(f"'{run_dir}' already holds a {CONFIG_NAME} but no {CHECKPOINT_NAME} "
+    if (not resume and (run_dir / runs.CONFIG).exists()
+            and not (run_dir / runs.CHECKPOINT).exists()):
+        raise ComRegError(f"'{run_dir}' already holds a {runs.CONFIG} but no {runs.CHECKPOINT} "
                           "(another command's output, or a run stopped before its first "
                           "checkpoint).", "Choose an empty --out folder, so nothing is "
                           "overwritten.")
@@ -249,7 +248,7 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     dev = resolve_device(tc.device)
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_output(run_dir / CONFIG_NAME) as tmp:
+    with atomic_output(run_dir / runs.CONFIG) as tmp:
         tmp.write_text(config_to_yaml(cfg), encoding="utf-8")
     write_fingerprint(fingerprint, run_dir)
 
@@ -283,12 +282,12 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     val_set = validation_samples(ct, cfg.simulation, cfg.data.pose, cfg.seed,
                                  tc.validation_sweeps) if tc.validation_every else []
     initial = identity_errors(val_set, norm) if val_set else {}
-    surface = SurfaceReference((ct.vertices, ct.faces)) if val_set else None
+    surface = CTSurface((ct.vertices, ct.faces)) if val_set else None
     if initial:
         log.info("Validation set: %d sweeps, initial misalignment median RTE %.1f mm, RRE "
                  "%.1f deg", len(val_set), initial["RTE_mm_median"], initial["RRE_deg_median"])
-    epoch_log = _EpochLog(run_dir / LOG_NAME, epoch if state is not None else None)
-    ckpt_path = run_dir / CHECKPOINT_NAME
+    epoch_log = _EpochLog(run_dir / runs.TRAINING_LOG, epoch if state is not None else None)
+    ckpt_path = run_dir / runs.CHECKPOINT
 
     def checkpoint() -> None:
         mark = time.monotonic()
@@ -438,7 +437,7 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     checkpoint()
     log.info("Training stopped (%s) after %d epochs, %d samples, %.1f min", stopped, epoch,
              samples_seen, elapsed_now() / 60)
-    result = TrainResult(run_dir, ckpt_path, run_dir / LOG_NAME, epoch, samples_seen,
+    result = TrainResult(run_dir, ckpt_path, run_dir / runs.TRAINING_LOG, epoch, samples_seen,
                          elapsed_now(), stopped, str(dev), last_losses, last_validation, initial)
     if epoch == 0:
         raise BudgetTooShortError(

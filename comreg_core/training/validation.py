@@ -2,7 +2,7 @@
 
 :func:`validate` registers the validation samples with the network in eval mode (CT half
 encoded once) and returns the ``val_*`` figures of ``training_log.csv``: RTE (mm, at the
-centroid of the moved US cloud) and RRE (deg) as in :mod:`comreg_core.evaluation.metrics`, of
+centroid of the moved US cloud) and RRE (deg) as in :mod:`comreg_core.registration.metrics`, of
 the fine (after ICP) and the coarse estimate; success = RTE < 2 mm and RRE < 2 deg, flip = RRE >
 90 deg; the training objective; and the evaluation's completion CD (mm) against the CT surface.
 :func:`identity_errors` gives the same errors for doing nothing (the initial misalignment).
@@ -15,12 +15,12 @@ import time
 import numpy as np
 import torch
 
-from comreg_core.evaluation.metrics import (FLIP_RRE_DEG, SurfaceReference, completion_metrics,
-                                            is_success, rotation_error_deg,
-                                            translation_error_mm)
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.losses import output_loss
 from comreg_core.model.normalization import Normalization
+from comreg_core.registration.metrics import (FLIP_RRE_DEG, completion_metrics, is_success,
+                                              rotation_error_deg, translation_error_mm)
+from comreg_core.registration.surface import CTSurface
 from comreg_core.training.data import Sample
 from comreg_core.transforms import invert_rigid, orthonormalize
 
@@ -34,11 +34,11 @@ def _pose_errors(T_est_n: np.ndarray, sample: Sample, norm: Normalization) -> tu
 
 def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
              norm: Normalization, batch_size: int = 8, loss=None,
-             surface: SurfaceReference | None = None) -> dict[str, float]:
+             surface: CTSurface | None = None) -> dict[str, float]:
     """Register the validation samples; the ``val_*`` figures of :data:`LOG_COLUMNS`
     (``val_loss`` / ``val_completion``: the training objective and its completion term, means
     over the samples, in eval mode; ``val_completion_CD_mm_median``: the evaluation's completion
-    CD (:func:`~comreg_core.evaluation.metrics.completion_metrics`) against ``surface``, the CT,
+    CD (:func:`~comreg_core.registration.metrics.completion_metrics`) against ``surface``, the CT,
     when given)."""
     was_training = model.training
     model.eval()

@@ -21,7 +21,7 @@ import time
 
 from comreg_core.evaluation import (BaselineConfig, RansacConfig, baseline_methods, evaluate,
                                     simulated_us_clouds, write_metrics)
-from comreg_core.evaluation.metrics import SurfaceReference
+from comreg_core.registration.surface import CTSurface
 from tests.helpers import FIBULA_STL
 
 
@@ -40,7 +40,7 @@ def main(argv=None) -> None:
           f"evaluation streams), perturbation '{args.perturbation}'; "
           f"{os.cpu_count()} CPU cores visible (shared: timings pessimistic)")
     t0 = time.perf_counter()
-    surface = SurfaceReference(FIBULA_STL)
+    surface = CTSurface(FIBULA_STL)
     clouds = simulated_us_clouds(surface, args.sweeps, args.seed)
     print(f"  {args.sweeps} sweeps simulated in {time.perf_counter() - t0:.1f} s "
           f"({len(clouds[0])} points each)")

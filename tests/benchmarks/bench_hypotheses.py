@@ -3,7 +3,7 @@ flags and latency, against plain ICP from the same coarse starts.
 
 ``.venv/bin/python -m tests.benchmarks hypotheses`` (defaults) or
 ``.venv/bin/python -m tests.benchmarks.bench_hypotheses [--trials 50] [--seed 0]
-[--modes plane,hard,soft] [--completion none|ideal]``
+[--completion none|ideal]``
 
 Needs no trained network: fresh simulated sweeps of the real fibula
 (:func:`~comreg_core.evaluation.simulated_us_clouds`, 20,000 points each) are put into a random
@@ -17,8 +17,9 @@ Needs no trained network: fresh simulated sweeps of the real fibula
 
 From each start: ``plain-icp`` = the network's own ICP (point-to-point soft ICP, 25
 iterations, sigma 5e-3, 16 neighbours, 2048 US points against the 2048-point FPS subset of a
-4096-point CT cloud, as the ``cpu`` preset) and the hypotheses stage (default settings, N_c
-= 2048 and 4096 US points; plus the point-to-point ICP modes given in ``--modes``). Printed per
+4096-point CT cloud, as the ``cpu`` preset) and the pose search (default settings, N_c
+= 2048 and 4096 US points; its point-to-point ICP modes were dropped in issue 17: they crawled
+along the shaft where point-to-plane converges). Printed per
 start kind: success (RTE < 2 mm and RRE < 2 deg), flips (RRE > 90 deg), share flagged
 ambiguous, silent failures (failed and not flagged), and the stage's latency (median, 90th
 percentile) on this machine's CPU. ``--completion ideal`` also hands the stage a perfect
@@ -38,7 +39,7 @@ KINDS = ("near", "flip", "spin")
 
 
 def _errors(T, truth, points):
-    from comreg_core.evaluation.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
 
     return translation_error_mm(T, truth, points.mean(axis=0)), rotation_error_deg(T, truth)
 
@@ -47,7 +48,7 @@ def _cases(clouds, bone_centre, bone_axes, seed):
     """(kind, us points, truth T_ct_us, start T_ct_us) per cloud and kind."""
     from scipy.spatial.transform import Rotation
 
-    from comreg_core.hypotheses import rotation_about
+    from comreg_core.registration.search import rotation_about
     from comreg_core.transforms import apply_transform, invert_rigid
 
     rng = np.random.default_rng(seed)
@@ -93,8 +94,8 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     from comreg_core.evaluation.evaluate import simulated_us_clouds
-    from comreg_core.evaluation.metrics import SurfaceReference, is_flip, is_success
-    from comreg_core.hypotheses import HypothesisConfig, HypothesisTarget, search_hypotheses
+    from comreg_core.registration import (CTSurface, HypothesisConfig, is_flip, is_success,
+                                          search_hypotheses)
     from comreg_core.model.normalization import Normalization
     from comreg_core.model.ops import subsample
     from comreg_core.transforms import apply_transform, invert_rigid
@@ -103,19 +104,17 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--trials", type=int, default=50, help="simulated sweeps (x 3 start kinds)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--modes", default="plane",
-                   help="ICP modes of the stage at N_c 2048 (plane is also run at 4096)")
     p.add_argument("--completion", choices=("none", "ideal"), default="none")
     p.add_argument("--shaft-rotations", type=int, default=HypothesisConfig.shaft_rotations)
     p.add_argument("--no-4096", action="store_true", help="skip the N_c = 4096 run")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
 
-    surface = SurfaceReference(FIBULA_STL)
+    surface = CTSurface(FIBULA_STL)
     norm = Normalization.from_ct(surface.vertices)
-    target = HypothesisTarget.from_mesh(surface, normalization=norm)
-    ct_cloud, _ = SurfaceReference(FIBULA_STL, sample_seed=1).samples(4096)
+    target = surface.cloud(HypothesisConfig.target_points)
+    ct_cloud, _ = CTSurface(FIBULA_STL, sample_seed=1).samples(4096)
     ct_subset = subsample(torch.from_numpy(norm.points_to_model(ct_cloud)).float()[None], 2048, 0)
-    whole, _ = SurfaceReference(FIBULA_STL, sample_seed=2).samples(8192)
+    whole, _ = CTSurface(FIBULA_STL, sample_seed=2).samples(8192)
     start = time.perf_counter()
     clouds = simulated_us_clouds(surface, args.trials, seed=args.seed)
     print(f"{args.trials} simulated sweeps of the fibula in {time.perf_counter() - start:.0f} s "
@@ -125,9 +124,7 @@ def main(argv: list[str] | None = None) -> None:
 
     variants = {"plain-icp": None}
     rotations = args.shaft_rotations
-    for mode in args.modes.split(","):
-        variants[f"hyp-{mode}-2048"] = HypothesisConfig(icp_mode=mode, icp_points=2048,
-                                                        shaft_rotations=rotations)
+    variants["hyp-plane-2048"] = HypothesisConfig(icp_points=2048, shaft_rotations=rotations)
     if not args.no_4096:
         variants["hyp-plane-4096"] = HypothesisConfig(icp_points=4096,
                                                       shaft_rotations=rotations)

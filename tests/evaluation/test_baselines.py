@@ -10,12 +10,11 @@ from scipy.spatial.transform import Rotation
 from comreg_core.config import ConfigError
 from comreg_core.errors import ComRegError
 from comreg_core.evaluation import (BaselineConfig, IcpGtBaseline, RansacConfig,
-                                    SurfaceMatcher, baseline_config_from_dict, baseline_methods,
-                                    closest_points_on_triangles, evaluate, point_to_plane_icp,
-                                    require_open3d, rotation_error_deg, translation_error_mm)
+                                    baseline_config_from_dict, baseline_methods, evaluate,
+                                    require_open3d)
+from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.transforms import apply_transform, invert_rigid
-from tests.evaluation.conftest import box_distance
-from tests.helpers import assert_close
+from tests.helpers import assert_close, box_distance
 
 
 def _pose(rotvec_deg, t, about):
@@ -85,52 +84,6 @@ def test_missing_open3d_is_a_clear_error(monkeypatch, fibula_surface):
 
 
 # --- ICP pseudo ground truth ----------------------------------------------------------------------
-
-@pytest.fixture(scope="module")
-def matcher(fibula_surface):
-    return SurfaceMatcher(fibula_surface)
-
-
-def test_closest_points_match_vtk_distances(fibula_surface, matcher):
-    rng = np.random.default_rng(4)
-    points, _ = fibula_surface.samples(3000)
-    points = points + rng.normal(size=points.shape) * 1.0
-    q, n, d = matcher.closest(points, max_distance=20.0)
-    exact = fibula_surface.distance(points)
-    excess = d - exact
-    # always a real surface point, so never nearer than the exact closest point ...
-    assert excess.min() > -1e-9
-    assert_close(fibula_surface.distance(q), np.zeros(len(q)), atol=1e-6, what="on surface")
-    # ... and the closest one for almost every query, a hair farther for the others
-    assert (excess < 1e-6).mean() > 0.97 and excess.max() < 0.2
-    assert_close(np.linalg.norm(q - points, axis=1), d, atol=1e-9)
-    assert_close(np.linalg.norm(n, axis=1), np.ones(len(n)), atol=1e-9)
-
-
-def test_closest_point_on_a_triangle_in_every_region():
-    a, b, c = np.array([0.0, 0, 0]), np.array([4.0, 0, 0]), np.array([0.0, 3, 0])
-    cases = {(1.0, 1, 2): (1, 1, 0), (-1.0, -1, 0): (0, 0, 0), (5.0, -1, 1): (4, 0, 0),
-             (-1.0, 4, 0): (0, 3, 0), (2.0, -2, 0): (2, 0, 0), (-2.0, 1, 0): (0, 1, 0),
-             (4.0, 3, 0): tuple(np.array([4.0, 0, 0]) + np.array([-4.0, 3, 0]) * (
-                 np.dot([0.0, 3, 0], [-4.0, 3, 0]) / 25))}
-    for p, expected in cases.items():
-        got = closest_points_on_triangles(np.array([p]), a[None], b[None], c[None])[0]
-        assert_close(got, expected, atol=1e-12, what=f"closest point to {p}")
-
-
-@pytest.mark.parametrize("trial", range(3))
-def test_icp_gt_converges_from_1mm_1deg_on_clean_data(matcher, fibula_patch, trial):
-    rng = np.random.default_rng(trial)
-    axis, direction = rng.normal(size=3), rng.normal(size=3)
-    axis, direction = axis / np.linalg.norm(axis), direction / np.linalg.norm(direction)
-    points = fibula_patch[::2]
-    start = _pose(axis * 1.0, direction * 1.0, points.mean(axis=0))  # truth = identity
-    assert_close(_errors(start, np.eye(4), points), [1.0, 1.0], atol=1e-9)
-    T, info = point_to_plane_icp(points, matcher, start)
-    rte, rre = _errors(T, np.eye(4), points)
-    assert rte < 0.1 and rre < 0.1, f"RTE {rte:.4f} mm, RRE {rre:.4f} deg, {info}"
-    assert info["converged"] and info["inlier_fraction"] == 1.0
-
 
 def test_icp_gt_baseline_in_the_harness(fibula_surface, fibula_patch):
     methods = baseline_methods(["icp-gt"], fibula_surface)

@@ -14,7 +14,7 @@ from comreg_core.evaluation import (RegistrationOutput, evaluate, simulated_us_c
 from comreg_core.io import PointCloud
 from comreg_core.simulation import BoneModel, sample_initial_pose, simulate_sweep, sweep_rng
 from comreg_core.transforms import apply_transform, invert_rigid
-from tests.evaluation.conftest import BOX_CENTRE, box_distance
+from tests.helpers import BOX_CENTRE, box_distance
 from tests.helpers import FIBULA_STL, assert_close, random_rigid
 
 NAMESPACE = 0x4556414C  # documented first spawn-key word of evaluation streams ("EVAL")

@@ -146,10 +146,10 @@ def test_tracked_sweep_becomes_us_points_on_the_bone(logic, small_sweep):
 
     # tracking and CT share one frame here (ground truth = identity): in the scene the points
     # lie on the CT bone model (a LPS/RAS mix-up would put them ~400 mm away)
-    from comreg_core.evaluation.metrics import SurfaceReference
+    from comreg_core.registration.surface import CTSurface
 
     bone = logic.loadBoneMesh(FIBULA_STL)
-    d = SurfaceReference(arraysFromModelMesh(bone)).distance(points)
+    d = CTSurface(arraysFromModelMesh(bone)).distance(points)
     print(f"{len(points)} US points from {result.frames_total} frames: distance to the CT "
           f"model median {np.median(d):.2f} mm, 90th percentile {np.percentile(d, 90):.2f} mm")
     assert np.median(d) < 1.5 and np.percentile(d, 90) < 4.0, (np.median(d),

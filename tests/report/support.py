@@ -31,10 +31,10 @@ class Case:
 def make_case(ct) -> Case:
     """Deterministic data from the fibula mesh (LPS): surface samples from the evaluation module's
     seeded area-uniform sampler."""
-    from comreg_core.evaluation.metrics import SurfaceReference
+    from comreg_core.registration.surface import CTSurface
     from comreg_core.report.cameras import bone_frame
 
-    surface = SurfaceReference(ct, sample_seed=7)
+    surface = CTSurface(ct, sample_seed=7)
     points, normals = surface.samples(20000)
     frame = bone_frame(ct.vertices, ct.faces, ct.space)
     t = (points - frame.center) @ frame.axis

@@ -38,11 +38,11 @@ def test_patient_directions():
 
 
 def test_fibula_frame_matches_a_naive_pca_of_surface_samples(fibula):
-    from comreg_core.evaluation.metrics import SurfaceReference
+    from comreg_core.registration.surface import CTSurface
 
     frame = bone_frame(fibula.vertices, fibula.faces, fibula.space)
     # Naive reference: mean and covariance of 200k area-uniform surface samples.
-    samples, _ = SurfaceReference(fibula, sample_seed=1).samples(200_000)
+    samples, _ = CTSurface(fibula, sample_seed=1).samples(200_000)
     center = samples.mean(axis=0)
     values, vectors = np.linalg.eigh(np.cov(samples.T))
     assert_close(frame.center, center, atol=0.5, what="centroid (mm)")

@@ -14,7 +14,8 @@ import pytest
 
 from comreg_core import __version__
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.report import (IMAGES_DIR, REPORT_NAME, OpenGLUnavailableError, image_name,
+from comreg_core import runs
+from comreg_core.report import (IMAGES_DIR, OpenGLUnavailableError, image_name,
                                 write_report)
 from comreg_core.report.cameras import VIEW_NAMES
 from comreg_core.report.html import build_html, flatten, format_value, unit_of
@@ -72,7 +73,7 @@ def report(case, tmp_path_factory):
 def test_report_files(report):
     path, calls = report
     out = path.parent
-    assert path == out / REPORT_NAME and path.is_file()
+    assert path == out / runs.REPORT and path.is_file()
     names = sorted(p.name for p in (out / IMAGES_DIR).iterdir())
     assert names == sorted(image_name(s, v) for s in SCENES for v in VIEW_NAMES)
     from PIL import Image
@@ -82,7 +83,7 @@ def test_report_files(report):
             assert image.size == TEST_WINDOW and image.mode == "RGB"
     assert (out / "config.yaml").read_text() == "seed: 7\n"
     assert sorted(p.name for p in out.iterdir()) == sorted(["config.yaml", IMAGES_DIR,
-                                                           REPORT_NAME])  # no staging left
+                                                           runs.REPORT])  # no staging left
     assert calls == [(k, 9) for k in range(1, 10)]
 
 
@@ -156,7 +157,7 @@ def test_embedded_images_make_one_file(case, tmp_path):
 
     path = write_report(tmp_path, ct_mesh=case.ct, us_after=case.us_after, views=["anterior"],
                         window_size=(160, 120), embed_images=True)
-    assert sorted(p.name for p in tmp_path.iterdir()) == [REPORT_NAME]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [runs.REPORT]
     _, page = _parse(path)
     assert len(page.images) == 1
     prefix = "data:image/png;base64,"
@@ -169,7 +170,7 @@ def test_a_failed_report_leaves_the_previous_one_untouched(case, tmp_path, monke
     from comreg_core.report import report as report_module
 
     old_page = "<html>old report</html>"
-    (tmp_path / REPORT_NAME).write_text(old_page)
+    (tmp_path / runs.REPORT).write_text(old_page)
     (tmp_path / IMAGES_DIR).mkdir()
     (tmp_path / IMAGES_DIR / "old.png").write_bytes(b"old")
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
@@ -189,7 +190,7 @@ def test_a_failed_report_leaves_the_previous_one_untouched(case, tmp_path, monke
                      us_after=case.us_after, window_size=(96, 96))
     assert len(written) == 2  # it failed half-way through the screenshots
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
-    assert (tmp_path / REPORT_NAME).read_text() == old_page
+    assert (tmp_path / runs.REPORT).read_text() == old_page
 
     # Once it can write, the new report replaces the old one completely.
     monkeypatch.setattr(report_module, "write_png", real)
@@ -197,8 +198,8 @@ def test_a_failed_report_leaves_the_previous_one_untouched(case, tmp_path, monke
                  window_size=(96, 96))
     assert sorted(p.name for p in (tmp_path / IMAGES_DIR).iterdir()) == [
         image_name("registered", "lateral")]
-    assert "old report" not in (tmp_path / REPORT_NAME).read_text()
-    assert sorted(p.name for p in tmp_path.iterdir()) == [REPORT_NAME, IMAGES_DIR]
+    assert "old report" not in (tmp_path / runs.REPORT).read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [runs.REPORT, IMAGES_DIR]
 
 
 def test_without_opengl_the_typed_error_comes_and_nothing_is_written(case, tmp_path, no_opengl):

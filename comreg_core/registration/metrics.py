@@ -45,11 +45,10 @@ shift the 2 mm success threshold. Point-to-point distances (CT samples to a comp
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
+from comreg_core.registration.surface import as_surface
 from comreg_core.transforms import apply_transform, as_points, check_rigid
 
 #: success: RTE strictly below this (mm) ...
@@ -126,7 +125,7 @@ def is_flip(rre_deg: float) -> bool:
 
 # --- point-set distances --------------------------------------------------------------------------
 
-def nearest_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _nearest_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``(len(a),)`` Euclidean distance (mm, unsquared) from each point of ``a`` to its nearest
     point of ``b`` (``scipy.spatial.cKDTree`` on ``b``)."""
     from scipy.spatial import cKDTree
@@ -136,120 +135,6 @@ def nearest_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d, _ = cKDTree(b).query(a, k=1)
     return np.asarray(d, dtype=np.float64)
 
-
-def chamfer_l1(a: np.ndarray, b: np.ndarray) -> float:
-    """Symmetric L1 Chamfer distance of two point sets (mm):
-    ``(mean_{p in a} min_{q in b} |p - q| + mean_{q in b} min_{p in a} |q - p|) / 2``
-    (unsquared distances; the average, not the sum, of the two directions)."""
-    return float((nearest_distances(a, b).mean() + nearest_distances(b, a).mean()) / 2.0)
-
-
-def hd95(a: np.ndarray, b: np.ndarray) -> float:
-    """Symmetric 95% Hausdorff distance of two point sets (mm): the 95th percentile (linear
-    interpolation) of the concatenated nearest distances a -> b and b -> a."""
-    return float(np.percentile(np.concatenate([nearest_distances(a, b),
-                                               nearest_distances(b, a)]), 95))
-
-
-# --- the CT surface -------------------------------------------------------------------------------
-
-class SurfaceReference:
-    """A CT bone surface prepared for distance queries and sampling (mm).
-
-    Args:
-        mesh: a path to a mesh file, a :class:`~comreg_core.io.SurfaceMesh`, a
-            :class:`~comreg_core.simulation.BoneModel`, a ``trimesh.Trimesh``, or a
-            ``(vertices (V, 3), faces (F, 3))`` tuple. Coordinates are taken as they are (the
-            points compared with it must be in the same space, e.g. LPS).
-        sample_seed: seed of the area-uniform surface samples (:meth:`samples`).
-
-    The mesh need not be closed. Degenerate (zero-area) triangles are ignored for sampling.
-    """
-
-    def __init__(self, mesh, *, sample_seed: int = 0):
-        if isinstance(mesh, SurfaceReference):
-            mesh = (mesh.vertices, mesh.faces)
-        self.vertices, self.faces, self.path = _mesh_arrays(mesh)
-        tri = self.vertices[self.faces]
-        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        norm = np.linalg.norm(cross, axis=1)
-        self.face_areas = norm / 2.0
-        if not (self.face_areas > 0).any():
-            raise InvalidGeometryError("Every triangle of the CT mesh has zero area.",
-                                       "Export the bone surface again.")
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.face_normals = np.where(norm[:, None] > 0, cross / norm[:, None], 0.0)
-        lo, hi = self.vertices.min(0), self.vertices.max(0)
-        #: bounding-box centre (mm); equals ``Normalization.from_ct(vertices).center``.
-        self.bbox_centre = (lo + hi) / 2.0
-        self._sample_seed = int(sample_seed)
-        self._samples: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._distance = None
-
-    def distance(self, points: np.ndarray) -> np.ndarray:
-        """Exact unsigned distance (mm) of ``(N, 3)`` points to the triangles
-        (``vtkImplicitPolyDataDistance``, the absolute value of its signed distance)."""
-        import vtk
-        from vtk.util import numpy_support
-
-        points = np.ascontiguousarray(_cloud(points, "points"))
-        if self._distance is None:
-            import pyvista as pv
-
-            function = vtk.vtkImplicitPolyDataDistance()
-            function.SetInput(pv.PolyData.from_regular_faces(self.vertices, self.faces))
-            self._distance = function
-        out = vtk.vtkDoubleArray()
-        self._distance.FunctionValue(numpy_support.numpy_to_vtk(points, deep=True), out)
-        return np.abs(numpy_support.vtk_to_numpy(out).astype(np.float64))
-
-    def samples(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """``n`` area-uniform surface points ``(n, 3)`` and their triangles' unit normals
-        ``(n, 3)``; the same ``n`` always gives the same samples (fixed seed, cached)."""
-        if n not in self._samples:
-            rng = np.random.default_rng(np.random.SeedSequence(self._sample_seed,
-                                                               spawn_key=(int(n),)))
-            cdf = np.cumsum(self.face_areas)
-            face = np.minimum(np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right"),
-                              len(self.faces) - 1)
-            r1, r2 = rng.random(n), rng.random(n)
-            s1 = np.sqrt(r1)
-            w = np.stack([1 - s1, s1 * (1 - r2), s1 * r2], axis=1)
-            points = np.einsum("nk,nkj->nj", w, self.vertices[self.faces[face]])
-            self._samples[n] = (points, self.face_normals[face], face)
-        return self._samples[n][:2]
-
-    def sample_faces(self, n: int) -> np.ndarray:
-        """``(n,)`` triangle index of each of the :meth:`samples` ``(n)`` points."""
-        self.samples(n)
-        return self._samples[n][2]
-
-
-def as_surface(ct_mesh) -> SurfaceReference:
-    """``ct_mesh`` as a :class:`SurfaceReference` (returned unchanged if it already is one)."""
-    return ct_mesh if isinstance(ct_mesh, SurfaceReference) else SurfaceReference(ct_mesh)
-
-
-def _mesh_arrays(mesh):
-    from comreg_core.io.meshes import SurfaceMesh, read_mesh
-
-    path = None
-    if isinstance(mesh, (str, Path)):
-        mesh = read_mesh(mesh)
-    if isinstance(mesh, SurfaceMesh):
-        return mesh.vertices, mesh.faces, mesh.path
-    if isinstance(mesh, tuple) and len(mesh) == 2:
-        vertices, faces = mesh
-    elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
-        vertices, faces = mesh.vertices, mesh.faces
-        path = getattr(mesh, "path", None)
-    else:
-        raise InvalidGeometryError(
-            f"Cannot use a {type(mesh).__name__} as the CT surface.",
-            "Pass a mesh file path, a SurfaceMesh, a BoneModel, a trimesh.Trimesh or a "
-            "(vertices, faces) tuple.")
-    checked = SurfaceMesh(np.asarray(vertices), np.asarray(faces))  # shapes, finiteness, indices
-    return checked.vertices, checked.faces, path
 
 
 # --- the metrics of one trial --------------------------------------------------------------------
@@ -262,7 +147,8 @@ def registration_metrics(T_est: np.ndarray, T_true: np.ndarray, us_points: np.nd
         T_est: ``(4, 4)`` estimated ``T_ct_us`` (maps the US points below into the CT frame).
         T_true: ``(4, 4)`` ground-truth ``T_ct_us``.
         us_points: ``(N, 3)`` the US cloud as the method received it (mm).
-        ct_surface: the CT surface (anything :func:`as_surface` accepts).
+        ct_surface: the CT surface (anything
+            :func:`~comreg_core.registration.surface.as_surface` accepts).
 
     Returns:
         ``{"RTE_mm", "RRE_deg", "CD_mm", "HD95_mm", "success", "flip"}``: RTE at the centroid of
@@ -289,7 +175,8 @@ def completion_metrics(completion: np.ndarray, T_true: np.ndarray, ct_surface, *
         T_true: ``(4, 4)`` ground-truth ``T_ct_us`` of that frame. The completion is mapped into
             the CT frame with it (rigid, so the distances equal those to the CT moved into the
             completion's pose); the method's own estimate plays no part.
-        ct_surface: the CT surface (anything :func:`as_surface` accepts).
+        ct_surface: the CT surface (anything
+            :func:`~comreg_core.registration.surface.as_surface` accepts).
         n_ct_samples: area-uniform CT surface samples for the CT -> completion direction.
 
     Returns:
@@ -302,6 +189,6 @@ def completion_metrics(completion: np.ndarray, T_true: np.ndarray, ct_surface, *
     surface = as_surface(ct_surface)
     d1 = surface.distance(pts)
     ct_points, _ = surface.samples(int(n_ct_samples))
-    d2 = nearest_distances(ct_points, pts)
+    d2 = _nearest_distances(ct_points, pts)
     return {"completion_CD_mm": float((d1.mean() + d2.mean()) / 2.0),
             "completion_HD95_mm": float(np.percentile(np.concatenate([d1, d2]), 95))}

@@ -1,18 +1,25 @@
-"""The verdict (comreg_core.evaluation.verdict): OK on correct registrations, CHECK on a slide
+"""The verdict (comreg_core.registration.verdict): OK on correct registrations, CHECK on a slide
 along the shaft, a 15 % scale error and an ambiguous pose; judged from points, transform and CT."""
 
 import numpy as np
 import pytest
 
-from comreg_core.evaluation import SurfaceReference
-from comreg_core.evaluation.verdict import judge_registration
+from comreg_core.registration.icp import point_to_plane_icp
+from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.verdict import judge_registration
 from comreg_core.transforms import apply_transform
 from tests.helpers import FIBULA_STL
 
 
+def _exact_icp(points, surface):
+    """Point-to-plane ICP from the identity to the exact closest points (pairs within 5 mm)."""
+    return point_to_plane_icp(points, np.eye(4), surface.matcher(5.0, n_samples=50_000),
+                              iterations=100, tolerance_mm=1e-5).T
+
+
 @pytest.fixture(scope="module")
 def fibula():
-    return SurfaceReference(FIBULA_STL)
+    return CTSurface(FIBULA_STL)
 
 
 @pytest.fixture(scope="module")
@@ -26,13 +33,11 @@ def real_sweep(shared_data, fibula):
     """The shared real fibula sweep's bone points and the pose a correct registration gives
     (exact ICP from the recorded tracking, as ComReg's final polish)."""
     from comreg_core.io.tracked_us import read_tracked_sweep
-    from comreg_core.surface_icp import SurfaceMatcher, point_to_plane_icp
     from comreg_core.surfaces.us import extract_us_surface
 
     points = extract_us_surface(read_tracked_sweep(
         shared_data / "ultrabones100k-fibula")).points.points
-    T, _ = point_to_plane_icp(points, SurfaceMatcher(fibula, n_samples=50_000), np.eye(4))
-    return points, T
+    return points, _exact_icp(points, fibula)
 
 
 @pytest.fixture(scope="module")
@@ -70,13 +75,11 @@ def test_slide_of_20_mm_along_the_shaft_is_check(fibula, axis, real_sweep, simul
 
 def test_scale_error_of_15_percent_is_check(fibula, real_sweep):
     """The US cloud 15 % too small (a calibration error), rigidly fitted as well as it goes."""
-    from comreg_core.surface_icp import SurfaceMatcher, point_to_plane_icp
-
     points, T = real_sweep
     registered = apply_transform(T, points)
     centre = registered.mean(0)
     shrunk = centre + 0.85 * (registered - centre)
-    T_fit, _ = point_to_plane_icp(shrunk, SurfaceMatcher(fibula, n_samples=50_000), np.eye(4))
+    T_fit = _exact_icp(shrunk, fibula)
     verdict = judge_registration(shrunk, T_fit, fibula)
     assert verdict.verdict == "check", verdict.figures
     assert verdict.figures["refit_scale"] > 1.06

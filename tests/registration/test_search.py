@@ -1,4 +1,4 @@
-"""The test-time hypotheses stage on its own (no network): ambiguity flag, flip recovery, the
+"""The pose search on its own (no network): ambiguity flag, flip recovery, the
 score and confidence definitions, and the config checks."""
 
 from __future__ import annotations
@@ -13,11 +13,12 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from comreg_core.config import ConfigError
-from comreg_core.evaluation.metrics import SurfaceReference
-from comreg_core.hypotheses import (HypothesisConfig, HypothesisTarget, as_hypothesis_config,
-                                    build_hypotheses, point_to_plane_icp_batch,
-                                    rotation_about, screen_starts, search_hypotheses,
-                                    slide_offsets_mm, us_subset)
+from comreg_core.registration.config import HypothesisConfig, as_hypothesis_config
+from comreg_core.registration.icp import coarse_to_fine_icp
+from comreg_core.registration.search import (build_hypotheses, rotation_about, screen_starts,
+                                             search_hypotheses, slide_offsets_mm, us_subset)
+from comreg_core.registration.surface import CTSurface, SurfaceCloud
+from comreg_core.surfaces.us import farthest_point_indices
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import FIBULA_STL, assert_close
 
@@ -52,7 +53,7 @@ def _perturb(T, centre, degrees, mm, seed) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def fibula_target(shared_data):
-    return HypothesisTarget.from_mesh(FIBULA_STL)
+    return CTSurface(FIBULA_STL).cloud(HypothesisConfig.target_points)
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +61,7 @@ def distal_patch(fibula_target):
     """The fibula's distal end (the malleolus, at the +long-axis end): area-uniform CT surface
     points (another seed than the target's) within 40 mm of the end along the long axis, moved
     into a 'US frame' by a known transform. Returns (us_points, T_ct_us truth, CT points)."""
-    surface = SurfaceReference(FIBULA_STL, sample_seed=11)
+    surface = CTSurface(FIBULA_STL, sample_seed=11)
     points, _ = surface.samples(40_000)
     axis = fibula_target.axes[:, 0]
     along = (points - fibula_target.centre) @ axis
@@ -95,7 +96,7 @@ def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_pa
     assert _errors(start, truth, us)[1] > 170.0
     completion = None
     if with_completion:
-        whole, _ = SurfaceReference(FIBULA_STL, sample_seed=5).samples(4000)
+        whole, _ = CTSurface(FIBULA_STL, sample_seed=5).samples(4000)
         completion = apply_transform(invert_rigid(truth), whole)  # the bone in the US frame
     config = HypothesisConfig()
     result = search_hypotheses(us, start, fibula_target, completion, config)
@@ -168,7 +169,7 @@ def test_cylinder_patch_is_flagged_ambiguous():
     """CT = a closed cylinder (r 12 mm, 240 mm long); US = a quarter of its mantle, 80 mm long,
     in the middle: turned about the axis or flipped end to end, it fits just as well."""
     mesh = trimesh.creation.cylinder(radius=12.0, height=240.0, sections=128)
-    target = HypothesisTarget.from_mesh((np.asarray(mesh.vertices), np.asarray(mesh.faces)))
+    target = CTSurface((np.asarray(mesh.vertices), np.asarray(mesh.faces))).cloud(20_000)
     rng = np.random.default_rng(4)
     theta, z = rng.uniform(0.0, np.pi / 2, 2000), rng.uniform(-40.0, 40.0, 2000)
     patch = np.column_stack([12.0 * np.cos(theta), 12.0 * np.sin(theta), z])
@@ -272,7 +273,7 @@ def test_closest_point_grid_agrees_with_the_kd_tree(fibula_target):
     near = fibula_target.points[rng.integers(0, len(fibula_target.points), 5000)]
     queries = near + rng.normal(0.0, 5.0, near.shape)
     origin, spacing, grid = fibula_target.closest_point_grid
-    assert grid.size <= HypothesisTarget.GRID_VOXELS * 1.1
+    assert grid.size <= SurfaceCloud.GRID_VOXELS * 1.1
     exact = cKDTree(fibula_target.points).query(queries)[0]
     approx = np.linalg.norm(queries - fibula_target.points[fibula_target.nearest_approx(
         queries)], axis=1)
@@ -287,7 +288,7 @@ def test_tie_break_by_the_network_pose_on_a_symmetric_cylinder():
     """On a cylinder every turn fits: ``network`` tie-breaking keeps the network's rotation,
     ``score`` the lowest score, and both are flagged ambiguous."""
     mesh = trimesh.creation.cylinder(radius=12.0, height=240.0, sections=128)
-    target = HypothesisTarget.from_mesh((np.asarray(mesh.vertices), np.asarray(mesh.faces)))
+    target = CTSurface((np.asarray(mesh.vertices), np.asarray(mesh.faces))).cloud(20_000)
     rng = np.random.default_rng(7)
     theta, z = rng.uniform(0.0, np.pi / 2, 2000), rng.uniform(-40.0, 40.0, 2000)
     patch = np.column_stack([12.0 * np.cos(theta), 12.0 * np.sin(theta), z])
@@ -307,8 +308,8 @@ def test_point_to_plane_batch_converges_from_several_starts(fibula_target, dista
     us, truth, ct_patch = distal_patch
     starts = np.stack([truth] + [_perturb(truth, ct_patch.mean(0), 5.0, 3.0, s)
                                  for s in range(3)])
-    refined, rmse = point_to_plane_icp_batch(us[::4], starts, fibula_target, iterations=50,
-                                             trim_fraction=0.1)
+    refined, rmse = coarse_to_fine_icp(us[::4], starts, fibula_target.match, iterations=50,
+                                       trim_fraction=0.1)
     assert refined.shape == (4, 4, 4) and rmse.shape == (4,)
     for T in refined:
         rte, rre = _errors(T, truth, us)
@@ -320,7 +321,7 @@ def test_polish_gates_out_false_echoes(fibula_target):
     """A quarter of the distal patch's points lifted 3-6 mm off the bone along the surface
     normal (a false echo): the trimmed refinement is pulled off by them; the gated exact polish
     ignores them and lands on the truth. Without a mesh there is no polish."""
-    points, normals = SurfaceReference(FIBULA_STL, sample_seed=11).samples(40_000)
+    points, normals = CTSurface(FIBULA_STL, sample_seed=11).samples(40_000)
     along = (points - fibula_target.centre) @ fibula_target.axes[:, 0]
     if abs(along.min()) > along.max():
         along = -along
@@ -352,9 +353,8 @@ def test_polish_gates_out_false_echoes(fibula_target):
     assert_close(info["moved_mm"], np.linalg.norm(apply_transform(polished.T_ct_us, centre)
                                                   - apply_transform(refined, centre)), atol=0.05)
 
-    bare = HypothesisTarget(fibula_target.points, fibula_target.normalization,
-                            normals=fibula_target.normals)
-    assert bare.matcher is None
+    bare = SurfaceCloud(fibula_target.points, normals=fibula_target.normals)
+    assert bare.surface is None
     assert search_hypotheses(us, start, bare).polish is None
 
 
@@ -367,31 +367,21 @@ def test_random_subset_keeps_the_sweeps_share_of_false_echoes(fibula_target):
     config = HypothesisConfig()
     for sweep in simulate_sweeps(FIBULA_STL, 3, seed=5):
         cloud = sweep.points
-        off = lambda pts: float((fibula_target.matcher.closest(pts)[2] > 2.0).mean())
+        off = lambda pts: float((fibula_target.surface.closest(pts)[2] > 2.0).mean())
         share = off(cloud)  # measured 2-4 % of a sweep
-        random_share = off(us_subset(cloud, config.icp_points, "random"))
-        fps_share = off(us_subset(cloud, config.icp_points, "fps"))
+        random_share = off(us_subset(cloud, config.icp_points))
+        fps_share = off(cloud[farthest_point_indices(cloud, config.icp_points)])
         assert 0.005 < share < 0.08, share
         assert random_share < 1.6 * share + 0.01, (share, random_share)
         assert fps_share > 2.0 * share, (share, fps_share)  # measured ~10 % of the subset
         subset = us_subset(cloud, config.icp_points)
-        refined, _ = point_to_plane_icp_batch(subset, np.eye(4)[None], fibula_target,
-                                              iterations=config.icp_iterations,
-                                              schedule=config.icp_schedule,
-                                              trim_fraction=config.icp_trim)
+        refined, _ = coarse_to_fine_icp(subset, np.eye(4)[None], fibula_target.match,
+                                        iterations=config.icp_iterations,
+                                        schedule=config.icp_schedule,
+                                        trim_fraction=config.icp_trim)
         rte, rre = _errors(refined[0], np.eye(4), cloud)
         assert rte < 0.5 and rre < 0.5, (rte, rre)
     assert len(us_subset(cloud[:100], config.icp_points)) == 100  # fewer points: all of them
-
-
-@pytest.mark.parametrize("mode", ["hard", "soft"])
-def test_point_to_point_modes_run(fibula_target, distal_patch, mode):
-    us, truth, _ = distal_patch
-    result = search_hypotheses(us, truth, fibula_target,
-                               config=HypothesisConfig(icp_mode=mode, icp_points=512,
-                                                       icp_iterations=5))
-    rte, rre = _errors(result.T_ct_us, truth, us)
-    assert rte < 3.0 and rre < 3.0 and math.isfinite(result.best.icp_rmse_mm)
 
 
 def test_target_from_points_estimates_normals():
@@ -399,21 +389,21 @@ def test_target_from_points_estimates_normals():
     rng = np.random.default_rng(0)
     v = rng.normal(size=(5000, 3))
     v = 50.0 * v / np.linalg.norm(v, axis=1, keepdims=True)
-    target = HypothesisTarget(v)
+    target = SurfaceCloud(v)
     cos = np.abs(np.einsum("ij,ij->i", target.normals, v / 50.0))
     assert np.median(cos) > 0.99
 
 
 @pytest.mark.parametrize("key, value", [
     ("shaft_rotations", 0), ("shaft_rotations", 37), ("icp_points", 2), ("target_points", 10),
-    ("icp_iterations", -1), ("icp_mode", "dense"), ("icp_sigma", 0.0), ("icp_neighbors", 0),
+    ("icp_iterations", -1),
     ("icp_trim", 1.0), ("score_trim", -0.1), ("distinct_deg", 0.0), ("distinct_mm", -1.0),
     ("min_confidence", 1.0), ("icp_schedule", ((3, 10),)), ("icp_schedule", ((128, -1),)),
     ("icp_margin_mm", 0.0), ("slide_step_mm", -1.0), ("slide_range_mm", -5.0),
     ("screen_points", 2), ("screen_iterations", -1), ("screen_score_points", 0),
     ("refine_top", -1), ("tie_break", "random"), ("polish", "yes"),
     ("polish_max_distance_mm", 0.0), ("polish_iterations", 0), ("polish_top", 0),
-    ("score_floor_mm", 0.0), ("icp_subset", "voxel"), ("retry_ambiguous", "yes"),
+    ("score_floor_mm", 0.0), ("retry_ambiguous", "yes"),
 ])
 def test_config_validation(key, value):
     with pytest.raises(ConfigError, match=f"hypotheses.{key}"):

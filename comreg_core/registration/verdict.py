@@ -3,7 +3,7 @@
 Inputs: the US points as received, the transform ``T_ct_us`` (mm) and the CT bone mesh; plus the
 pose check's ``confidence`` / ``ambiguous`` when the hypotheses stage ran. No ground truth, no
 network. :func:`judge_registration` computes these figures (all distances in mm, exact
-point-to-triangle distances of :class:`~comreg_core.evaluation.metrics.SurfaceReference`):
+point-to-triangle distances of :class:`~comreg_core.registration.surface.CTSurface`):
 
 - **residuals** of the registered US points to the CT surface: ``median_mm``, ``p90_mm`` and
   ``within_2mm`` (share of points at most 2 mm from the surface);
@@ -50,9 +50,12 @@ sweeps' worst and a 10 % calibration error.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from functools import partial
 
 import numpy as np
 
+from comreg_core.registration.icp import point_to_plane_icp
+from comreg_core.registration.surface import as_surface
 from comreg_core.transforms import apply_transform, as_points, check_rigid
 
 #: Distance (mm) within which a registered US point counts as on the CT surface (and a CT
@@ -123,11 +126,9 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, confidence: float | No
                        thresholds: VerdictThresholds = DEFAULT_THRESHOLDS,
                        distances: np.ndarray | None = None) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` rigid, mm) for ``us_points`` (``(N, 3)`` mm, as
-    received) on ``ct_surface`` (anything :func:`~comreg_core.evaluation.metrics.as_surface`
+    received) on ``ct_surface`` (anything :func:`~comreg_core.registration.surface.as_surface`
     takes). ``confidence``/``ambiguous``: the pose check's, None when it did not run.
     ``distances``: the registered points' distances to the CT if already computed (mm)."""
-    from comreg_core.evaluation.metrics import as_surface
-
     surface = as_surface(ct_surface)
     points = apply_transform(check_rigid(T_ct_us), as_points(us_points, "US points"))
     d = surface.distance(points) if distances is None else np.asarray(distances, np.float64)
@@ -170,7 +171,7 @@ def _reasons(f: dict, ambiguous: bool, th: VerdictThresholds) -> list[str]:
 
 def coverage(points_ct: np.ndarray, surface, radius_mm: float = NEAR_MM) -> float:
     """Share of the CT surface area within ``radius_mm`` of a registered US point
-    (:data:`CT_SAMPLES` area-uniform samples of ``surface``, a SurfaceReference)."""
+    (:data:`CT_SAMPLES` area-uniform samples of ``surface``, a CTSurface)."""
     from scipy.spatial import cKDTree
 
     samples, _ = surface.samples(CT_SAMPLES)
@@ -191,61 +192,49 @@ def refit(points_ct: np.ndarray, surface, *, iterations: int = 25, gate_mm: floa
     ``scale_gain``: by how much (share, 0-1) that distance is below the unscaled fit's. A scan,
     not a similarity ICP: on a partial shaft a free scale gets stuck near 1 (measured: 1.01 for
     a real sweep shrunk by 15 %) while the scan finds 1.18.
-    Closest points are the nearest of :data:`CT_SAMPLES` surface samples with their normals;
-    pairs farther apart than ``gate_mm`` and the worst 10 % are left out; at most
+    The ICP (:func:`~comreg_core.registration.icp.point_to_plane_icp`, all scales in one batch)
+    matches to the nearest of :data:`CT_SAMPLES` surface samples with their normals; pairs
+    farther apart than ``gate_mm`` and the worst 10 % are left out; at most
     :data:`REFIT_POINTS` points (seeded subset)."""
-    from scipy.spatial import cKDTree
-
     pts = points_ct
     if len(pts) > REFIT_POINTS:
         pts = pts[np.random.default_rng(seed).choice(len(pts), REFIT_POINTS, replace=False)]
-    samples, normals = surface.samples(CT_SAMPLES)
-    fit = _RigidFit(cKDTree(samples), samples, normals, iterations, gate_mm)
-    moved, score_1 = fit(pts)
-    shift = float(np.sqrt(np.mean(np.sum((moved - pts) ** 2, axis=1))))
+    cloud = surface.cloud(CT_SAMPLES)
     c = pts.mean(axis=0)
-    scores = {s: (score_1 if s == 1.0 else fit(c + s * (moved - moved.mean(0)))[1])
-              for s in SCALES}
-    best = min(scores, key=scores.get)
+    unit = SCALES.index(1.0)
+    moved = point_to_plane_icp(pts, np.eye(4), partial(cloud.match, max_distance=gate_mm),
+                               iterations=iterations, trim_fraction=0.1,
+                               tolerance_mm=REFIT_TOLERANCE_MM).T
+    rigid = apply_transform(moved, pts)
+    shift = float(np.sqrt(np.mean(np.sum((rigid - pts) ** 2, axis=1))))
+    sources = np.stack([c + s * (rigid - rigid.mean(0)) for s in SCALES])  # S n 3
+    sources[unit] = rigid
+    fits = point_to_plane_icp(sources, np.tile(np.eye(4), (len(SCALES), 1, 1)),
+                              partial(cloud.match, max_distance=gate_mm),
+                              iterations=iterations, trim_fraction=0.1,
+                              tolerance_mm=REFIT_TOLERANCE_MM).T
+    fits[unit] = np.eye(4)  # the unscaled cloud is already fitted
+    scores = [_fit_score(apply_transform(T, src), cloud, gate_mm)
+              for T, src in zip(fits, sources)]
+    best = int(np.argmin(scores))
+    score_1 = scores[unit]
     gain = 0.0 if score_1 <= 0 else max(0.0, 1.0 - scores[best] / score_1)
-    return shift, float(best), float(gain)
+    return shift, float(SCALES[best]), float(gain)
 
 
-class _RigidFit:
-    """Rigid linearised point-to-plane ICP to CT samples; ``fit(points)`` returns the moved
-    points and their trimmed mean point-to-plane distance (mm)."""
+#: The refit's ICP stops once an update moves no point by more than this (mm).
+REFIT_TOLERANCE_MM = 1e-4
 
-    def __init__(self, tree, samples, normals, iterations: int, gate_mm: float):
-        self.tree, self.samples, self.normals = tree, samples, normals
-        self.iterations, self.gate_mm = iterations, gate_mm
 
-    def pairs(self, p):
-        d, idx = self.tree.query(p, distance_upper_bound=self.gate_mm)
-        ok = np.isfinite(d)
-        if ok.sum() < 10:
-            return None
-        q, n = self.samples[idx[ok]], self.normals[idx[ok]]
-        r = np.abs(np.sum(n * (p[ok] - q), axis=1))  # point-to-plane distance
-        keep = r <= np.quantile(r, 0.9)  # the worst 10 % (false echoes) left out
-        return ok.nonzero()[0][keep], q[keep], n[keep], r[keep]
-
-    def __call__(self, pts):
-        from scipy.spatial.transform import Rotation
-
-        p = pts.copy()
-        for _ in range(self.iterations):
-            found = self.pairs(p)
-            if found is None:
-                return p, float("inf")
-            rows, q, n, _ = found
-            c = p[rows].mean(axis=0)
-            A = np.hstack([np.cross(p[rows] - c, n), n])
-            x = np.linalg.lstsq(A, np.sum(n * (q - p[rows]), axis=1), rcond=None)[0]
-            p = (p - c) @ Rotation.from_rotvec(x[:3]).as_matrix().T + c + x[3:]
-            if np.abs(x).max() < 1e-5:
-                break
-        found = self.pairs(p)
-        return p, (float("inf") if found is None else float(found[3].mean()))
+def _fit_score(points: np.ndarray, cloud, gate_mm: float) -> float:
+    """Mean point-to-plane distance (mm) of ``(n, 3)`` points to the nearest CT samples, pairs
+    beyond ``gate_mm`` and the worst 10 % left out (``inf`` with fewer than 10 pairs)."""
+    d, idx = cloud.nearest(points)
+    ok = d <= gate_mm
+    if ok.sum() < 10:
+        return float("inf")
+    r = np.abs(np.einsum("ij,ij->i", points[ok] - cloud.points[idx[ok]], cloud.normals[idx[ok]]))
+    return float(r[r <= np.quantile(r, 0.9)].mean())
 
 
 def thresholds_json(th: VerdictThresholds = DEFAULT_THRESHOLDS) -> dict:

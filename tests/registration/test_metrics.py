@@ -1,5 +1,4 @@
-"""Metrics against independent computations: scipy rotations, hand-made point sets, brute-force
-distances, an analytic box."""
+"""Metrics against independent computations: scipy rotations, an analytic box."""
 
 import math
 
@@ -9,12 +8,11 @@ from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
 from comreg_core.errors import ComRegError
-from comreg_core.evaluation import (chamfer_l1, completion_metrics, hd95, is_flip, is_success,
-                                    nearest_distances, registration_metrics, rotation_error_deg,
-                                    translation_error_mm)
+from comreg_core.registration.metrics import (completion_metrics, is_flip, is_success,
+                                              registration_metrics, rotation_error_deg,
+                                              translation_error_mm)
 from comreg_core.transforms import apply_transform, invert_rigid
-from tests.evaluation.conftest import BOX_CENTRE, box_distance
-from tests.helpers import assert_close, random_rigid
+from tests.helpers import BOX_CENTRE, assert_close, box_distance, random_rigid
 
 
 def _rigid(rotvec_deg=(0, 0, 0), t=(0, 0, 0), about=(0, 0, 0)):
@@ -93,55 +91,6 @@ def test_flip_is_rre_above_90_degrees(rre, flip):
     assert is_flip(rre) is flip
 
 
-# --- point-set distances --------------------------------------------------------------------------
-
-def test_chamfer_and_hd95_on_hand_made_sets():
-    a = np.array([[0.0, 0, 0], [10, 0, 0]])
-    b = np.array([[0.0, 1, 0], [10, 0, 2], [20, 0, 0]])
-    # a -> b: 1, 2 (mean 1.5); b -> a: 1, 2, 10 (mean 13/3)
-    assert_close(nearest_distances(a, b), [1.0, 2.0], atol=1e-12)
-    assert_close(nearest_distances(b, a), [1.0, 2.0, 10.0], atol=1e-12)
-    assert_close(chamfer_l1(a, b), (1.5 + 13 / 3) / 2, atol=1e-12, what="CD")
-    # union [1, 1, 2, 2, 10]: 95th percentile at rank 3.8 -> 2 + 0.8 * 8 = 8.4
-    assert_close(hd95(a, b), 8.4, atol=1e-12, what="HD95")
-    assert_close(chamfer_l1(a, a), 0.0, atol=0)
-
-
-def test_point_set_metrics_match_brute_force_cdist():
-    rng = np.random.default_rng(3)
-    a, b = rng.normal(size=(400, 3)) * 10, rng.normal(size=(300, 3)) * 12 + 1
-    D = cdist(a, b)
-    assert_close(nearest_distances(a, b), D.min(axis=1), atol=1e-9)
-    assert_close(chamfer_l1(a, b), (D.min(axis=1).mean() + D.min(axis=0).mean()) / 2, atol=1e-9)
-    assert_close(hd95(a, b), np.percentile(np.concatenate([D.min(1), D.min(0)]), 95), atol=1e-9)
-
-
-# --- the surface ----------------------------------------------------------------------------------
-
-def test_surface_distance_is_exact_point_to_triangle(box_surface):
-    rng = np.random.default_rng(11)
-    points = BOX_CENTRE + rng.uniform(-35, 35, (3000, 3))
-    special = BOX_CENTRE + np.array([[0, 0, 5.0], [20, 10, 5], [25, 15, 10], [0, 0, 0],
-                                     [19, 0, 0], [30, 0, 0], [20, 0, 0]])
-    points = np.vstack([points, special])
-    assert_close(box_surface.distance(points), box_distance(points), atol=1e-9,
-                 what="distance to the box")
-
-
-def test_surface_samples_are_on_the_surface_and_reproducible(box_surface, fibula_surface):
-    points, normals = box_surface.samples(5000)
-    assert_close(box_distance(points), np.zeros(5000), atol=1e-9)
-    assert_close(np.linalg.norm(normals, axis=1), np.ones(5000), atol=1e-12)
-    again, _ = type(box_surface)(box_surface).samples(5000)
-    assert_close(again, points, atol=0, what="same seed, same samples")
-    # area-uniform: the box faces get points in proportion to their areas (40x20 : 40x10 : 20x10)
-    top = np.isclose(points[:, 2], BOX_CENTRE[2] + 5).mean() + np.isclose(
-        points[:, 2], BOX_CENTRE[2] - 5).mean()
-    assert abs(top - 2 * 800 / 2800) < 0.03
-    fib, _ = fibula_surface.samples(2000)
-    assert fibula_surface.distance(fib).max() < 1e-6
-
-
 # --- registration and completion metrics ----------------------------------------------------------
 
 def test_registration_metrics_on_known_estimates(box_surface, box_cloud):
@@ -207,8 +156,6 @@ def test_bad_clouds_raise_clear_errors(box_surface, points, match):
         registration_metrics(np.eye(4), np.eye(4), points, box_surface)
     with pytest.raises(ComRegError, match=match):
         completion_metrics(points, np.eye(4), box_surface)
-    with pytest.raises(ComRegError, match=match):
-        chamfer_l1(points, np.ones((3, 3)))
 
 
 def test_bad_transforms_and_meshes_raise_clear_errors(box_surface, box_cloud):

@@ -1,0 +1,155 @@
+"""Settings of the pose search (:mod:`comreg_core.registration.search`): the ``hypotheses``
+section of a registration config (``comreg register/evaluate --config FILE``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from comreg_core.config import ConfigError, from_dict, require
+
+#: The polish stops once an update moves no US point by more than this (mm).
+POLISH_TOLERANCE_MM = 0.01
+#: US points and most iterations of the quick polish that compares poses tied with the best.
+QUICK_POLISH_POINTS = 512
+QUICK_POLISH_ITERATIONS = 30
+
+
+@dataclass(frozen=True)
+class HypothesisConfig:
+    """Settings of the pose search (steps in :mod:`comreg_core.registration.search`).
+
+    Attributes:
+        enabled: run the stage at all (False = the paper's plain pipeline).
+        shaft_rotations: rotations about the long axis per base, ``360 / shaft_rotations``
+            deg apart, the base included (1 = only the base).
+        axis_flips: also flip each of them end to end (180 deg about a short axis).
+        include_coarse: the network's coarse pose is a base too (when one is given).
+        principal_axes_solve: the principal-axes solve of the completion vs the CT is a base
+            too (needs a completion).
+        slide_step_mm: also try each rotation hypothesis slid along its long axis in steps of
+            this (mm; suffix ``+slide16`` etc.; 0 = no slides).
+        slide_range_mm: the largest slide (mm); None = half the CT's length.
+        screen_points, screen_iterations, screen_score_points: the screening of all starts
+            (:func:`~comreg_core.registration.search.screen_starts`): US points and
+            iterations of its quick ICP, US points of its quick score.
+        refine_top: starts refined by the full ICP and scored (the network's own pose and
+            the best screened distinct others); 0 = all of them, unscreened.
+        icp_points: US points in the hypotheses' ICP and score: a seeded uniform subset of
+            the US cloud, kept in sweep order: it keeps the sweep's own share of false echoes
+            (a farthest-point subset picks isolated false echoes first: on simulated fibula
+            sweeps 10-15 % of it instead of ~3 %, more than ``icp_trim`` drops).
+        target_points: area-uniform CT surface samples: the ICP target and the score's cloud.
+        icp_iterations: iterations of the refinement's last stage, on all ``icp_points``
+            (point-to-plane, :func:`~comreg_core.registration.icp.coarse_to_fine_icp`).
+        icp_schedule: its coarse stages before, ``(US points, iterations)`` each.
+        icp_margin_mm: after each stage only the hypotheses whose residual (trimmed RMS, mm)
+            is within this of the best go on (the others are far behind; this only saves
+            time).
+        icp_trim: share of the worst residuals left out of each ICP step.
+        score_trim: share of the largest distances left out of the score.
+        tie_break: among the tied poses (scores within ``1 / (1 - min_confidence)`` of the
+            best), ``"network"``
+            keeps the best-scoring of those rotated like the one rotated least from the
+            network's pose (the learned prior decides a flip or spin the geometry cannot; a
+            slide is still decided by the score), ``"score"`` the best score.
+        distinct_deg, distinct_mm: two refined poses are different poses when their rotations
+            differ by more than ``distinct_deg`` or they place the US centroid more than
+            ``distinct_mm`` apart; otherwise the later one is a duplicate.
+        retry_ambiguous: when the result is ambiguous, search again from the starts
+            interleaved with the first grid (rotations and slides shifted by half a step) and
+            choose among both rounds' hypotheses (step 7).
+        polish: polish the best pose and those tied with it by point-to-plane ICP to the
+            exact closest points of the CT mesh and re-score them (step 5 of the module
+            docstring; needs the mesh, skipped without one).
+        polish_top: at most this many poses are polished.
+        polish_max_distance_mm: pairs farther apart than this are left out of the polish.
+        polish_iterations: most iterations of a polish.
+        score_floor_mm: score differences are measured relative to at least this (mm) in the
+            confidence: below it they are noise (step 6).
+        min_confidence: a result is ambiguous when its confidence is below this (a different
+            pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score, or
+            within ``min_confidence * score_floor_mm`` of it).
+    """
+
+    enabled: bool = True
+    shaft_rotations: int = 8
+    axis_flips: bool = True
+    include_coarse: bool = True
+    principal_axes_solve: bool = True
+    slide_step_mm: float = 8.0
+    slide_range_mm: float | None = None
+    screen_points: int = 64
+    screen_iterations: int = 20
+    screen_score_points: int = 128
+    refine_top: int = 12
+    icp_points: int = 2048
+    target_points: int = 20_000
+    icp_iterations: int = 20
+    icp_schedule: tuple[tuple[int, int], ...] = ((128, 30), (512, 30))
+    icp_margin_mm: float = 1.0
+    icp_trim: float = 0.1
+    score_trim: float = 0.2
+    tie_break: Literal["network", "score"] = "network"
+    distinct_deg: float = 10.0
+    distinct_mm: float = 5.0
+    retry_ambiguous: bool = True
+    polish: bool = True
+    polish_top: int = 4
+    polish_max_distance_mm: float = 2.0
+    polish_iterations: int = 100
+    score_floor_mm: float = 0.05
+    min_confidence: float = 0.3
+
+    def __post_init__(self) -> None:
+        require(isinstance(self.enabled, bool), "hypotheses.enabled", "must be true or false")
+        require(self.shaft_rotations >= 1, "hypotheses.shaft_rotations", "must be at least 1")
+        require(self.shaft_rotations <= 36, "hypotheses.shaft_rotations",
+                "must be at most 36 (10 deg apart)")
+        require(self.slide_step_mm >= 0, "hypotheses.slide_step_mm", "must be 0 (off) or more")
+        require(self.slide_range_mm is None or self.slide_range_mm >= 0,
+                "hypotheses.slide_range_mm", "must be 0 or more (or null: half the CT length)")
+        require(self.screen_points >= 6, "hypotheses.screen_points", "must be at least 6")
+        require(self.screen_iterations >= 0, "hypotheses.screen_iterations", "must be 0 or more")
+        require(self.screen_score_points >= 3, "hypotheses.screen_score_points",
+                "must be at least 3")
+        require(self.refine_top >= 0, "hypotheses.refine_top", "must be 0 (all) or more")
+        require(self.icp_points >= 3, "hypotheses.icp_points", "must be at least 3")
+        require(self.target_points >= 100, "hypotheses.target_points", "must be at least 100")
+        require(self.icp_iterations >= 0, "hypotheses.icp_iterations", "must be 0 or more")
+        require(all(p >= 6 and it >= 0 for p, it in self.icp_schedule),
+                "hypotheses.icp_schedule", "needs at least 6 points and 0 or more iterations "
+                "per stage")
+        require(self.icp_margin_mm > 0, "hypotheses.icp_margin_mm", "must be positive")
+        require(0.0 <= self.icp_trim < 1.0, "hypotheses.icp_trim", "must be in [0, 1)")
+        require(0.0 <= self.score_trim < 1.0, "hypotheses.score_trim", "must be in [0, 1)")
+        require(self.tie_break in ("network", "score"), "hypotheses.tie_break",
+                "must be 'network' or 'score'")
+        require(self.distinct_deg > 0, "hypotheses.distinct_deg", "must be positive")
+        require(self.distinct_mm > 0, "hypotheses.distinct_mm", "must be positive")
+        require(isinstance(self.polish, bool), "hypotheses.polish", "must be true or false")
+        require(isinstance(self.retry_ambiguous, bool), "hypotheses.retry_ambiguous",
+                "must be true or false")
+        require(self.polish_top >= 1, "hypotheses.polish_top", "must be at least 1")
+        require(self.score_floor_mm > 0, "hypotheses.score_floor_mm", "must be positive (mm)")
+        require(self.polish_max_distance_mm > 0, "hypotheses.polish_max_distance_mm",
+                "must be positive (mm)")
+        require(self.polish_iterations >= 1, "hypotheses.polish_iterations",
+                "must be at least 1")
+        require(0.0 <= self.min_confidence < 1.0, "hypotheses.min_confidence",
+                "must be in [0, 1)")
+
+
+def as_hypothesis_config(value) -> HypothesisConfig:
+    """``None``/``True`` -> the defaults, ``False`` -> turned off, a :class:`HypothesisConfig`
+    or a mapping of its keys -> that config."""
+    if value is None or value is True:
+        return HypothesisConfig()
+    if value is False:
+        return HypothesisConfig(enabled=False)
+    if isinstance(value, HypothesisConfig):
+        return value
+    if isinstance(value, dict):
+        return from_dict(HypothesisConfig, value, "hypotheses")
+    raise ConfigError(f"Cannot use a {type(value).__name__} as the hypotheses setting.",
+                      "Pass True, False, a HypothesisConfig or a mapping of its keys.")

@@ -1,0 +1,188 @@
+"""One rigid point-to-plane ICP, batched over start poses, with pluggable correspondences.
+
+:func:`point_to_plane_icp` refines ``B`` start poses of one source cloud at once. Where the
+correspondences come from is the caller's choice (a :data:`~comreg_core.registration.surface.
+Matcher`): the nearest of dense CT samples (:meth:`SurfaceCloud.match`, the pose search's
+refinement), a closest-point grid (:meth:`SurfaceCloud.match_approx`, its screening), or the
+exact closest points of the CT mesh with a distance gate (:meth:`CTSurface.matcher`, the polish,
+the ``icp-gt`` baseline and the verdict's refit: a batch of one or a few).
+:func:`coarse_to_fine_icp` runs it on growing strided subsets, dropping starts that fall behind.
+
+No gradient and no torch: the network's own differentiable ICP is
+:func:`comreg_core.model.diff_icp.differentiable_icp`. Point-to-plane converges along a shaft,
+where the surface slides under the points, in a few iterations; point-to-point ICP crawls there
+(``tests/benchmarks/bench_hypotheses.py``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from comreg_core.errors import InvalidGeometryError
+from comreg_core.registration.surface import Matcher
+from comreg_core.transforms import as_points
+
+#: Fewest matched pairs an update needs (six unknowns).
+MIN_PAIRS = 6
+
+
+class ICPResult(NamedTuple):
+    """What :func:`point_to_plane_icp` returns (``B`` start poses).
+
+    Attributes:
+        T: ``(B, 4, 4)`` refined poses (mm).
+        rmse_mm: ``(B,)`` RMS point-to-plane residual of the pairs kept at each start's last
+            matching (NaN when it never had :data:`MIN_PAIRS`).
+        iterations: ``(B,)`` matchings done per start.
+        converged: ``(B,)`` the last update moved no source point by ``tolerance_mm`` or more.
+        inlier_fraction: ``(B,)`` share of the source points matched (within the matcher's
+            gate) at the last matching.
+    """
+
+    T: np.ndarray
+    rmse_mm: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    inlier_fraction: np.ndarray
+
+
+def apply_poses(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``(n, 3)`` points (or ``(B, n, 3)``, one cloud per pose) moved by each of ``(B, 4, 4)``
+    poses: ``(B, n, 3)``."""
+    return points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
+
+
+def strided(points: np.ndarray, count: int) -> np.ndarray:
+    """``min(count, N)`` evenly strided rows of ``(N, 3)`` points (first and last included)."""
+    return points[np.linspace(0, len(points) - 1, min(count, len(points))).astype(np.int64)]
+
+
+def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *,
+                       iterations: int = 20, trim_fraction: float = 0.0,
+                       tolerance_mm: float = 0.01) -> ICPResult:
+    """Rigid point-to-plane ICP (Gauss-Newton) of a source cloud from ``B`` start poses.
+
+    Each iteration matches every moved source point ``p_i`` to ``q_i`` with normal ``n_i``
+    (``match``; pairs it leaves unmatched, ``inf`` distance, are out), leaves out the
+    ``trim_fraction`` of the matched points farthest from their match, and solves
+    ``min sum ((R p_i + t - q_i) . n_i)^2`` linearised about the kept points' centroid (6x6
+    normal equations per start with a tiny damping, so that directions the surface does not
+    constrain, e.g. sliding along a cylinder, get no update), then applies the exact rotation
+    of the solved rotation vector. A start stops once an update moves no source point by more
+    than ``tolerance_mm``, or when fewer than :data:`MIN_PAIRS` pairs are left.
+
+    Args:
+        source: ``(n, 3)`` mm, the points to move (or ``(B, n, 3)``, one cloud per start).
+        T_init: ``(B, 4, 4)`` (or ``(4, 4)``) mm start poses.
+        match: the correspondences (:data:`~comreg_core.registration.surface.Matcher`).
+        iterations: most matchings per start.
+        trim_fraction: share of the matched pairs left out, in [0, 1); at least
+            :data:`MIN_PAIRS` are always kept.
+        tolerance_mm: convergence threshold (bound on the largest point displacement).
+
+    Returns:
+        :class:`ICPResult`.
+    """
+    from scipy.spatial.transform import Rotation
+
+    src = np.asarray(source, dtype=np.float64)
+    if src.ndim == 2:
+        src = as_points(src, "source points")
+    if src.shape[-2] < MIN_PAIRS or not np.isfinite(src).all():
+        raise InvalidGeometryError(f"ICP needs at least {MIN_PAIRS} finite source points; it "
+                                   f"got {src.shape[-2]}.", "Pass a larger cloud.")
+    T = np.array(T_init, dtype=np.float64, copy=True)
+    single = T.ndim == 2
+    T = T[None] if single else T
+    B = len(T)
+    extent = np.linalg.norm(np.ptp(src, axis=-2), axis=-1)
+    extent = np.broadcast_to(np.where(extent > 0, extent, 1.0), (B,))
+    rmse = np.full(B, np.nan)
+    done_iterations = np.zeros(B, dtype=np.int64)
+    converged = np.zeros(B, dtype=bool)
+    inliers = np.zeros(B)
+    active = np.arange(B)  # starts still moving; converged ones are left alone
+    for _ in range(iterations):
+        Ta = T[active]
+        m = len(active)
+        moved = apply_poses(Ta, src if src.ndim == 2 else src[active])  # m n 3
+        q, nrm, d = match(moved)  # m n 3, m n 3, m n
+        matched = np.isfinite(d)
+        done_iterations[active] += 1
+        inliers[active] = matched.mean(axis=1)
+        if trim_fraction > 0:  # of the matched pairs, the farthest trim_fraction left out
+            count = matched.sum(axis=1)
+            keep = np.minimum(count, np.maximum(MIN_PAIRS, count - (trim_fraction * count
+                                                                    ).astype(np.int64)))
+            limit = np.sort(np.where(matched, d, np.inf), axis=1)[
+                np.arange(m), np.maximum(keep - 1, 0)][:, None]  # m 1
+            w = (matched & (d <= limit)).astype(np.float64)  # m n
+        else:
+            w = matched.astype(np.float64)
+        enough = w.sum(1) >= MIN_PAIRS
+        if not enough.all():  # those starts stop where they are
+            active, Ta, moved, q, nrm, w = (a[enough] for a in (active, Ta, moved, q, nrm, w))
+            m = len(active)
+            if m == 0:
+                break
+        q, nrm = np.where(w[..., None] > 0, q, 0.0), np.where(w[..., None] > 0, nrm, 0.0)
+        r = np.einsum("bni,bni->bn", moved - q, nrm)  # m n, signed distance to the plane
+        rmse[active] = np.sqrt((w * r * r).sum(1) / w.sum(1))
+        c = (w[..., None] * moved).sum(1) / w.sum(1)[:, None]  # m 3
+        A = np.concatenate([np.cross(moved - c[:, None], nrm), nrm], axis=2)  # m n 6
+        Aw = A * w[..., None]
+        H = Aw.transpose(0, 2, 1) @ A  # m 6 6
+        g = (Aw.transpose(0, 2, 1) @ r[..., None])[..., 0]  # m 6
+        damp = (1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] + 1e-12) * np.eye(6)
+        x = np.linalg.solve(H + damp, -g[..., None])[..., 0]  # m 6
+        step = np.tile(np.eye(4), (m, 1, 1))
+        step[:, :3, :3] = Rotation.from_rotvec(x[:, :3]).as_matrix()
+        step[:, :3, 3] = c - np.einsum("bij,bj->bi", step[:, :3, :3], c) + x[:, 3:]
+        T[active] = step @ Ta
+        # bound on the largest displacement of a source point by this update
+        moving = np.linalg.norm(x[:, :3], axis=1) * extent[active] + np.linalg.norm(x[:, 3:],
+                                                                                    axis=1)
+        still = moving >= tolerance_mm
+        converged[active[~still]] = True
+        active = active[still]
+        if len(active) == 0:
+            break
+    if single:
+        return ICPResult(T[0], rmse[0], done_iterations[0], converged[0], inliers[0])
+    return ICPResult(T, rmse, done_iterations, converged, inliers)
+
+
+def coarse_to_fine_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *,
+                       iterations: int = 20,
+                       schedule: tuple[tuple[int, int], ...] = ((128, 30), (512, 30)),
+                       margin_mm: float | None = None, trim_fraction: float = 0.0,
+                       tolerance_mm: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`point_to_plane_icp` of one source cloud from ``B`` starts, coarse to fine: first
+    the ``schedule`` stages ``(points, iterations)`` on evenly strided subsets of the source
+    (the long way from a poor start is cheap there; stages with ``points >= n`` are skipped),
+    then ``iterations`` on all ``n`` points. After each stage only the starts whose residual is
+    within ``margin_mm`` of the best one go on (all when None); the others keep their pose and
+    residual so far (they are far behind: this only saves time).
+
+    Args:
+        source: ``(n, 3)`` mm; ``T_init``: ``(B, 4, 4)`` mm; ``match``: the correspondences.
+
+    Returns:
+        ``(B, 4, 4)`` refined poses and ``(B,)`` RMS point-to-plane residual (mm) of the kept
+        points at the last matching of each start.
+    """
+    src = as_points(source, "source points")
+    T = np.array(T_init, dtype=np.float64, copy=True)  # B 4 4
+    rmse = np.full(len(T), np.nan)
+    stages = [(int(p), int(it)) for p, it in schedule if 0 < p < len(src)]
+    stages.append((len(src), int(iterations)))
+    going = np.ones(len(T), dtype=bool)
+    for i, (points, its) in enumerate(stages):
+        result = point_to_plane_icp(strided(src, points), T[going], match, iterations=its,
+                                    trim_fraction=trim_fraction, tolerance_mm=tolerance_mm)
+        T[going], rmse[going] = result.T, result.rmse_mm
+        if margin_mm is not None and i < len(stages) - 1 and np.isfinite(rmse[going]).any():
+            going &= ~(rmse > np.nanmin(rmse[going]) + margin_mm)
+    return T, rmse

@@ -1,0 +1,83 @@
+"""The polish (step 5 of :mod:`comreg_core.registration.search`): the best pose and the poses
+tied with it refined against the exact closest points of the CT mesh and re-scored exactly; then
+the choice (step 6)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from comreg_core.registration.config import (POLISH_TOLERANCE_MM, QUICK_POLISH_ITERATIONS,
+                                             QUICK_POLISH_POINTS, HypothesisConfig)
+from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
+from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
+                                              trimmed_mean)
+from comreg_core.registration.surface import SurfaceCloud
+from comreg_core.transforms import apply_transform
+
+
+def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.ndarray,
+                      scores: np.ndarray, polishes: list[dict[str, Any] | None],
+                      T_network: np.ndarray, target: SurfaceCloud,
+                      config: HypothesisConfig) -> tuple[int, int | None]:
+    """Steps 5-6 of the search: polish the poses tied with the best (``poses``
+    ``(B, 4, 4)``, ``scores`` ``(B,)`` and ``polishes`` are updated in place; poses polished
+    before are not polished again), choose, and find the runner-up. Returns ``(chosen,
+    runner-up or None)`` indices."""
+    eligible = np.ones(len(poses), dtype=bool)
+    placed = apply_poses(poses, centroid[None])[:, 0]  # B 3
+    if config.polish and target.surface is not None:
+        # the best pose and those tied with it, polished and re-scored exactly; only polished
+        # poses can be chosen (the scores of the others are not exact, and they were not tied)
+        candidates = polish_candidates(scores, poses, placed, config)
+        quick = len(candidates) > 1  # several: a quick polish of each, then the chosen in full
+        for i in candidates:
+            if polishes[i] is None:
+                poses[i], scores[i], polishes[i] = polish_pose(subset_mm, centroid, poses[i],
+                                                               target, config, quick=quick)
+        placed = apply_poses(poses, centroid[None])[:, 0]
+        eligible = np.array([p is not None for p in polishes])
+    best = choose(scores, poses, placed, T_network, config, eligible)
+    if polishes[best] is not None and polishes[best]["quick"]:
+        poses[best], scores[best], polishes[best] = polish_pose(
+            subset_mm, centroid, poses[best], target, config, after=polishes[best])
+        placed[best] = apply_transform(poses[best], centroid[None])[0]
+    others = np.array([i for i in range(len(poses)) if i != best], dtype=np.int64)
+    distinct = others[~same_pose(poses, placed, best, others, config)]
+    runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
+    return best, runner
+
+
+def polish_pose(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,
+                target: SurfaceCloud, config: HypothesisConfig, *, quick: bool = False,
+                after: dict[str, Any] | None = None) -> tuple[np.ndarray, float, dict[str, Any]]:
+    """Step 5 of the search for one pose ``T`` ``(4, 4)``: the polished pose, its
+    exact score (trimmed mean distance of ``subset_mm`` ``(n, 3)`` to the mesh, mm) and the
+    polish's record (:attr:`~comreg_core.registration.scoring.Hypothesis.polish`;
+    ``moved_mm`` of the US ``centroid`` ``(3,)``).
+    ``quick``: on :data:`QUICK_POLISH_POINTS`
+    strided points and at most :data:`QUICK_POLISH_ITERATIONS` (to compare tied poses);
+    ``after``: the record of a quick polish this one continues (its counts are added)."""
+    mark = time.perf_counter()
+    source = strided(subset_mm, QUICK_POLISH_POINTS) if quick else subset_mm
+    iterations = (min(QUICK_POLISH_ITERATIONS, config.polish_iterations) if quick
+                  else config.polish_iterations)
+    surface = target.surface
+    fit = point_to_plane_icp(source, T, surface.matcher(config.polish_max_distance_mm),
+                             iterations=iterations, tolerance_mm=POLISH_TOLERANCE_MM)
+    polished = fit.T
+    info = {"iterations": int(fit.iterations), "inlier_fraction": float(fit.inlier_fraction),
+            "rmse_mm": float(fit.rmse_mm), "converged": bool(fit.converged)}
+    info["moved_mm"] = float(np.linalg.norm(apply_transform(polished, centroid[None])
+                                            - apply_transform(T, centroid[None])))
+    _, _, distances = surface.closest(apply_transform(polished, subset_mm))
+    score = float(trimmed_mean(distances[None], config.score_trim)[0])
+    info["quick"] = quick
+    info["runtime_s"] = time.perf_counter() - mark
+    if after is not None:  # moved_mm: from before the quick polish (near enough: both small)
+        info["iterations"] += after["iterations"]
+        info["runtime_s"] += after["runtime_s"]
+        info["moved_mm"] = float(np.hypot(info["moved_mm"], after["moved_mm"]))
+    return polished, score, info

@@ -1,0 +1,154 @@
+"""Scores, sameness, confidence and the choice among refined poses; the result types.
+
+Definitions (steps 4 and 6 of :mod:`comreg_core.registration.search`): the **score** of a pose
+is the trimmed mean distance (mm) of its registered US points to the CT; two poses are the
+**same** when rotated apart by at most ``distinct_deg`` and placing the US centroid within
+``distinct_mm``; the **confidence** of a pose scoring ``a`` over one scoring ``b`` is
+``max(b - a, 0) / max(b, score_floor_mm)``, in [0, 1].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from comreg_core.registration.config import HypothesisConfig
+from comreg_core.registration.metrics import rotation_error_deg
+
+
+def trimmed_mean(distances: np.ndarray, trim: float) -> np.ndarray:
+    """``(B,)`` mean of the smallest ``1 - trim`` share (at least one) of each row of ``(B, n)``
+    distances: the hypotheses' score."""
+    n = distances.shape[1]
+    return np.sort(distances, axis=1)[:, :max(1, n - int(trim * n))].mean(axis=1)
+
+
+def same_pose(poses: np.ndarray, centroids: np.ndarray, i: int, others: np.ndarray,
+               config: HypothesisConfig, *, rotation_only: bool = False) -> np.ndarray:
+    """Which of the poses ``others`` (indices) are the same pose as pose ``i``: rotated apart by
+    at most ``distinct_deg`` and, unless ``rotation_only``, placing the US centroid within
+    ``distinct_mm``. ``poses`` ``(B, 4, 4)``, ``centroids`` ``(B, 3)`` mm (the US centroid
+    placed by each pose); returns ``(len(others),)`` bool."""
+    cos = (np.einsum("kij,ij->k", poses[others, :3, :3], poses[i, :3, :3]) - 1.0) / 2.0
+    same = cos >= math.cos(math.radians(config.distinct_deg))
+    if not rotation_only:
+        same &= np.linalg.norm(centroids[others] - centroids[i], axis=1) <= config.distinct_mm
+    return same
+
+
+def confidence_over(score: float, others: np.ndarray | float, config: HypothesisConfig):
+    """How clearly a pose scoring ``score`` beats poses scoring ``others`` (mm): ``max(other -
+    score, 0) / max(other, score_floor_mm)``, in [0, 1] (module docstring, step 6)."""
+    others = np.asarray(others, dtype=np.float64)
+    return np.maximum(others - score, 0.0) / np.maximum(others, config.score_floor_mm)
+
+
+def choose(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray, T_network: np.ndarray,
+            config: HypothesisConfig, eligible: np.ndarray) -> int:
+    """Index of the chosen pose among the ``eligible`` ones ``(B,)`` bool: the best score, or
+    with ``tie_break="network"`` among the poses tied with the best (confidence below
+    ``min_confidence``) the best-scoring of those rotated like the one rotated least from the
+    network's pose ``T_network`` (slides: by score). ``scores`` ``(B,)`` mm, ``poses``
+    ``(B, 4, 4)``, ``placed`` ``(B, 3)`` US centroids."""
+    masked = np.where(eligible, scores, np.inf)
+    best = int(np.argmin(masked))  # first minimum: the network's pose wins exact ties
+    if config.tie_break == "network":
+        tied = np.flatnonzero(eligible & (confidence_over(scores[best], scores, config)
+                                          < config.min_confidence))
+        nearest = tied[np.argmin([rotation_error_deg(poses[i], T_network) for i in tied])]
+        rotated_alike = tied[same_pose(poses, placed, nearest, tied, config,
+                                        rotation_only=True)]
+        best = int(rotated_alike[np.argmin(scores[rotated_alike])])
+    return best
+
+
+def polish_candidates(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray,
+                       config: HypothesisConfig) -> list[int]:
+    """The poses worth polishing: the best-scoring one and the distinct poses tied with it
+    (confidence below ``min_confidence``), the network's own pose (index 0) next if it is tied,
+    then by increasing score, at most ``polish_top``."""
+    order = np.argsort(scores, kind="stable")
+    tied = order[confidence_over(scores[order[0]], scores[order], config) < config.min_confidence]
+    if 0 in tied[1:]:  # the prior: a tie the geometry cannot break may be the network's to break
+        tied = np.concatenate([tied[:1], [0], tied[1:][tied[1:] != 0]])
+    kept: list[int] = []
+    for i in tied:
+        if len(kept) == config.polish_top:
+            break
+        if not kept or not same_pose(poses, placed, int(i), np.array(kept), config).any():
+            kept.append(int(i))
+    return kept
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One refined hypothesis: ``name``, its start ``T_start`` and refined ``T_ct_us``
+    (``(4, 4)`` mm, after the polish when polished), ``score_mm`` (trimmed mean distance to the
+    CT, mm; exact distances to the mesh when polished), the refinement ICP's final
+    ``icp_rmse_mm``, and ``polish``: ``{"iterations", "inlier_fraction", "rmse_mm"
+    (matched points' RMS distance to the mesh), "converged", "moved_mm" (how far the polish
+    moved the US centroid), "quick" (only the quick polish of a tied pose), "runtime_s"}``,
+    None when not polished."""
+
+    name: str
+    T_start: np.ndarray
+    T_ct_us: np.ndarray
+    score_mm: float
+    icp_rmse_mm: float
+    polish: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class HypothesisResult:
+    """The outcome of :func:`search_hypotheses` (module docstring for the definitions).
+
+    Attributes:
+        T_ct_us: ``(4, 4)`` mm, the chosen hypothesis' refined (and polished) pose.
+        chosen: its name.
+        runner_up: the best-scoring genuinely different pose's name, None if there is none.
+        score_gap_mm: ``score(runner_up) - score(chosen)`` (mm), None without a runner-up.
+        confidence: ``max(score_gap_mm, 0) / max(score(runner_up), score_floor_mm)`` in
+            [0, 1]; 1.0 without a runner-up.
+        ambiguous: ``confidence < min_confidence``.
+        hypotheses: every refined :class:`Hypothesis`, in generation order.
+        starts_tried: start poses built and screened before the best ``refine_top`` were refined.
+    """
+
+    T_ct_us: np.ndarray
+    chosen: str
+    runner_up: str | None
+    score_gap_mm: float | None
+    confidence: float
+    ambiguous: bool
+    hypotheses: tuple[Hypothesis, ...] = field(default=())
+    starts_tried: int = 0
+
+    @property
+    def polish(self) -> dict[str, Any] | None:
+        """The chosen pose's polish (:attr:`Hypothesis.polish`), None when it was not run."""
+        return self.best.polish
+
+    @property
+    def polished(self) -> list[str]:
+        """Names of the polished hypotheses (the best and those tied with it)."""
+        return [h.name for h in self.hypotheses if h.polish is not None]
+
+    @property
+    def scores(self) -> dict[str, float]:
+        """``{name: score_mm}`` of every hypothesis."""
+        return {h.name: h.score_mm for h in self.hypotheses}
+
+    @property
+    def best(self) -> Hypothesis:
+        return next(h for h in self.hypotheses if h.name == self.chosen)
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-able summary (``result.json``'s ``hypotheses`` block)."""
+        return {"chosen": self.chosen, "runner_up": self.runner_up,
+                "score_mm": self.best.score_mm, "score_gap_mm": self.score_gap_mm,
+                "confidence": self.confidence, "ambiguous": self.ambiguous,
+                "starts_tried": self.starts_tried, "scores_mm": self.scores,
+                "polish": self.polish, "polished": self.polished}

@@ -1,0 +1,339 @@
+"""Test-time pose hypotheses: no flips, no spins about the shaft, and a confidence flag.
+
+A partial US sweep of a long, near-symmetric bone (fibula, tibia or femur shaft) fits several
+poses: flipped end to end, turned about the shaft, or the one the network found. The learned
+coarse pose only has to land in ICP's basin; when it lands in the basin of a symmetric
+alternative, plain ICP converges there and the result is a flip. This module tries the
+alternatives at test time, with no extra training data:
+
+1. **Start poses** (all ``T_ct_us``, mm). Bases: ``network`` (the network's pose after its
+   ICP), ``coarse`` (its coarse pose before the ICP, with ``include_coarse``) and ``pca`` (with
+   ``principal_axes_solve`` and a completion: the full-to-full solve of the completed shape
+   against the CT by principal axes; the completion is a whole bone, so this is well posed up
+   to the axes' signs, which the flips below cover). Around each base ``T_b``: ``G @ T_b`` with
+   ``G`` a rigid motion of the *CT frame* about the principal axes of the completed bone placed
+   by ``T_b`` (centroid ``c``, axes ``a0`` = long, ``a1``, ``a2``; the CT's own frame without a
+   completion): rotations about ``a0`` by ``360 k / shaft_rotations`` deg (``+rot45``, ...),
+   with ``axis_flips`` each also flipped end to end (180 deg about ``a1``, ``+flip``), and
+   each of these slid along ``a0`` by multiples of ``slide_step_mm`` over +-``slide_range_mm``
+   (default half the CT's length; ``+slide-16``, ...), for the slides along the shaft ICP
+   cannot undo. Names read like ``network+flip+rot90+slide24``. With the defaults that is
+   3 bases x 16 rotations x ~50 slides, about 2,400 starts on a fibula.
+
+2. **Screening** (:func:`screen_starts`): all starts at once get a quick point-to-plane ICP
+   (``screen_iterations`` on ``screen_points`` US points, correspondences read from a
+   closest-point grid of the CT, :meth:`SurfaceCloud.nearest_approx`) and a quick score;
+   the ``refine_top`` best distinct ones go on, the network's own pose always among them.
+   Scoring *after* a few ICP steps matters: before them the right basin's starts rank in the
+   hundreds, after them first.
+
+3. **Refinement**: the kept starts are refined together, in one batch, of a subset of the
+   US cloud (``icp_points``, seeded uniform random) against a dense cloud of the CT surface
+   (``target_points`` area-uniform samples with their triangles' normals). Not an FPS subset:
+   farthest-point sampling picks isolated false echoes first (on simulated fibula sweeps ~3 %
+   of the points, 10-15 % of an FPS subset, more than ``icp_trim`` leaves out, enough to pull
+   the ICP 20 mm off the truth). Point-to-plane ICP
+   (:func:`~comreg_core.registration.icp.coarse_to_fine_icp`), coarse to fine: the
+   ``icp_schedule`` stages on evenly strided subsets (128, then 512 US points, 30 iterations
+   each), then ``icp_iterations`` on all ``icp_points``; after each stage only the hypotheses
+   whose residual is within ``icp_margin_mm`` of the best go on. (Point-to-point ICP, hard or
+   soft, crawls along a shaft, where the surface slides under the points: measured in
+   ``tests/benchmarks/bench_hypotheses.py`` before it was dropped.)
+
+4. **Score** (mm, lower is better): the trimmed mean distance of the hypothesis' registered US
+   subset to the CT surface: the mean of the smallest ``1 - score_trim`` share of the
+   point-to-surface distances, each taken to the tangent plane of the nearest dense CT point
+   (KD-tree, pykdtree; :meth:`SurfaceCloud.surface_distances`: unlike the plain
+   nearest-point distance it has almost no bias from the sample spacing, so a perfect fit
+   scores near 0 and the gaps between poses are not blurred). Trimming keeps false bone echoes
+   and parts of the sweep the CT does not explain from dominating.
+
+5. **Polish** (``polish``, needs the mesh): the best-scoring pose and the distinct poses *tied*
+   with it (confidence below ``min_confidence``, step 6; at most ``polish_top``) get a last
+   point-to-plane ICP of the same US subset against the *exact* closest points of the CT mesh
+   and their triangles' normals (the same ICP with :meth:`CTSurface.matcher`'s
+   correspondences, as the ``icp-gt``
+   baseline), pairs farther apart than ``polish_max_distance_mm`` (2 mm) left
+   out, and are re-scored with exact distances to the mesh. With several such poses each first
+   gets a quick polish (:data:`QUICK_POLISH_POINTS` points, :data:`QUICK_POLISH_ITERATIONS`),
+   and the chosen one is then polished in full (at most ``polish_iterations``). Why: the
+   refinement matches to the nearest of the dense CT samples and trims a share of the points,
+   so false echoes a few mm off the bone still pull on it; on simulated fibula sweeps it stopped
+   2-3 deg or 2-11 mm off in 5 of 100 trials that the gated exact polish brought to within
+   0.1 deg / 0.1 mm, and poses that the refinement scored alike (a flip at 0.19 mm, the truth's
+   basin at 0.17 mm) separate once polished (0.2 mm vs 0.006 mm). Median cost ~0.05 s, ~0.4 s
+   with ties. Built from a bare cloud, the target has no :attr:`~SurfaceCloud.surface` and
+   the polish is skipped.
+
+6. **Choice and confidence**: the best score wins (exact ties go to the network's own pose).
+   Two poses are *distinct* when rotated apart by more than ``distinct_deg`` or placing the US
+   centroid more than ``distinct_mm`` apart. ``confidence(a over b) = max(score_b - score_a,
+   0) / max(score_b, score_floor_mm)`` in [0, 1] (``score_floor_mm``, 0.05 mm: differences
+   between near-perfect fits are noise, not evidence). Poses over which the best has a
+   confidence below ``min_confidence`` are *tied* with it; with ``tie_break="network"`` the
+   tied pose rotated least from the network's pose sets the rotation (among the tied poses
+   rotated like it, the best score wins, so slides are still decided by the score): a flip or
+   a spin the geometry cannot tell apart is decided by the learned prior. The *runner-up* is
+   the best-scoring pose distinct from the chosen one (converged duplicates never count);
+   ``score_gap_mm = score(runner-up) - score(chosen)``; ``confidence`` = that of the chosen
+   pose over the runner-up (1 without a runner-up); ``ambiguous = confidence <
+   min_confidence``: another, clearly different pose explains the US points (nearly) as well,
+   e.g. a sweep of a featureless stretch of shaft. With the polish, only the polished poses
+   can be chosen (the others' scores are not exact, and they were not tied anyway); with
+   several, the choice is made on their quick-polish scores and the chosen one is then polished
+   in full (its final score is the one reported).
+
+7. **Second round** (``retry_ambiguous``): an ambiguous result may mean only that no start
+   landed in the right basin (from poses the network was not trained for, its bases can be
+   20-30 deg off and the grid's 45 deg spacing too coarse). Then steps 1-3 run again on the
+   grid interleaved with the first (rotations and slides shifted by half a step: ``+rot22.5``,
+   ``+slide4``, ...; the bases themselves are not repeated), and steps 5-6 choose among the
+   hypotheses of both rounds (poses polished in the first round are not polished again).
+   ``starts_tried`` counts both rounds. Costs about one more search, only for ambiguous
+   results.
+
+Use it standalone (no network needed)::
+
+    target = CTSurface("fibula.stl").cloud(20_000)
+    result = search_hypotheses(us_points, T_start, target)   # mm in, mm out
+    result.T_ct_us, result.chosen, result.confidence, result.ambiguous
+
+:class:`comreg_core.inference.Registrar` runs it after the network's ICP unless it is turned off
+(``hypotheses=False``; ``comreg register --no-hypotheses``), which reproduces the paper's plain
+pipeline exactly; ``comreg evaluate --method comreg --method comreg-plain`` compares both in one
+run. The stage repairs symmetric confusions of a coarse pose that is otherwise near the truth;
+for arbitrary starting orientations the network itself must be trained for them (training
+config ``data.pose: full``, the full-rotation sampler; evaluate with ``--perturbation full``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from comreg_core.errors import InvalidGeometryError
+from comreg_core.registration.config import HypothesisConfig
+from comreg_core.registration.icp import (apply_poses, coarse_to_fine_icp, point_to_plane_icp,
+                                          strided)
+from comreg_core.registration.polish import choose_and_polish
+from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, confidence_over,
+                                              same_pose, trimmed_mean)
+from comreg_core.registration.surface import SurfaceCloud, principal_frame
+from comreg_core.transforms import apply_transform, as_points, check_rigid, orthonormalize
+
+
+def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    """``(4, 4)`` rotation by ``angle`` (rad) about the line through ``centre`` along ``axis``."""
+    from scipy.spatial.transform import Rotation
+
+    axis = np.asarray(axis, dtype=np.float64)
+    R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = centre - R @ centre
+    return T
+
+
+def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
+                     completion: np.ndarray | None = None,
+                     config: HypothesisConfig | None = None, *,
+                     T_coarse: np.ndarray | None = None,
+                     grid_offset: float = 0.0) -> dict[str, np.ndarray]:
+    """The start poses ``{name: T_ct_us (4, 4) mm}`` of the hypotheses (module docstring).
+
+    Args:
+        T_start: ``(4, 4)`` mm, the pose the alternatives are built around.
+        target: the CT side (its principal frame is used without a completion).
+        completion: ``(M, 3)`` mm, the completed bone in the US frame, or None.
+        config: settings (default :class:`HypothesisConfig`).
+        T_coarse: ``(4, 4)`` mm, the network's coarse pose, or None.
+        grid_offset: shift of the rotations and slides, as a share of their steps (0.5: the
+            grid interleaved with the default one; the bases themselves are not included).
+    """
+    cfg = config or HypothesisConfig()
+    bases = {"network": check_rigid(T_start)}
+    if T_coarse is not None and cfg.include_coarse:
+        bases["coarse"] = check_rigid(T_coarse)
+    if completion is not None and cfg.principal_axes_solve:
+        c_us, a_us = principal_frame(completion)
+        T = np.eye(4)
+        T[:3, :3] = target.axes @ a_us.T
+        T[:3, 3] = target.centre - T[:3, :3] @ c_us
+        bases["pca"] = T
+    starts: dict[str, np.ndarray] = {}
+    slides = slide_offsets_mm(target, cfg) + grid_offset * cfg.slide_step_mm
+    for base, T_base in bases.items():
+        if completion is not None:
+            centre, axes = principal_frame(apply_transform(T_base, completion))
+        else:
+            centre, axes = target.centre, target.axes
+        flip = rotation_about(centre, axes[:, 1], math.pi)
+        for flipped in ((False, True) if cfg.axis_flips else (False,)):
+            for k in range(cfg.shaft_rotations):
+                angle = 360.0 * (k + grid_offset) / cfg.shaft_rotations
+                G = rotation_about(centre, axes[:, 0], math.radians(angle))
+                G = G @ flip if flipped else G
+                name = base + ("+flip" if flipped else "") + (f"+rot{angle:g}" if angle else "")
+                for slide in slides:
+                    S = np.eye(4)
+                    S[:3, 3] = slide * axes[:, 0]
+                    starts[name + (f"+slide{slide:g}" if slide else "")] = S @ G @ T_base
+    return starts
+
+
+def slide_offsets_mm(target: SurfaceCloud, config: HypothesisConfig) -> np.ndarray:
+    """Slides along the long axis tried per rotation hypothesis (mm, 0 first, then by
+    increasing size): multiples of ``slide_step_mm`` up to ``slide_range_mm`` (default half
+    the CT's length along its long axis); just ``[0]`` when ``slide_step_mm`` is 0."""
+    if config.slide_step_mm == 0:
+        return np.zeros(1)
+    reach = config.slide_range_mm
+    if reach is None:
+        along = (target.points - target.centre) @ target.axes[:, 0]
+        reach = 0.5 * float(along.max() - along.min())
+    steps = np.arange(1, int(reach // config.slide_step_mm) + 1) * config.slide_step_mm
+    return np.concatenate([[0.0], np.stack([steps, -steps], axis=1).ravel()])
+
+
+def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceCloud,
+                  config: HypothesisConfig, *, keep_first: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Pick the starts worth a full ICP: ``screen_iterations`` of point-to-plane ICP on
+    ``screen_points`` US points for every start at once (correspondences from the CT's
+    closest-point grid, :meth:`SurfaceCloud.nearest_approx`), then a quick score (trimmed
+    mean distance of ``screen_score_points`` US points to the CT); keep the first start (the
+    network's own pose, unmoved; unless ``keep_first`` is False) and then the best-scoring
+    ones, skipping those within
+    ``distinct_deg`` and ``distinct_mm`` (US centroid) of one already kept, up to
+    ``refine_top`` in all (all of them, unmoved, when ``refine_top`` is 0 or not below ``B``).
+
+    Args:
+        us_points: ``(n, 3)`` mm, US points (US frame).
+        starts: ``(B, 4, 4)`` mm start poses ``T_ct_us``.
+
+    Returns:
+        ``(K,)`` indices of the kept starts and their ``(K, 4, 4)`` screened poses.
+    """
+    if config.refine_top == 0 or len(starts) <= config.refine_top:
+        return np.arange(len(starts)), starts
+
+    poses = point_to_plane_icp(strided(us_points, config.screen_points), starts,
+                               target.match_approx, iterations=config.screen_iterations,
+                               trim_fraction=config.icp_trim, tolerance_mm=0.1).T
+    sub = strided(us_points, config.screen_score_points)
+    moved = apply_poses(poses, sub)  # B n 3
+    scores = trimmed_mean(target.surface_distances(moved, approximate=True), config.score_trim)
+    centroids = apply_poses(poses, us_points.mean(axis=0)[None])[:, 0]  # B 3
+    chosen = [0] if keep_first else []
+    for i in np.argsort(scores, kind="stable"):
+        if len(chosen) == config.refine_top:
+            break
+        if not chosen or not same_pose(poses, centroids, i, np.array(chosen), config).any():
+            chosen.append(int(i))
+    kept = np.array(chosen)
+    screened = poses[kept]
+    if keep_first:
+        screened[0] = starts[0]
+    return kept, screened
+
+
+def us_subset(points: np.ndarray, count: int) -> np.ndarray:
+    """``min(count, N)`` of the ``(N, 3)`` US points (mm) for the hypotheses' ICP and score: a
+    uniform subset (seed 0: the same points every run) kept in sweep order."""
+    if len(points) <= count:
+        return points
+    return points[np.sort(np.random.default_rng(0).choice(len(points), count, replace=False))]
+
+
+def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
+                      completion: np.ndarray | None = None,
+                      config: HypothesisConfig | None = None, *,
+                      T_coarse: np.ndarray | None = None) -> HypothesisResult:
+    """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
+
+    With ``retry_ambiguous``, an ambiguous result gets a second round from the grid of starts
+    interleaved with the first (rotations and slides shifted by half a step), and the choice
+    is made again among the hypotheses of both rounds.
+
+    Args:
+        us_points: ``(N, 3)`` mm, the observed US bone points in their own (US) frame.
+        T_start: ``(4, 4)`` mm, the start ``T_ct_us`` (the network's pose after its ICP).
+        target: the CT side, :class:`SurfaceCloud` (e.g. ``from_mesh``).
+        completion: ``(M, 3)`` mm, the completed bone in the US frame (the network's output),
+            or None (the CT's principal frame stands in; no principal-axes solve).
+        config: settings (default :class:`HypothesisConfig`; ``enabled`` is not looked at
+            here: calling this function runs the stage).
+        T_coarse: ``(4, 4)`` mm, the coarse pose before the network's ICP, or None.
+
+    Returns:
+        :class:`HypothesisResult` (all mm).
+    """
+    cfg = config or HypothesisConfig()
+    pts = as_points(us_points, "US points")
+    if len(pts) < 6:  # 6 point-to-surface constraints for the 6 degrees of freedom
+        raise InvalidGeometryError(f"The US cloud has {len(pts)} points; the hypotheses need at "
+                                   "least 6.", "Pass a denser US bone surface.")
+    if completion is not None:
+        completion = as_points(completion, "completion points")
+        if len(completion) < 4:
+            completion = None
+    subset_mm = us_subset(pts, cfg.icp_points)  # n 3
+    centroid = pts.mean(axis=0)  # the US centroid, placed by each pose
+    T_network = check_rigid(T_start)
+    names: list[str] = []
+    starts: list[np.ndarray] = []
+    poses = np.zeros((0, 4, 4))
+    scores, rmse = np.zeros(0), np.zeros(0)
+    polishes: list[dict[str, Any] | None] = []
+    tried = 0
+    for offset in (0.0, 0.5) if cfg.retry_ambiguous else (0.0,):
+        grid = build_hypotheses(T_network, target, completion, cfg, T_coarse=T_coarse,
+                                grid_offset=offset)
+        tried += len(grid)
+        new_names, new_starts, new_poses, new_rmse = refine_starts(
+            subset_mm, grid, target, cfg, keep_first=offset == 0.0)
+        names += new_names
+        starts += new_starts
+        poses = np.concatenate([poses, new_poses])
+        rmse = np.concatenate([rmse, new_rmse])
+        scores = np.concatenate([scores, trimmed_mean(
+            target.surface_distances(apply_poses(new_poses, subset_mm)), cfg.score_trim)])
+        polishes += [None] * len(new_names)
+        best, runner = choose_and_polish(subset_mm, centroid, poses, scores, polishes,
+                                         T_network, target, cfg)
+        confidence = 1.0 if runner is None else float(
+            confidence_over(scores[best], scores[runner], cfg))
+        if confidence >= cfg.min_confidence:
+            break
+    gap = None if runner is None else float(scores[runner] - scores[best])
+    hypotheses = tuple(Hypothesis(n, starts[i], poses[i], float(scores[i]),
+                                  float(rmse[i]) if math.isfinite(rmse[i]) else float("nan"),
+                                  polishes[i])
+                       for i, n in enumerate(names))
+    return HypothesisResult(T_ct_us=poses[best], chosen=names[best],
+                            runner_up=None if runner is None else names[runner],
+                            score_gap_mm=gap, confidence=confidence,
+                            ambiguous=confidence < cfg.min_confidence,
+                            hypotheses=hypotheses, starts_tried=tried)
+
+
+def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: SurfaceCloud,
+                  config: HypothesisConfig, *, keep_first: bool
+                  ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
+    """Steps 2-3 of the module docstring for the start poses ``grid`` ``{name: (4, 4)}``:
+    screen them (``keep_first``: the first one, the network's own pose, always goes on), refine
+    the kept ones. Returns their names, start poses, ``(K, 4, 4)`` refined poses (mm) and
+    ``(K,)`` ICP residuals (mm)."""
+    all_names = list(grid)
+    kept, screened = screen_starts(subset_mm, np.stack(list(grid.values())), target, config,
+                                   keep_first=keep_first)
+    names = [all_names[i] for i in kept]
+    refined, rmse = coarse_to_fine_icp(subset_mm, screened, target.match,
+                                       iterations=config.icp_iterations,
+                                       schedule=config.icp_schedule,
+                                       margin_mm=config.icp_margin_mm,
+                                       trim_fraction=config.icp_trim)
+    poses = np.stack([orthonormalize(T) for T in refined])
+    return names, [grid[n] for n in names], poses, rmse
