@@ -256,6 +256,9 @@ def register(
                                     "that fits the CT best and flag the result ambiguous when "
                                     "another pose fits about as well. --no-hypotheses is the "
                                     "paper's plain pipeline."),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML with a 'hypotheses:' "
+                                          "section (the pose search's settings), e.g. the "
+                                          "config.yaml of an earlier registration."),
 ) -> None:
     """Register a US bone surface to the CT in one forward pass (completion, coarse pose, ICP),
     then check the pose against its symmetric alternatives (unless --no-hypotheses).
@@ -266,10 +269,16 @@ def register(
     100,000 points is registered as a seeded uniform subset of 100,000 (said in a warning).
     --out must not be the run folder or inside it.
     """
-    from comreg_core.inference import register_to_directory
+    from dataclasses import replace
 
+    from comreg_core.inference import register_to_directory
+    from comreg_core.registration.config import load_register_config
+
+    search = load_register_config(config).hypotheses
     result = register_to_directory(run_dir, us_points, out, device=device.value, seed=seed,
-                                   ct_mesh=ct_mesh, hypotheses=hypotheses)
+                                   ct_mesh=ct_mesh,
+                                   hypotheses=search if hypotheses else replace(search,
+                                                                                enabled=False))
     typer.echo(f"wrote {out}: {result.n_points} points registered in {result.runtime_s:.2f} s on "
                f"{result.device}; median residual {result.residuals['median']:.2f} mm")
     if result.hypotheses is not None:
@@ -313,6 +322,9 @@ def evaluate(
         "run: 'comreg' (with the hypotheses stage), 'comreg-plain' (the paper's pipeline, "
         "without it), 'ransac', 'icp-gt', or 'all' (every method)."),
     device: Device = typer.Option(Device.auto, help="Where to run the network."),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML with sections "
+                                          "'hypotheses:' (the comreg method's pose search) and "
+                                          "'baselines:' ('ransac:', 'icp_gt:')."),
 ) -> None:
     """Measure registration accuracy from random initial poses: RTE, RRE, CD, HD95, success and
     flip rates, runtime (and, for ComReg, how often it flags its result ambiguous), for ComReg
@@ -320,20 +332,24 @@ def evaluate(
     the ground truth), written to metrics.json."""
     from comreg_core.evaluation.evaluate import evaluate as run_evaluation
     from comreg_core.evaluation.evaluate import write_metrics
-    from comreg_core.evaluation.methods import method_names, registration_methods
+    from comreg_core.evaluation.methods import (load_evaluate_config, method_names,
+                                                registration_methods)
     from comreg_core.inference import limit_us_points
     from comreg_core.io import load_transform, read_points
     from comreg_core.io._files import check_output_folder
     from comreg_core.training import run_ct_mesh
 
     simulated = us_points == "simulated"
-    check_output_folder(out, inputs=[run_dir, gt] + ([] if simulated else [us_points]))
+    check_output_folder(out, inputs=[run_dir, gt, config] + ([] if simulated else [us_points]))
+    settings = load_evaluate_config(config)
     cloud = None if simulated else read_points(us_points)  # the cheap inputs first
     ct = run_ct_mesh(run_dir)
     T_gt = load_transform(gt, space=ct.space) if gt is not None else None
     clouds = "simulated" if simulated else limit_us_points(cloud.in_space(ct.space).points, seed)
     names = method_names([m.value for m in method])
-    methods = registration_methods(names, run_dir, ct, device=device.value, seed=seed)
+    methods = registration_methods(names, run_dir, ct, device=device.value, seed=seed,
+                                   hypotheses=settings.hypotheses,
+                                   baseline_config=settings.baselines)
     if not simulated:
         _check_us_cloud(methods, clouds)
     with _progress_bar(trials * len(methods), "evaluating") as advance:

@@ -116,16 +116,17 @@ def to_dict(config) -> dict[str, Any]:
 
 
 def load_config(cls: type[T], path: str | Path | None = None, overrides: dict | None = None,
-                section: str | None = None) -> T:
+                section: str | None = None, ignore: tuple[str, ...] = ()) -> T:
     """Defaults of ``cls``, updated from the YAML file at ``path`` then from ``overrides``.
 
     With ``section``, a file holding a mapping with that key (e.g. a run's ``config.yaml`` with
     ``simulation:`` beside other sections) contributes only that section; a file without the key
-    is taken as the section's own keys.
+    is taken as the section's own keys. Top-level keys in ``ignore`` are left out (records a
+    command writes beside its settings, e.g. ``inputs:``).
     """
     data: dict[str, Any] = {}
     if path is not None:
-        data = read_yaml_mapping(path)
+        data = {k: v for k, v in read_yaml_mapping(path).items() if k not in ignore}
         if section is not None and section in data:
             data = data[section] or {}
     merged = deep_merge(data, overrides or {})

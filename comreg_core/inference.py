@@ -475,12 +475,12 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
     write_points(PointCloud(result.registered_points, registrar.space),
                  out / files["registered_us"])
     write_points(PointCloud(result.completion_ct, registrar.space), out / files["completion_ct"])
-    settings = {"run_dir": str(run_dir), "us_points": str(us_points_path), "device": device,
-                "seed": int(seed), "icp_points": registrar.model.config.icp.num_points,
-                "ct_mesh": None if ct_mesh is None else str(ct_mesh),
-                "hypotheses": to_dict(registrar.hypothesis_config)}
-    with atomic_output(out / files["config"]) as tmp:
-        tmp.write_text(yaml.safe_dump({"register": settings}, sort_keys=False), encoding="utf-8")
+    inputs = {"run_dir": str(run_dir), "us_points": str(us_points_path), "device": device,
+              "seed": int(seed), "icp_points": registrar.model.config.icp.num_points,
+              "ct_mesh": None if ct_mesh is None else str(ct_mesh)}
+    settings = {"hypotheses": to_dict(registrar.hypothesis_config), "inputs": inputs}
+    with atomic_output(out / files["config"]) as tmp:  # comreg register --config reads it
+        tmp.write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
     verdict = registration_verdict(result, registrar)
     payload = {**result.to_json(), **verdict.to_json(), "space": registrar.space,
                "ct_fingerprint": registrar.fingerprint,

@@ -142,8 +142,11 @@ def test_register_to_directory_writes_the_result_folder(run, registrar, us_cloud
     assert len(read_points(out / "completion_ct.ply").points) == len(res.completion_ct)
     import yaml
 
-    settings = yaml.safe_load((out / "config.yaml").read_text())["register"]
-    assert settings["hypotheses"]["enabled"] is True
+    settings = yaml.safe_load((out / "config.yaml").read_text())
+    assert settings["hypotheses"]["enabled"] is True and settings["inputs"]["seed"] == 7
+    from comreg_core.registration.config import load_register_config
+
+    assert load_register_config(out / "config.yaml").hypotheses == registrar.hypothesis_config
     assert not list(out.glob(".*tmp*"))
     plain = register_to_directory(run, us_path, tmp_path / "plain", device="cpu",
                                   hypotheses=False)

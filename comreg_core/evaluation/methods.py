@@ -15,12 +15,15 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+from comreg_core.config import load_config
 from comreg_core.errors import ComRegError
 from comreg_core.evaluation.baselines import BASELINES, BaselineConfig, baseline_methods
 from comreg_core.inference import Registrar
-from comreg_core.registration import as_hypothesis_config
+from comreg_core.registration import HypothesisConfig, as_hypothesis_config
 
 COMREG_METHODS = ("comreg", "comreg-plain")
 #: Every method name, in the order ``all`` runs them.
@@ -43,6 +46,22 @@ def method_names(names: str | Iterable[str]) -> list[str]:
         raise ComRegError("No registration method was chosen.",
                           f"Use one or more of: {', '.join(METHODS)}, all.")
     return out
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """The settings of ``comreg evaluate --config FILE``: sections ``hypotheses:`` (the
+    ``comreg`` method's pose search) and ``baselines:`` (``ransac:``, ``icp_gt:``)."""
+
+    hypotheses: HypothesisConfig = field(default_factory=HypothesisConfig)
+    baselines: BaselineConfig = field(default_factory=BaselineConfig)
+
+
+def load_evaluate_config(path: str | Path | None = None,
+                         overrides: dict | None = None) -> EvaluateConfig:
+    """:class:`EvaluateConfig` from a YAML file (None: the defaults) and ``overrides``; a
+    registration's ``config.yaml`` works too (its ``inputs:`` record is ignored)."""
+    return load_config(EvaluateConfig, path, overrides, ignore=("inputs",))
 
 
 def registration_methods(names: str | Iterable[str], run_dir, ct_mesh, *, device: str = "auto",

@@ -213,13 +213,13 @@ class ComRegNet(nn.Module):
         cfg = self.config
         B = source.shape[0]
         start = self._start()
-        src_in = subsample(source, cfg.completion.input_points, start)  # B n 3
-        frame = self._input_frame(src_in)  # B 4 4
-        src_in = transform_points(frame, src_in)
-        if isinstance(target, TargetEncoding):
+        if isinstance(target, TargetEncoding):  # inference: the CT half is encoded once
             encoding = target
-            completion = self.completion(src_in)
-        else:
+            completion, pose = self.coarse_pose(source, encoding)
+        else:  # training: one pass of f over source and target clouds together
+            src_in = subsample(source, cfg.completion.input_points, start)  # B n 3
+            frame = self._input_frame(src_in)  # B 4 4
+            src_in = transform_points(frame, src_in)
             self._check_cloud(target, "target")
             if target.shape[0] not in (1, B):
                 raise ValueError(f"target batch {target.shape[0]} must be 1 or {B}")
@@ -237,8 +237,8 @@ class ComRegNet(nn.Module):
                 tokens, positions = self._tokens(self.completion(tgt_in, rebuild=False))
             encoding = TargetEncoding(tokens, positions,
                                       subsample(target, cfg.icp.num_points, start))
-        pose = self._coarse(completion, frame, encoding)
-        completion = self._unframe(completion, frame)
+            pose = self._coarse(completion, frame, encoding)
+            completion = self._unframe(completion, frame)
         icp_source = subsample(source, cfg.icp.num_points, start)  # B N_c 3
         if refine_only is None:
             icp = self.refine(icp_source, encoding, pose.transform)

@@ -3,10 +3,11 @@ section of a registration config (``comreg register/evaluate --config FILE``).""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
-from comreg_core.config import ConfigError, from_dict, require
+from comreg_core.config import ConfigError, from_dict, load_config, require
 
 #: The polish stops once an update moves no US point by more than this (mm).
 POLISH_TOLERANCE_MM = 0.01
@@ -153,3 +154,18 @@ def as_hypothesis_config(value) -> HypothesisConfig:
         return from_dict(HypothesisConfig, value, "hypotheses")
     raise ConfigError(f"Cannot use a {type(value).__name__} as the hypotheses setting.",
                       "Pass True, False, a HypothesisConfig or a mapping of its keys.")
+
+
+@dataclass(frozen=True)
+class RegisterConfig:
+    """The settings of ``comreg register --config FILE``: section ``hypotheses:`` (the pose
+    search, :class:`HypothesisConfig`). A registration's own ``config.yaml`` is such a file
+    (its ``inputs:`` record is ignored when it is read back)."""
+
+    hypotheses: HypothesisConfig = field(default_factory=HypothesisConfig)
+
+
+def load_register_config(path: str | Path | None = None,
+                         overrides: dict | None = None) -> RegisterConfig:
+    """:class:`RegisterConfig` from a YAML file (None: the defaults) and ``overrides``."""
+    return load_config(RegisterConfig, path, overrides, ignore=("inputs",))

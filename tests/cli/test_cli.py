@@ -218,6 +218,30 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     plain = json.loads((tmp_path / "plain" / "result.json").read_text())
     assert plain["ambiguous"] is None and plain["hypotheses"] is None
     assert plain["timings_s"]["hypotheses"] == 0.0
+    # --config: the pose search's settings from YAML, the same loader as pretrain's; a
+    # registration's config.yaml reads back; unknown keys are refused before any work
+    search = tmp_path / "search.yaml"
+    search.write_text(yaml.safe_dump({"hypotheses": {"shaft_rotations": 2, "slide_step_mm": 0,
+                                                     "retry_ambiguous": False}}))
+    result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out",
+                                 str(tmp_path / "narrow"), "--config", str(search)])
+    assert result.exit_code == 0, result.output
+    narrow = json.loads((tmp_path / "narrow" / "result.json").read_text())["hypotheses"]
+    assert narrow["starts_tried"] == 3 * 2 * 2 < saved["hypotheses"]["starts_tried"]
+    recorded = yaml.safe_load((tmp_path / "narrow" / "config.yaml").read_text())
+    assert recorded["hypotheses"]["shaft_rotations"] == 2
+    result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out",
+                                 str(tmp_path / "again"), "--config",
+                                 str(tmp_path / "narrow" / "config.yaml")])
+    assert result.exit_code == 0, result.output
+    again = json.loads((tmp_path / "again" / "result.json").read_text())["hypotheses"]
+    assert again["starts_tried"] == narrow["starts_tried"] and again["chosen"] == narrow["chosen"]
+    search.write_text(yaml.safe_dump({"hypotheses": {"rotations": 2}}))
+    for command in ("register", "evaluate"):
+        result = runner.invoke(app, [command, str(run), str(tmp_path / "us.ply"), "--out",
+                                     str(tmp_path / f"bad-{command}"), "--config", str(search)])
+        assert result.exit_code == 2 and "Unknown config key" in result.output, result.output
+        assert not (tmp_path / f"bad-{command}").exists()
     result = runner.invoke(app, ["evaluate", str(run), str(tmp_path / "us.ply"), "--out",
                                  str(tmp_path / "both"), "--trials", "1", "--method", "comreg",
                                  "--method", "comreg-plain", "--device", "cpu"])
@@ -234,6 +258,13 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
                                  str(tmp_path / "x"), "--ct", str(other)])
     assert result.exit_code == 2 and "trained for another CT" in result.output
 
+    gate = tmp_path / "gate.yaml"  # the baselines' section reaches evaluate too
+    gate.write_text(yaml.safe_dump({"baselines": {"icp_gt": {"max_iterations": 1}}}))
+    result = runner.invoke(app, ["evaluate", str(run), str(tmp_path / "us.ply"), "--out", str(out),
+                                 "--trials", "2", "--method", "icp-gt", "--config", str(gate)])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert {row["info"]["iterations"] for row in metrics["trials"]} == {1}
     result = runner.invoke(app, ["evaluate", str(run), str(tmp_path / "us.ply"), "--out", str(out),
                                  "--trials", "2", "--method", "icp-gt"])
     assert result.exit_code == 0, result.output

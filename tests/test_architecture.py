@@ -1,0 +1,87 @@
+"""The layers of docs/architecture.md, checked on the source: imports only go down, the
+registration package stays free of torch and the network, no module grows past ~500 lines."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: comreg_core's layers, lowest first: a module may import its own layer and those below.
+LAYERS = (
+    ("errors", "transforms", "runs", "progress", "pointsets"),
+    ("config", "io"),
+    ("surfaces",),
+    ("registration",),
+    ("simulation",),
+    ("model",),
+    ("training",),
+    ("inference",),
+    ("evaluation",),
+    ("report",),
+    ("demo", "cli_errors", "cli"),
+)
+LAYER = {name: rank for rank, names in enumerate(LAYERS) for name in names}
+MAX_LINES = 500
+
+
+def _modules(package: str) -> list[Path]:
+    return sorted(p for p in (ROOT / package).rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def _unit(path: Path) -> str:
+    """``comreg_core/registration/icp.py`` -> ``registration``; ``comreg_core/cli.py`` -> ``cli``."""
+    return path.relative_to(ROOT / "comreg_core").parts[0].removesuffix(".py")
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import in the file, inside functions too."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module == "comreg_core":  # from comreg_core import runs
+                found += [(node.lineno, f"comreg_core.{a.name}") for a in node.names]
+            else:
+                found.append((node.lineno, node.module))
+    return found
+
+
+def test_every_comreg_core_unit_has_a_layer():
+    units = {_unit(p) for p in _modules("comreg_core")} - {"__init__"}
+    assert units <= set(LAYER), f"give these a layer here and in docs/architecture.md: " \
+                                f"{sorted(units - set(LAYER))}"
+
+
+def test_imports_only_go_down_the_layers():
+    upward = []
+    for path in _modules("comreg_core"):
+        unit = _unit(path)
+        if unit == "__init__":
+            continue
+        for line, module in _imports(path):
+            parts = module.split(".")
+            if parts[0] == "comreg_plugin":
+                upward.append(f"{path.relative_to(ROOT)}:{line} imports the plugin")
+            if parts[0] != "comreg_core" or len(parts) < 2 or parts[1].startswith("__"):
+                continue
+            if LAYER[parts[1]] > LAYER[unit]:
+                upward.append(f"{path.relative_to(ROOT)}:{line} ({unit}) imports {module}")
+    assert not upward, "\n".join(upward)
+
+
+def test_registration_needs_no_torch_and_no_network():
+    heavy = [f"{p.relative_to(ROOT)}:{line} imports {module}"
+             for p in _modules("comreg_core/registration") for line, module in _imports(p)
+             if module.split(".")[0] == "torch" or module.startswith("comreg_core.model")]
+    assert not heavy, "\n".join(heavy)
+
+
+@pytest.mark.parametrize("package", ["comreg_core", "comreg_plugin"])
+def test_no_module_over_500_lines(package):
+    long = {str(p.relative_to(ROOT)): n for p in _modules(package)
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
+    assert not long, f"split these by concern: {long}"
