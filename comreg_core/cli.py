@@ -17,7 +17,7 @@ from typing import Optional
 
 import typer
 
-from comreg_core import runs
+from comreg_core import choices, runs
 from comreg_core import __version__
 from comreg_core.cli_errors import CommandApp, set_verbose
 
@@ -182,15 +182,8 @@ def extract_us(
                    f" voxels of {compound_spacing} mm")
 
 
-class Preset(str, Enum):
-    cpu = "cpu"
-    paper = "paper"
-
-
-class Device(str, Enum):
-    auto = "auto"
-    cpu = "cpu"
-    cuda = "cuda"
+Preset = Enum("Preset", {name: name for name in choices.PRESETS}, type=str)
+Device = Enum("Device", {name: name for name in choices.DEVICES}, type=str)
 
 
 @app.command("pretrain")
@@ -290,12 +283,7 @@ def register(
                    + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
 
 
-class Method(str, Enum):
-    comreg = "comreg"
-    comreg_plain = "comreg-plain"
-    ransac = "ransac"
-    icp_gt = "icp-gt"
-    all = "all"
+Method = Enum("Method", {name: name for name in choices.METHODS + ("all",)}, type=str)
 
 
 class Perturbation(str, Enum):

@@ -85,3 +85,16 @@ def test_no_module_over_500_lines(package):
     long = {str(p.relative_to(ROOT)): n for p in _modules(package)
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
     assert not long, f"split these by concern: {long}"
+
+
+def test_the_named_choices_are_what_the_packages_implement():
+    from comreg_core import choices
+    from comreg_core.evaluation.baselines import baseline_methods
+    from comreg_core.training.config import PRESETS, pretrain_preset
+
+    assert tuple(sorted(PRESETS)) == tuple(sorted(choices.PRESETS))
+    for name in choices.PRESETS:
+        assert pretrain_preset(name).preset == name
+    from tests.helpers import FIBULA_STL
+
+    assert set(baseline_methods(["icp-gt"], FIBULA_STL)) == {"icp-gt"}

@@ -17,21 +17,22 @@ Typical use::
     write_metrics(result, "out/metrics.json")
 """
 
-from comreg_core.evaluation.baselines import (BASELINES, BaselineConfig, IcpGtBaseline,
+from comreg_core.evaluation.baselines import (BaselineConfig, IcpGtBaseline,
                                               IcpGtConfig, RansacConfig, RansacIcpBaseline,
                                               baseline_config_from_dict, baseline_methods,
                                               require_open3d)
 from comreg_core.evaluation.evaluate import (EVALUATION_SEED_NAMESPACE, PERTURBATIONS,
                                              evaluate, evaluation_rng, simulated_us_clouds,
                                              summarize, write_metrics)
-from comreg_core.evaluation.methods import (COMREG_METHODS, METHODS, method_names,
-                                            registration_methods)
+from comreg_core.evaluation.methods import (EvaluateConfig, load_evaluate_config,
+                                            method_names, registration_methods)
 from comreg_core.evaluation.outputs import RegistrationOutput, as_registration_output
 
 __all__ = [
-    "BASELINES", "BaselineConfig", "IcpGtBaseline", "IcpGtConfig", "RansacConfig",
+    "BaselineConfig", "IcpGtBaseline", "IcpGtConfig", "RansacConfig",
     "RansacIcpBaseline", "baseline_config_from_dict", "baseline_methods", "require_open3d",
     "EVALUATION_SEED_NAMESPACE", "PERTURBATIONS", "evaluate", "evaluation_rng",
     "simulated_us_clouds", "summarize", "write_metrics", "RegistrationOutput",
-    "as_registration_output", "COMREG_METHODS", "METHODS", "method_names", "registration_methods",
+    "as_registration_output", "EvaluateConfig", "load_evaluate_config", "method_names",
+    "registration_methods",
 ]

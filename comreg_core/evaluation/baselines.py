@@ -35,6 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from comreg_core.choices import BASELINES
 from comreg_core.config import from_dict, require
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.evaluation.outputs import RegistrationOutput
@@ -42,8 +43,6 @@ from comreg_core.registration.icp import point_to_plane_icp
 from comreg_core.registration.surface import as_surface
 from comreg_core.transforms import as_points, check_rigid, orthonormalize
 
-#: Baselines :func:`baseline_methods` can build, by name.
-BASELINES = ("ransac", "icp-gt")
 
 
 @dataclass(frozen=True)

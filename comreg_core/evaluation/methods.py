@@ -19,15 +19,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from comreg_core.choices import BASELINES, COMREG_METHODS, METHODS
 from comreg_core.config import load_config
 from comreg_core.errors import ComRegError
-from comreg_core.evaluation.baselines import BASELINES, BaselineConfig, baseline_methods
+from comreg_core.evaluation.baselines import BaselineConfig, baseline_methods
 from comreg_core.inference import Registrar
 from comreg_core.registration import HypothesisConfig, as_hypothesis_config
-
-COMREG_METHODS = ("comreg", "comreg-plain")
-#: Every method name, in the order ``all`` runs them.
-METHODS = COMREG_METHODS + BASELINES
 
 
 def method_names(names: str | Iterable[str]) -> list[str]:

@@ -9,13 +9,11 @@ Modules: :mod:`.ops` (FPS, kNN, gather, Chamfer, quaternions), :mod:`.adapointr`
 from comreg_core.model.adapointr import AdaPoinTr, CompletionOutput
 from comreg_core.model.comreg import ComRegNet, ComRegOutput, TargetEncoding
 from comreg_core.model.config import (
-    MODEL_PRESETS,
     CompletionConfig,
     ICPConfig,
     LossConfig,
     ModelConfig,
     PoseHeadConfig,
-    model_preset,
 )
 from comreg_core.model.diff_icp import ICPResult, differentiable_icp, weighted_procrustes
 from comreg_core.model.losses import (
@@ -31,8 +29,8 @@ from comreg_core.model.pose_head import CorrespondencePoseHead, PoseHead, build_
 
 __all__ = [
     "AdaPoinTr", "CompletionOutput", "ComRegNet", "ComRegOutput", "TargetEncoding",
-    "MODEL_PRESETS", "CompletionConfig", "ICPConfig", "LossConfig", "ModelConfig",
-    "PoseHeadConfig", "model_preset", "ICPResult", "differentiable_icp", "weighted_procrustes",
+    "CompletionConfig", "ICPConfig", "LossConfig", "ModelConfig",
+    "PoseHeadConfig", "ICPResult", "differentiable_icp", "weighted_procrustes",
     "LossTerms", "comreg_loss", "output_loss", "pose_loss", "rotation_angle", "Normalization",
     "chamfer_l1", "furthest_point_sample", "gather_points", "knn", "PoseHead",
     "CorrespondencePoseHead", "build_pose_head",

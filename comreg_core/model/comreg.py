@@ -83,7 +83,8 @@ class ComRegNet(nn.Module):
     """Completion + registration network.
 
     Args:
-        config: :class:`ModelConfig` (e.g. ``model_preset("cpu")``).
+        config: :class:`ModelConfig` (e.g.
+                :func:`comreg_core.training.config.model_preset` ``("cpu")``).
     """
 
     def __init__(self, config: ModelConfig):

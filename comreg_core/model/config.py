@@ -1,4 +1,4 @@
-"""Typed configuration of the ComReg network and its two presets, ``paper`` and ``cpu``.
+"""Typed configuration of the ComReg network; its defaults are the ``paper`` preset.
 
 ``ModelConfig`` has four sections: ``completion`` (AdaPoinTr), ``pose`` (the coarse registration
 MLP), ``icp`` (the differentiable ICP) and ``loss``. The defaults are the ``paper`` preset: the
@@ -6,8 +6,9 @@ ComReg paper's numbers (20,000 points, sigma = 5e-3, K = 25, N_c = 4096, lambda_
 lambda_fine = 0.5, rho = 0.1, a five-block 512-wide pose MLP) and AdaPoinTr's PCN sizes for
 everything the paper takes from AdaPoinTr (384-wide encoder of depth 6 and decoder of depth 8,
 6 heads, k = 8 graph attention in the first block, proxies 512 -> 256, 1024-d global feature).
-The ``cpu`` preset shrinks the completion network and the point counts; it was chosen by measuring
-forward + backward time at batch 4 on 2 CPU cores (see ``tests/benchmarks/bench_model.py``).
+The ``cpu`` preset (:data:`comreg_core.training.config.PRESETS`) shrinks the completion network
+and the point counts; it was chosen by measuring forward + backward time at batch 4 on 2 CPU
+cores (see ``tests/benchmarks/bench_model.py``).
 
 All lengths (sigma) are in the network's normalised coordinates (see
 :mod:`comreg_core.model.normalization`).
@@ -19,7 +20,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from comreg_core.config import ConfigError, deep_merge, from_dict, require
+from comreg_core.config import require
 
 
 @dataclass(frozen=True)
@@ -233,45 +234,3 @@ class ModelConfig:
     pose: PoseHeadConfig = field(default_factory=PoseHeadConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     loss: LossConfig = field(default_factory=LossConfig)
-
-
-#: Differences of each preset from the defaults (which are the paper's values).
-#:
-#: ``cpu`` was chosen by timing one training step (forward + backward + full loss, batch 4, CT
-#: through ``f`` once per step) on 2 shared CPU cores, torch 2.13, 2 threads; minimum of 5 runs:
-#: this preset 0.53 s (6.7 M parameters); the same with ICP on 4096 points 0.85 s, with 4096
-#: input points 0.79 s, 256 queries 0.68 s, 32 ICP neighbours 0.72 s, a 256-wide depth-4
-#: transformer 0.66 s, depth 2 0.53 s, a 128-wide depth-2 net on 1024 points 0.38 s; the
-#: ``paper`` preset 8.2 s. ICP has no weights, so inference may use ``icp.num_points = 4096``
-#: with a model trained at 2048 (inference at batch 1: 0.08 s with 2048, 0.15 s with 4096).
-MODEL_PRESETS: dict[str, dict] = {
-    "paper": {},
-    "cpu": {
-        "input_frame": "centroid",
-        "completion": {
-            "input_points": 2048,
-            "center_num": [256, 128],
-            "encoder_dim": 192,
-            "encoder_depth": 3,
-            "decoder_dim": 192,
-            "decoder_depth": 3,
-            "num_heads": 6,
-            "global_feature_dim": 512,
-            "mlp_hidden": 512,
-            "num_query": 128,
-            "fold_grid": [4, 4],
-            "fold_hidden": 128,
-        },
-        "pose": {"token_dim": 256, "head": "correspondence"},
-        "loss": {"rho": 1.0},
-        "icp": {"num_points": 2048, "neighbors": 16},
-    },
-}
-
-
-def model_preset(name: str = "paper", overrides: dict | None = None) -> ModelConfig:
-    """The named preset (``"paper"`` or ``"cpu"``), optionally updated by a nested dict."""
-    if name not in MODEL_PRESETS:
-        raise ConfigError(f"Unknown model preset '{name}'.",
-                          f"Use one of: {', '.join(MODEL_PRESETS)}.")
-    return from_dict(ModelConfig, deep_merge(MODEL_PRESETS[name], overrides or {}), "model")

@@ -8,15 +8,16 @@ writes a run folder (``config.yaml``, ``ct_fingerprint.json``, ``checkpoint.pt``
 from comreg_core.training.checkpoint import (CheckpointError, ct_fingerprint, export_model,
                                              load_checkpoint,
                                              mesh_fingerprint, run_ct_mesh)
-from comreg_core.training.config import (PRETRAIN_PRESETS, DataConfig, PretrainConfig,
-                                         TrainingConfig, pretrain_preset)
+from comreg_core.training.config import (PRESETS, DataConfig, PretrainConfig,
+                                         TrainingConfig, model_preset,
+                                         pretrain_preset)
 from comreg_core.training.data import (SampleStream, TrainingCT, make_sample, sample_loader,
                                        validation_rng, validation_samples)
 from comreg_core.training.trainer import LOG_COLUMNS, TrainResult, pretrain, resolve_device
 
 __all__ = [
     "CheckpointError", "ct_fingerprint", "export_model", "load_checkpoint", "mesh_fingerprint", "run_ct_mesh",
-    "PRETRAIN_PRESETS", "DataConfig", "PretrainConfig", "TrainingConfig", "pretrain_preset",
+    "PRESETS", "DataConfig", "PretrainConfig", "TrainingConfig", "model_preset", "pretrain_preset",
     "SampleStream", "TrainingCT", "make_sample", "sample_loader", "validation_rng",
     "validation_samples", "LOG_COLUMNS", "TrainResult", "pretrain", "resolve_device",
 ]

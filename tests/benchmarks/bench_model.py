@@ -71,7 +71,8 @@ def _measure_model(preset: str, what: str, repeats: int, threads: int, queue) ->
     if threads:
         torch.set_num_threads(threads)
 
-    from comreg_core.model import ComRegNet, comreg_loss, model_preset
+    from comreg_core.model import ComRegNet, comreg_loss
+    from comreg_core.training.config import model_preset
 
     torch.manual_seed(0)
     cfg = model_preset(preset, {"icp": {"num_points": 4096}} if what == "infer1@4096" else None)
@@ -154,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from comreg_core.model import model_preset
+    from comreg_core.training.config import model_preset
 
     load = os.getloadavg()[0]
     threads = args.threads or torch.get_num_threads()

@@ -9,7 +9,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from comreg_core.model import ComRegNet, model_preset, output_loss
+from comreg_core.model import ComRegNet, output_loss
+from comreg_core.training.config import model_preset
 from comreg_core.model.losses import correspondence_loss, in_fine_gate
 from comreg_core.model.ops import (make_transform, matrix_to_quaternion, rotation_6d_to_matrix,
                                    transform_points)
