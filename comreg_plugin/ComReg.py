@@ -44,8 +44,9 @@ if importlib.util.find_spec("comreg_core") is None:  # an uninstalled checkout
     if os.path.isdir(os.path.join(_REPO_ROOT, "comreg_core")):
         sys.path.insert(0, _REPO_ROOT)
 
-from comreg_plugin.logic import (COMPLETED_BONE_NODE_NAME, METHODS,  # noqa: E402
-                                 ComRegLogic, ComRegParameterNode)
+from comreg_plugin.logic import ComRegLogic  # noqa: E402
+from comreg_plugin.parameter_node import ComRegParameterNode  # noqa: E402
+from comreg_plugin.registration import COMPLETED_BONE_NODE_NAME, METHODS  # noqa: E402
 from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModule,  # noqa: E402
                                          ScriptedLoadableModuleTest,
                                          ScriptedLoadableModuleWidget, VTKObservationMixin,
@@ -83,8 +84,8 @@ The bundled sample CT is from the UltraBones100k dataset (Wu et al. 2025, CC BY 
 
 
 #
-# ComRegParameterNode: defined in comreg_plugin/logic.py (imported above) so that batch code
-# can use the Logic without this file; decorated with Slicer's @parameterNodeWrapper inside
+# ComRegParameterNode: defined in comreg_plugin/parameter_node.py (imported above) so that batch
+# code can use the Logic without this file; decorated with Slicer's @parameterNodeWrapper inside
 # the application.
 #
 
@@ -431,7 +432,7 @@ class ComRegTest(ScriptedLoadableModuleTest):
         from comreg_core.io import load_transform
         from comreg_core.transforms import T_RAS_LPS
         from comreg_plugin import testing
-        from comreg_plugin.logic import arrayFromModelPoints, transformToParentRAS
+        from comreg_plugin.scene_io import arrayFromModelPoints, transformToParentRAS
 
         self.delayDisplay("Building the test data (sample CT, simulated sweep, known transform)")
         case = testing.buildSyntheticCase(self.workDir)
@@ -499,7 +500,7 @@ class ComRegTest(ScriptedLoadableModuleTest):
 def _readTransformWithSlicer(path):
     """Read a transform file with Slicer's own storage node into a new node; its to-parent
     matrix (RAS)."""
-    from comreg_plugin.logic import transformToParentRAS
+    from comreg_plugin.scene_io import transformToParentRAS
 
     scene = slicer.vtkMRMLScene()
     node = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode")

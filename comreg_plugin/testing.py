@@ -107,7 +107,7 @@ def poseErrors(T_estimated: np.ndarray, T_true: np.ndarray, points=None) -> dict
 def transformNodeErrors(transformNode, case: SyntheticCase) -> dict:
     """:func:`poseErrors` of a US->CT transform node (to parent, RAS) against ``case``: the node
     matrix is taken to LPS by ``T_RAS_LPS`` on both sides."""
-    from comreg_plugin.logic import transformToParentRAS
+    from comreg_plugin.scene_io import transformToParentRAS
 
     T_lps = T_RAS_LPS @ transformToParentRAS(transformNode) @ T_RAS_LPS
     return poseErrors(T_lps, case.T_ct_us, case.usPoints)
@@ -139,7 +139,7 @@ def checkScenesMatch(original, reloaded, atol: float = 1e-6) -> None:
     """Assert two scenes hold the same visible nodes (names and classes), the same linear
     transforms (to-parent matrices within ``atol``), the same point counts per model and the
     same transform parents."""
-    from comreg_plugin.logic import transformToParentRAS
+    from comreg_plugin.scene_io import transformToParentRAS
 
     a, b = sceneSummary(original), sceneSummary(reloaded)
     if a != b:

@@ -27,9 +27,11 @@ from comreg_core.surfaces.us import extract_us_surface  # noqa: E402
 from comreg_core.transforms import T_RAS_LPS, apply_transform  # noqa: E402
 from comreg_plugin import testing  # noqa: E402
 from comreg_plugin.ComReg import _readTransformWithSlicer  # noqa: E402
-from comreg_plugin.logic import (COMPLETED_BONE_NODE_NAME, TRANSFORM_NODE_NAME,  # noqa: E402
-                                 ComRegLogic, PretrainingJob, arrayFromModelPoints,
-                                 arraysFromModelMesh, transformToParentRAS)
+from comreg_plugin.logic import ComRegLogic  # noqa: E402
+from comreg_plugin.pretraining_job import PretrainingJob  # noqa: E402
+from comreg_plugin.registration import COMPLETED_BONE_NODE_NAME, TRANSFORM_NODE_NAME  # noqa: E402
+from comreg_plugin.scene_io import (arrayFromModelPoints, arraysFromModelMesh,  # noqa: E402
+                                    transformToParentRAS)
 from tests.helpers import FIBULA_STL, assert_close  # noqa: E402
 from tests.training.tiny import TINY  # noqa: E402
 
