@@ -55,6 +55,21 @@ class PretrainingStatus:
     message: str
     runDirectory: Path
 
+    def describe(self) -> str:
+        """One line for the user: state, epoch (of the total), loss, validation median RTE (mm)
+        and RRE (deg), and the error of a failed run."""
+        text = f"{self.state}: epoch {self.epoch}"
+        if self.totalEpochs:
+            text += f" of {self.totalEpochs}"
+        if self.loss is not None:
+            text += f", loss {self.loss:.4f}"
+        if "val_RTE_mm_median" in self.validation:
+            text += (f", validation RTE {self.validation['val_RTE_mm_median']:.2f} mm, RRE "
+                     f"{self.validation.get('val_RRE_deg_median', float('nan')):.2f} deg")
+        if self.state in ("failed",):
+            text += f" - {self.message}"
+        return text
+
 
 class PretrainingJob:
     """``comreg pretrain`` running in a background process; nothing here blocks.

@@ -52,6 +52,22 @@ class RegistrationSummary:
     runtimeSeconds: float
     info: dict = field(default_factory=dict)
 
+    def describe(self, ambiguous: bool, confidence: float) -> str:
+        """One line for the user: method, runtime (s), median distance to the CT (mm), the
+        ambiguity warning, confidence, the completed bone; ``ambiguous`` and ``confidence``
+        (-1 = none) as the parameter node holds them."""
+        text = f"{self.method}: {self.runtimeSeconds:.2f} s"
+        residuals = self.info.get("residuals_mm") or {}
+        if "median" in residuals:
+            text += f", median distance to CT {residuals['median']:.2f} mm"
+        if "ambiguous" in self.info:
+            text += ", AMBIGUOUS (check the pose)" if ambiguous else ""
+        if confidence >= 0:
+            text += f", confidence {confidence:.2f}"
+        if self.completedBoneNode is not None:
+            text += f"; '{COMPLETED_BONE_NODE_NAME}' added"
+        return text
+
 
 class RegistrationMethods:
     """The registration methods of one logic, each prepared once: a Registrar per run folder

@@ -158,3 +158,18 @@ def checkScenesMatch(original, reloaded, atol: float = 1e-6) -> None:
             p1, p2 = n1.GetParentTransformNode(), n2.GetParentTransformNode()
             if (p1 and p1.GetName()) != (p2 and p2.GetName()):
                 raise AssertionError(f"'{name}' is under a different transform after reload")
+
+
+def readTransformWithSlicer(path) -> np.ndarray:
+    """Read a transform file with Slicer's own storage node into a new node; its ``(4, 4)``
+    to-parent matrix (RAS)."""
+    from comreg_plugin.scene_io import transformToParentRAS
+    from comreg_plugin.slicer_compat import slicer
+
+    scene = slicer.vtkMRMLScene()
+    node = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode")
+    storage = scene.AddNewNodeByClass("vtkMRMLTransformStorageNode")
+    storage.SetFileName(str(path))
+    if not storage.ReadData(node):
+        raise AssertionError(f"Slicer could not read the transform file '{path}'")
+    return transformToParentRAS(node)

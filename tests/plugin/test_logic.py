@@ -26,7 +26,6 @@ from comreg_core.surfaces.ct import extract_bone_surface  # noqa: E402
 from comreg_core.surfaces.us import extract_us_surface  # noqa: E402
 from comreg_core.transforms import T_RAS_LPS, apply_transform  # noqa: E402
 from comreg_plugin import testing  # noqa: E402
-from comreg_plugin.ComReg import _readTransformWithSlicer  # noqa: E402
 from comreg_plugin.logic import ComRegLogic  # noqa: E402
 from comreg_plugin.pretraining_job import PretrainingJob  # noqa: E402
 from comreg_plugin.registration import COMPLETED_BONE_NODE_NAME, TRANSFORM_NODE_NAME  # noqa: E402
@@ -207,7 +206,7 @@ def test_transform_files_read_back_by_slicer_and_comreg(registered, tmp_path):
     T_ras = transformToParentRAS(summary.transformNode)
     for ext in (".tfm", ".h5"):
         path = logic.saveTransform(summary.transformNode, tmp_path / f"us_to_ct{ext}")
-        assert_close(_readTransformWithSlicer(path), T_ras, atol=1e-6,
+        assert_close(testing.readTransformWithSlicer(path), T_ras, atol=1e-6,
                      what=f"Slicer reading ComReg's {ext}")
         assert_close(load_transform(path), summary.T_ct_us, atol=1e-6, what=f"LPS {ext}")
         assert_close(load_transform(path, space="RAS"), T_ras, atol=1e-6)
