@@ -27,7 +27,6 @@ from comreg_core.surfaces.us import extract_us_surface  # noqa: E402
 from comreg_core.transforms import T_RAS_LPS, apply_transform  # noqa: E402
 from comreg_plugin import testing  # noqa: E402
 from comreg_plugin.logic import ComRegLogic  # noqa: E402
-from comreg_plugin.pretraining_job import PretrainingJob  # noqa: E402
 from comreg_plugin.registration import COMPLETED_BONE_NODE_NAME, TRANSFORM_NODE_NAME  # noqa: E402
 from comreg_plugin.scene_io import (arrayFromModelPoints, arraysFromModelMesh,  # noqa: E402
                                     transformToParentRAS)
@@ -428,12 +427,3 @@ def test_models_with_polygons_or_without_points(logic):
     with pytest.raises(ComRegError, match="no surface"):
         logic.register(points, "ransac", ctModelNode=points)
 
-
-def test_pretraining_job_reports_a_failed_run(logic, tmp_path):
-    (tmp_path / "empty.stl").write_bytes(b"")
-    job = logic.startPretraining(tmp_path / "empty.stl", tmp_path / "run", epochs=1,
-                                 device="cpu")
-    status = job.wait(timeoutSeconds=120, intervalSeconds=0.2)
-    assert status.state == "failed" and status.returnCode == 2
-    assert "empty.stl" in status.message  # the CLI's one-line error, not a traceback
-    assert isinstance(job, PretrainingJob)
