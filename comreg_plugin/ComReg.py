@@ -44,9 +44,10 @@ if importlib.util.find_spec("comreg_core") is None:  # an uninstalled checkout
     if os.path.isdir(os.path.join(_REPO_ROOT, "comreg_core")):
         sys.path.insert(0, _REPO_ROOT)
 
-from comreg_plugin.logic import (COMPLETED_BONE_NODE_NAME, METHODS,  # noqa: E402
-                                 ComRegLogic, ComRegParameterNode)
-from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModule,  # noqa: E402
+from comreg_plugin.logic import ComRegLogic  # noqa: E402
+from comreg_plugin.parameter_node import ComRegParameterNode  # noqa: E402
+from comreg_plugin.registration import METHODS  # noqa: E402
+from comreg_plugin.slicer_compat import (ScriptedLoadableModule,  # noqa: E402
                                          ScriptedLoadableModuleTest,
                                          ScriptedLoadableModuleWidget, VTKObservationMixin,
                                          slicer)
@@ -83,8 +84,8 @@ The bundled sample CT is from the UltraBones100k dataset (Wu et al. 2025, CC BY 
 
 
 #
-# ComRegParameterNode: defined in comreg_plugin/logic.py (imported above) so that batch code
-# can use the Logic without this file; decorated with Slicer's @parameterNodeWrapper inside
+# ComRegParameterNode: defined in comreg_plugin/parameter_node.py (imported above) so that batch
+# code can use the Logic without this file; decorated with Slicer's @parameterNodeWrapper inside
 # the application.
 #
 
@@ -340,17 +341,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._timer.stop()
             return
         status = self.logic.pollPretraining()
-        text = f"{status.state}: epoch {status.epoch}"
-        if status.totalEpochs:
-            text += f" of {status.totalEpochs}"
-        if status.loss is not None:
-            text += f", loss {status.loss:.4f}"
-        if "val_RTE_mm_median" in status.validation:
-            text += (f", validation RTE {status.validation['val_RTE_mm_median']:.2f} mm, RRE "
-                     f"{status.validation.get('val_RRE_deg_median', float('nan')):.2f} deg")
-        if status.state in ("failed",):
-            text += f" - {status.message}"
-        self.pretrainingLabel.text = text
+        self.pretrainingLabel.text = status.describe()
         if status.state != "running":
             self._timer.stop()
 
@@ -358,17 +349,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         def register():
             summary = self.logic.register()
             p = self._parameterNode
-            text = f"{summary.method}: {summary.runtimeSeconds:.2f} s"
-            residuals = summary.info.get("residuals_mm") or {}
-            if "median" in residuals:
-                text += f", median distance to CT {residuals['median']:.2f} mm"
-            if "ambiguous" in summary.info:
-                text += ", AMBIGUOUS (check the pose)" if p.ambiguous else ""
-            if p.confidence >= 0:
-                text += f", confidence {p.confidence:.2f}"
-            if summary.completedBoneNode is not None:
-                text += f"; '{COMPLETED_BONE_NODE_NAME}' added"
-            self.resultLabel.text = text
+            self.resultLabel.text = summary.describe(p.ambiguous, p.confidence)
         self._run("Registration failed.", register)
 
     def onSaveTransform(self):
@@ -431,7 +412,7 @@ class ComRegTest(ScriptedLoadableModuleTest):
         from comreg_core.io import load_transform
         from comreg_core.transforms import T_RAS_LPS
         from comreg_plugin import testing
-        from comreg_plugin.logic import arrayFromModelPoints, transformToParentRAS
+        from comreg_plugin.scene_io import arrayFromModelPoints, transformToParentRAS
 
         self.delayDisplay("Building the test data (sample CT, simulated sweep, known transform)")
         case = testing.buildSyntheticCase(self.workDir)
@@ -461,7 +442,7 @@ class ComRegTest(ScriptedLoadableModuleTest):
         T_ras = transformToParentRAS(summary.transformNode)
         for ext in (".tfm", ".h5"):
             path = logic.saveTransform(summary.transformNode, Path(self.workDir) / f"T{ext}")
-            readBack = _readTransformWithSlicer(path)
+            readBack = testing.readTransformWithSlicer(path)
             self.assertLess(np.abs(readBack - T_ras).max(), 1e-6)
             self.assertLess(np.abs(load_transform(path) - T_RAS_LPS @ T_ras @ T_RAS_LPS).max(),
                             1e-6)
@@ -494,17 +475,3 @@ class ComRegTest(ScriptedLoadableModuleTest):
         with self.assertRaisesRegex(ComRegError, "no US points"):
             logic.register(method="ransac")
         self.delayDisplay("Bad inputs give clear errors")
-
-
-def _readTransformWithSlicer(path):
-    """Read a transform file with Slicer's own storage node into a new node; its to-parent
-    matrix (RAS)."""
-    from comreg_plugin.logic import transformToParentRAS
-
-    scene = slicer.vtkMRMLScene()
-    node = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode")
-    storage = scene.AddNewNodeByClass("vtkMRMLTransformStorageNode")
-    storage.SetFileName(str(path))
-    if not storage.ReadData(node):
-        raise AssertionError(f"Slicer could not read the transform file '{path}'")
-    return transformToParentRAS(node)

@@ -107,7 +107,7 @@ def poseErrors(T_estimated: np.ndarray, T_true: np.ndarray, points=None) -> dict
 def transformNodeErrors(transformNode, case: SyntheticCase) -> dict:
     """:func:`poseErrors` of a US->CT transform node (to parent, RAS) against ``case``: the node
     matrix is taken to LPS by ``T_RAS_LPS`` on both sides."""
-    from comreg_plugin.logic import transformToParentRAS
+    from comreg_plugin.scene_io import transformToParentRAS
 
     T_lps = T_RAS_LPS @ transformToParentRAS(transformNode) @ T_RAS_LPS
     return poseErrors(T_lps, case.T_ct_us, case.usPoints)
@@ -139,7 +139,7 @@ def checkScenesMatch(original, reloaded, atol: float = 1e-6) -> None:
     """Assert two scenes hold the same visible nodes (names and classes), the same linear
     transforms (to-parent matrices within ``atol``), the same point counts per model and the
     same transform parents."""
-    from comreg_plugin.logic import transformToParentRAS
+    from comreg_plugin.scene_io import transformToParentRAS
 
     a, b = sceneSummary(original), sceneSummary(reloaded)
     if a != b:
@@ -158,3 +158,18 @@ def checkScenesMatch(original, reloaded, atol: float = 1e-6) -> None:
             p1, p2 = n1.GetParentTransformNode(), n2.GetParentTransformNode()
             if (p1 and p1.GetName()) != (p2 and p2.GetName()):
                 raise AssertionError(f"'{name}' is under a different transform after reload")
+
+
+def readTransformWithSlicer(path) -> np.ndarray:
+    """Read a transform file with Slicer's own storage node into a new node; its ``(4, 4)``
+    to-parent matrix (RAS)."""
+    from comreg_plugin.scene_io import transformToParentRAS
+    from comreg_plugin.slicer_compat import slicer
+
+    scene = slicer.vtkMRMLScene()
+    node = scene.AddNewNodeByClass("vtkMRMLLinearTransformNode")
+    storage = scene.AddNewNodeByClass("vtkMRMLTransformStorageNode")
+    storage.SetFileName(str(path))
+    if not storage.ReadData(node):
+        raise AssertionError(f"Slicer could not read the transform file '{path}'")
+    return transformToParentRAS(node)

@@ -26,10 +26,10 @@ from comreg_core.surfaces.ct import extract_bone_surface  # noqa: E402
 from comreg_core.surfaces.us import extract_us_surface  # noqa: E402
 from comreg_core.transforms import T_RAS_LPS, apply_transform  # noqa: E402
 from comreg_plugin import testing  # noqa: E402
-from comreg_plugin.ComReg import _readTransformWithSlicer  # noqa: E402
-from comreg_plugin.logic import (COMPLETED_BONE_NODE_NAME, TRANSFORM_NODE_NAME,  # noqa: E402
-                                 ComRegLogic, PretrainingJob, arrayFromModelPoints,
-                                 arraysFromModelMesh, transformToParentRAS)
+from comreg_plugin.logic import ComRegLogic  # noqa: E402
+from comreg_plugin.registration import COMPLETED_BONE_NODE_NAME, TRANSFORM_NODE_NAME  # noqa: E402
+from comreg_plugin.scene_io import (arrayFromModelPoints, arraysFromModelMesh,  # noqa: E402
+                                    transformToParentRAS)
 from tests.helpers import FIBULA_STL, assert_close  # noqa: E402
 from tests.training.tiny import TINY  # noqa: E402
 
@@ -205,7 +205,7 @@ def test_transform_files_read_back_by_slicer_and_comreg(registered, tmp_path):
     T_ras = transformToParentRAS(summary.transformNode)
     for ext in (".tfm", ".h5"):
         path = logic.saveTransform(summary.transformNode, tmp_path / f"us_to_ct{ext}")
-        assert_close(_readTransformWithSlicer(path), T_ras, atol=1e-6,
+        assert_close(testing.readTransformWithSlicer(path), T_ras, atol=1e-6,
                      what=f"Slicer reading ComReg's {ext}")
         assert_close(load_transform(path), summary.T_ct_us, atol=1e-6, what=f"LPS {ext}")
         assert_close(load_transform(path, space="RAS"), T_ras, atol=1e-6)
@@ -427,12 +427,3 @@ def test_models_with_polygons_or_without_points(logic):
     with pytest.raises(ComRegError, match="no surface"):
         logic.register(points, "ransac", ctModelNode=points)
 
-
-def test_pretraining_job_reports_a_failed_run(logic, tmp_path):
-    (tmp_path / "empty.stl").write_bytes(b"")
-    job = logic.startPretraining(tmp_path / "empty.stl", tmp_path / "run", epochs=1,
-                                 device="cpu")
-    status = job.wait(timeoutSeconds=120, intervalSeconds=0.2)
-    assert status.state == "failed" and status.returnCode == 2
-    assert "empty.stl" in status.message  # the CLI's one-line error, not a traceback
-    assert isinstance(job, PretrainingJob)

@@ -14,7 +14,7 @@ from tests.plugin.conftest import SLICER_CORE_MISSING
 pytest.importorskip("slicer_core", reason=SLICER_CORE_MISSING)
 
 from comreg_core.errors import ComRegError  # noqa: E402
-from comreg_plugin.logic import arrayFromModelPoints, transformToParentRAS  # noqa: E402
+from comreg_plugin.scene_io import arrayFromModelPoints, transformToParentRAS  # noqa: E402
 
 WRONG_KINDS = ["vtkMRMLSegmentationNode", "vtkMRMLLinearTransformNode",
                "vtkMRMLScalarVolumeNode"]

@@ -19,7 +19,8 @@ import slicer  # noqa: E402
 
 from comreg_core.errors import ComRegError  # noqa: E402
 from comreg_plugin import ComReg as module  # noqa: E402
-from comreg_plugin.logic import ComRegLogic, ComRegParameterNode  # noqa: E402
+from comreg_plugin.logic import ComRegLogic  # noqa: E402
+from comreg_plugin.parameter_node import ComRegParameterNode  # noqa: E402
 from comreg_plugin.slicer_compat import IN_SLICER_APP  # noqa: E402
 
 

@@ -1,0 +1,187 @@
+"""Registration methods of the ComReg module and what a registration made.
+
+- :class:`RegistrationMethods`: the methods :meth:`comreg_plugin.logic.ComRegLogic.register`
+  runs: ``"comreg"`` (a pretrained run folder, :class:`comreg_core.inference.Registrar`),
+  ``"ransac"`` (the Open3D RANSAC + ICP baseline on the CT model) or any callable; each is
+  prepared once and reused while its inputs are unchanged.
+- :func:`runRegistration`: one method on ``(N, 3)`` RAS points -> ``T_ct_us`` in its space and
+  in RAS.
+- :class:`RegistrationSummary`: the nodes and numbers a registration left in the scene.
+"""
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from comreg_core.errors import ComRegError
+from comreg_core.transforms import apply_transform, check_rigid, space_change
+from comreg_plugin.pretraining_job import PretrainingJob
+from comreg_plugin.scene_io import arraysFromModelMesh, requireNode
+
+TRANSFORM_NODE_NAME = "ComReg US to CT"
+COMPLETED_BONE_NODE_NAME = "ComReg completed bone"
+COMPLETION_COLOR = (0.2, 0.8, 0.3)
+METHODS = ("comreg", "ransac")
+
+
+@dataclass
+class RegistrationSummary:
+    """What :meth:`ComRegLogic.register` made.
+
+    Attributes:
+        transformNode: the US->CT ``vtkMRMLLinearTransformNode`` (to parent, RAS).
+        completedBoneNode: the completed bone model (CT frame), or None (method without one).
+        T_ct_us: ``(4, 4)`` the estimate as the library returned it (in ``space``).
+        T_ct_us_ras: ``(4, 4)`` the same in RAS (= the node's to-parent matrix).
+        space: the patient space the method worked in ("LPS" unless the run says otherwise).
+        method: "comreg", "ransac" or the callable's name.
+        runtimeSeconds: the method's own registration time.
+        info: the method's extras (residuals, fitness, "ambiguous", "confidence", ...).
+    """
+
+    transformNode: Any
+    completedBoneNode: Any
+    T_ct_us: np.ndarray
+    T_ct_us_ras: np.ndarray
+    space: str
+    method: str
+    runtimeSeconds: float
+    info: dict = field(default_factory=dict)
+
+    def describe(self, ambiguous: bool, confidence: float) -> str:
+        """One line for the user: method, runtime (s), median distance to the CT (mm), the
+        ambiguity warning, confidence, the completed bone; ``ambiguous`` and ``confidence``
+        (-1 = none) as the parameter node holds them."""
+        text = f"{self.method}: {self.runtimeSeconds:.2f} s"
+        residuals = self.info.get("residuals_mm") or {}
+        if "median" in residuals:
+            text += f", median distance to CT {residuals['median']:.2f} mm"
+        if "ambiguous" in self.info:
+            text += ", AMBIGUOUS (check the pose)" if ambiguous else ""
+        if confidence >= 0:
+            text += f", confidence {confidence:.2f}"
+        if self.completedBoneNode is not None:
+            text += f"; '{COMPLETED_BONE_NODE_NAME}' added"
+        return text
+
+
+class RegistrationMethods:
+    """The registration methods of one logic, each prepared once: a Registrar per run folder
+    and device (while its checkpoint is unchanged), the RANSAC + ICP baseline of the last CT
+    model (while it is unchanged)."""
+
+    def __init__(self):
+        self._registrars: dict = {}
+        self._baselines: dict = {}
+
+    def clear(self) -> None:
+        """Forget every prepared method (the scene was replaced)."""
+        self._registrars.clear()
+        self._baselines.clear()
+
+    def registrar(self, runDirectory, device: str = "auto"):
+        """The :class:`comreg_core.inference.Registrar` of a run folder (cached while its
+        checkpoint is unchanged)."""
+        from comreg_core.inference import Registrar
+
+        run = Path(runDirectory)
+        checkpoint = run / PretrainingJob.CHECKPOINT_NAME if run.is_dir() else run
+        key = (str(run.resolve()), device)
+        stamp = checkpoint.stat().st_mtime_ns if checkpoint.is_file() else None
+        cached = self._registrars.get(key)
+        if cached is None or cached[0] != stamp or stamp is None:
+            self._registrars[key] = (stamp, Registrar.from_run(run, device))
+        return self._registrars[key][1]
+
+    def ransacBaseline(self, ctModelNode, seed: int = 0):
+        """The RANSAC + ICP baseline prepared for a CT model node (cached while it is
+        unchanged)."""
+        from comreg_core.evaluation.baselines import RansacIcpBaseline
+
+        requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
+                    "Pick the CT bone model (loaded from a segmentation or mesh).")
+        polydata = ctModelNode.GetPolyData()
+        key = (ctModelNode.GetID(), polydata.GetMTime() if polydata else 0, int(seed))
+        if key not in self._baselines:
+            vertices, faces = arraysFromModelMesh(ctModelNode)
+            lps = apply_transform(space_change("RAS", "LPS"), vertices)
+            self._baselines = {key: RansacIcpBaseline((lps, faces), seed=seed)}
+        return self._baselines[key]
+
+    def prepare(self, method, parameters, *, runDirectory, ctModelNode, seed: int,
+                device: str) -> tuple:
+        """``(space, run, name, runDirectory)`` of ``method`` ("comreg", "ransac" or a callable,
+        see :meth:`ComRegLogic.register <comreg_plugin.logic.ComRegLogic.register>`): ``run``
+        takes ``(N, 3)`` points in ``space`` and returns a result with ``T_ct_us``.
+        ``runDirectory`` and ``ctModelNode`` default to the ``parameters`` node's."""
+        if callable(method):
+            space, run = "LPS", method
+            methodName = getattr(method, "name", getattr(method, "__name__", "custom"))
+        elif method == "comreg":
+            runDirectory = runDirectory or parameters.runDirectory
+            if not runDirectory:
+                raise ComRegError("No pretrained run folder to register with.",
+                                  "Pretrain on this CT first, or choose the run folder.")
+            registrar = self.registrar(runDirectory, device)
+            space, methodName = registrar.space, "comreg"
+
+            def run(points):
+                return registrar.register(points, seed=seed)
+        elif method == "ransac":
+            ctModelNode = ctModelNode if ctModelNode is not None else parameters.ctModel
+            if ctModelNode is None:
+                raise ComRegError("The RANSAC baseline needs the CT bone model.",
+                                  "Load a CT segmentation or bone mesh first.")
+            baseline = self.ransacBaseline(ctModelNode, seed)
+            baseline.reseed(seed)
+            space, run, methodName = "LPS", baseline, "ransac"
+        else:
+            raise ComRegError(f"Unknown registration method '{method}'.",
+                              f"Use one of: {', '.join(METHODS)}, or pass a callable.")
+        return space, run, methodName, runDirectory
+
+
+def runRegistration(run, points_ras: np.ndarray, space: str) -> tuple:
+    """Run a prepared method on ``(N, 3)`` RAS points taken to ``space``.
+
+    Returns ``(output, T_ct_us, T_ct_us_ras, completion_ct)``: the
+    :class:`~comreg_core.evaluation.outputs.RegistrationOutput` (its runtime is the call's own),
+    the rigid ``(4, 4)`` estimate in ``space`` and in RAS, and the completed bone ``(M, 3)`` in
+    the CT frame (``space``) or None.
+    """
+    from comreg_core.evaluation.outputs import as_registration_output
+
+    points = apply_transform(space_change("RAS", space), points_ras)
+    start = time.perf_counter()
+    raw = run(points)
+    output = as_registration_output(raw, time.perf_counter() - start)
+    T = check_rigid(output.T_ct_us)
+    C = space_change(space, "RAS")
+    T_ras = C @ T @ np.linalg.inv(C)
+    completion_ct = getattr(raw, "completion_ct", None)
+    if completion_ct is None and output.completion is not None:
+        completion_ct = apply_transform(T, output.completion)
+    return output, T, T_ras, completion_ct
+
+
+def resultAttributes(output, methodName: str, space: str, runDirectory) -> dict:
+    """The transform node attributes (names without the ``ComReg.`` prefix) that record a
+    registration: ``method``, ``runtime_s``, ``space``, ``info`` (JSON), and ``runDirectory``
+    for "comreg"."""
+    attributes = {"method": methodName, "runtime_s": f"{output.runtime_s:.6g}",
+                  "space": space, "info": json.dumps(dict(output.info), default=_jsonable)}
+    if methodName == "comreg":
+        attributes["runDirectory"] = str(runDirectory)
+    return attributes
+
+
+def _jsonable(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    return str(value)
