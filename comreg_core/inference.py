@@ -34,9 +34,8 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -44,9 +43,10 @@ import torch
 from comreg_core import runs
 from comreg_core.config import to_dict
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration import (CTSurface, HypothesisConfig, HypothesisResult,
-                                      SurfaceCloud, as_hypothesis_config, judge_registration,
+from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
+                                      as_hypothesis_config, judge_registration,
                                       search_hypotheses)
+from comreg_core.registration.result import RegistrationResult, residual_statistics
 from comreg_core.io._files import atomic_output, check_output_folder
 from comreg_core.io.pointclouds import PointCloud, read_points, write_points
 from comreg_core.io.transform_files import save_transform
@@ -67,80 +67,6 @@ MIN_US_EXTENT_MM = 1.0
 #: subset of this size (seeded, with a logged notice and a warning in the result), so 10 million
 #: points cost about what 100,000 do. The network itself only sees a few thousand.
 MAX_US_POINTS = 100_000
-#: Registered points within this distance (mm) of the CT surface count as inliers.
-INLIER_MM = 2.0
-
-
-@dataclass
-class RegistrationResult:
-    """The registration of one US cloud (mm, CT frame = the CT mesh's space).
-
-    Attributes:
-        T_ct_us: ``(4, 4)`` final estimate (after ICP): ``T_ct_us @ p_us = p_ct``.
-        T_ct_us_coarse: ``(4, 4)`` the pose head's estimate before ICP.
-        registered_points: ``(N, 3)`` the US points mapped by ``T_ct_us``.
-        completion_ct: ``(M, 3)`` the completed bone (network output in the US frame) mapped by
-            ``T_ct_us`` into the CT frame.
-        timings: seconds per stage (module docstring).
-        runtime_s: registration time (= ``timings["total"]``).
-        device: torch device used.
-        seed: the seed given to :meth:`Registrar.register` (torch's generator is seeded with it;
-            the eval-mode forward pass is deterministic anyway).
-        residuals: distances (mm) of ``registered_points`` to the CT surface: ``mean``,
-            ``median``, ``p90``, ``p95``, ``max``, ``rmse``, and ``inlier_fraction`` (share
-            within :data:`INLIER_MM`).
-        icp_rmse: the final RMS residual (mm) of the ICP that produced ``T_ct_us``: the
-            network's (weighted, normalised units x CT scale), or with hypotheses the
-            polish's RMS distance of the matched points to the mesh (the chosen hypothesis'
-            point-to-plane residual when there was no polish).
-        n_points: points in the US cloud.
-        hypotheses: the :class:`~comreg_core.registration.HypothesisResult` (chosen hypothesis,
-            every score, runner-up, gap, confidence, ambiguous), None when the stage was off.
-        info: JSON-able extras (what the evaluation harness records per trial): the coarse
-            pose, timings, residuals, ``hypotheses`` (the block of :meth:`to_json`, None when
-            off) and, when the stage ran, ``ambiguous`` and ``confidence``.
-
-    ``confidence`` and ``ambiguous`` (properties) are those of ``hypotheses``, None when off.
-    """
-
-    T_ct_us: np.ndarray
-    T_ct_us_coarse: np.ndarray
-    registered_points: np.ndarray
-    completion_ct: np.ndarray
-    timings: dict[str, float]
-    runtime_s: float
-    device: str
-    seed: int
-    residuals: dict[str, float]
-    icp_rmse: float
-    n_points: int
-    hypotheses: HypothesisResult | None = None
-    info: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def confidence(self) -> float | None:
-        """:attr:`HypothesisResult.confidence` in [0, 1]; None without the hypotheses stage."""
-        return None if self.hypotheses is None else self.hypotheses.confidence
-
-    @property
-    def ambiguous(self) -> bool | None:
-        """:attr:`HypothesisResult.ambiguous`; None without the hypotheses stage."""
-        return None if self.hypotheses is None else self.hypotheses.ambiguous
-
-    def to_json(self) -> dict[str, Any]:
-        """The ``result.json`` content (without file names). ``confidence`` and ``ambiguous``
-        are at the top level (null when the hypotheses stage was off); ``hypotheses`` holds the
-        details (null when off): ``chosen``, ``runner_up``, ``score_mm``, ``score_gap_mm``,
-        ``confidence``, ``ambiguous``, ``scores_mm`` (every hypothesis)."""
-        return {
-            "T_ct_us": self.T_ct_us.tolist(), "T_ct_us_coarse": self.T_ct_us_coarse.tolist(),
-            "timings_s": self.timings, "runtime_s": self.runtime_s, "device": self.device,
-            "seed": self.seed, "n_points": self.n_points, "residuals_mm": self.residuals,
-            "icp_rmse_mm": self.icp_rmse, "confidence": self.confidence,
-            "ambiguous": self.ambiguous,
-            "hypotheses": None if self.hypotheses is None else self.hypotheses.to_json(),
-            "warnings": list(self.info.get("warnings", [])),
-        }
 
 
 class Registrar:
@@ -389,11 +315,7 @@ class Registrar:
             from scipy.spatial import cKDTree
 
             d = cKDTree(self.ct_points).query(registered)[0]
-        d = np.asarray(d, dtype=np.float64)
-        return {"mean": float(d.mean()), "median": float(np.median(d)),
-                "p90": float(np.percentile(d, 90)), "p95": float(np.percentile(d, 95)),
-                "max": float(d.max()), "rmse": float(np.sqrt(np.mean(d ** 2))),
-                "inlier_fraction": float(np.mean(d <= INLIER_MM))}
+        return residual_statistics(d)
 
 
 def registration_verdict(result: RegistrationResult, registrar: Registrar):

@@ -44,6 +44,7 @@ if importlib.util.find_spec("comreg_core") is None:  # an uninstalled checkout
     if os.path.isdir(os.path.join(_REPO_ROOT, "comreg_core")):
         sys.path.insert(0, _REPO_ROOT)
 
+from comreg_core.choices import PRESETS  # noqa: E402
 from comreg_plugin.logic import ComRegLogic  # noqa: E402
 from comreg_plugin.parameter_node import ComRegParameterNode  # noqa: E402
 from comreg_plugin.registration import METHODS  # noqa: E402
@@ -169,7 +170,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         form = section("Pretraining (per patient)")
         self.runDirectory = pathEdit(dirs, "Run folder (checkpoint, logs)")
         self.presetCombo = qt.QComboBox()
-        self.presetCombo.addItems(["cpu", "paper"])
+        self.presetCombo.addItems(list(PRESETS))
         self.maxMinutesSpin = qt.QDoubleSpinBox()
         self.maxMinutesSpin.setRange(0.0, 100000.0)
         self.maxMinutesSpin.suffix = " min"

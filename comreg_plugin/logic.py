@@ -308,7 +308,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
                 own coordinates (without any parent transform) are the US frame.
             method: ``"comreg"`` (needs ``runDirectory``), ``"ransac"`` (needs the CT model),
                 or a callable taking ``(N, 3)`` LPS points and returning a result with
-                ``T_ct_us`` (a :class:`~comreg_core.inference.RegistrationResult`,
+                ``T_ct_us`` (a :class:`~comreg_core.registration.result.RegistrationResult`,
                 :class:`~comreg_core.evaluation.outputs.RegistrationOutput`, a dict or a 4x4
                 array). Default: the parameter node's ``method``.
             runDirectory: the pretrained run (default: the parameter node's).

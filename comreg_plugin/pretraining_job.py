@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
 
+from comreg_core import runs
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import atomic_output, check_output_folder, require_input_file
 
@@ -82,10 +83,10 @@ class PretrainingJob:
     either the previous complete checkpoint or none, never a half-written one.
     """
 
-    LOG_NAME = "training_log.csv"
-    CONFIG_NAME = "config.yaml"
-    CHECKPOINT_NAME = "checkpoint.pt"
-    CONSOLE_NAME = "pretrain_console.log"
+    LOG_NAME = runs.TRAINING_LOG
+    CONFIG_NAME = runs.CONFIG
+    CHECKPOINT_NAME = runs.CHECKPOINT
+    CONSOLE_NAME = "pretrain_console.log"  # the plugin's own: the process's console output
 
     def __init__(self, command: list, runDirectory: Path, *, totalEpochs: Optional[int] = None,
                  maxMinutes: Optional[float] = None, env: Optional[dict] = None):

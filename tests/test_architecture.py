@@ -11,7 +11,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 #: comreg_core's layers, lowest first: a module may import its own layer and those below.
 LAYERS = (
-    ("errors", "transforms", "runs", "progress", "pointsets"),
+    ("errors", "transforms", "runs", "choices", "progress", "pointsets"),
     ("config", "io"),
     ("surfaces",),
     ("registration",),
