@@ -54,6 +54,7 @@ from comreg_core.errors import ComRegError, CorruptFileError
 from comreg_core.io._files import file_extension, require_input_file
 from comreg_core.io.tracked_us import (FRAME_IMAGE_EXTENSIONS, TrackedSweep, read_frame_image,
                                        read_tracked_sweep)
+from comreg_core.pointsets import farthest_point_indices
 
 log = logging.getLogger(__name__)
 
@@ -718,34 +719,6 @@ def voxel_downsample(points: np.ndarray, voxel_mm: float) -> np.ndarray:
     return (sums / counts[:, None])[order]
 
 
-def farthest_point_indices(points: np.ndarray, n: int, start: int = 0) -> np.ndarray:
-    """Indices ``(min(n, N),)`` of exact farthest point sampling of ``(N, 3)`` points. With
-    ``fpsample`` installed its bucket FPS runs, which applies ``start`` after an internal
-    reordering (the first sample is another, fixed point; the rest is exact FPS from it);
-    otherwise a numpy loop starts at ``start``."""
-    points = np.asarray(points, dtype=np.float64)
-    N = len(points)
-    if n >= N:
-        return np.arange(N)
-    try:
-        import fpsample
-    except ImportError:
-        fpsample = None
-    if fpsample is not None and N >= 2:
-        height = int(min(9, max(1, round(math.log2(N)) - 5)))
-        while 2 ** height > N:
-            height -= 1
-        return np.asarray(fpsample.bucket_fps_kdline_sampling(points, n, height,
-                                                              start_idx=start), dtype=np.int64)
-    chosen = np.empty(n, dtype=np.int64)
-    chosen[0] = start
-    dist = np.sum((points - points[start]) ** 2, axis=1)
-    for i in range(1, n):
-        chosen[i] = int(np.argmax(dist))
-        np.minimum(dist, np.sum((points - points[chosen[i]]) ** 2, axis=1), out=dist)
-    return chosen
-
-
 def denoise_points(surface: USSurfacePoints, config: DenoiseConfig | None = None
                    ) -> USSurfacePoints:
     """Cluster selection, outlier removal, then downsampling of extracted points. Points merged
@@ -771,7 +744,8 @@ def denoise_points(surface: USSurfacePoints, config: DenoiseConfig | None = None
     if c.target_points > 0 and len(out.points) > c.target_points:
         merged = bool((out.frame_index < 0).any())
         frames_with_bone = out.frames_with_bone
-        out = out.subset(farthest_point_indices(out.points, c.target_points))
+        out = out.subset(farthest_point_indices(np.asarray(out.points, dtype=np.float64),
+                                                c.target_points))
         if merged:
             out.frames_with_bone = frames_with_bone
     if len(out.points) == 0:

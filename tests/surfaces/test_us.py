@@ -20,7 +20,7 @@ from comreg_core.surfaces.us import (BoneDetectorConfig, DenoiseConfig, NoBoneFo
                                      bone_evidence, cluster_labels, compound_sweep,
                                      compounding_grid, denoise_points, detect_bone_surface,
                                      extract_us_surface, extract_us_to_file,
-                                     farthest_point_indices, load_us_extraction_config,
+                                     load_us_extraction_config,
                                      read_masks, select_clusters, statistical_outliers,
                                      surface_from_masks, voxel_downsample)
 from tests.helpers import FIBULA_STL, SHARED_DATA, assert_close
@@ -352,7 +352,7 @@ def test_statistical_outliers_match_naive():
     assert not naive[-2:].any()
 
 
-def test_voxel_and_farthest_point_downsampling_match_naive():
+def test_voxel_downsampling_matches_naive():
     rng = np.random.default_rng(8)
     points = rng.uniform(0, 10, (2000, 3))
     cells: dict = {}
@@ -360,13 +360,6 @@ def test_voxel_and_farthest_point_downsampling_match_naive():
         cells.setdefault(tuple(np.floor((p - points.min(axis=0)) / 2.0).astype(int)), []).append(p)
     naive = np.array([np.mean(v, axis=0) for v in cells.values()])  # first-occurrence order
     assert_close(voxel_downsample(points, 2.0), naive, atol=1e-12)
-    chosen = farthest_point_indices(points, 64)
-    reference = [int(chosen[0])]
-    dist = np.sum((points - points[chosen[0]]) ** 2, axis=1)
-    for _ in range(63):
-        reference.append(int(np.argmax(dist)))
-        dist = np.minimum(dist, np.sum((points - points[reference[-1]]) ** 2, axis=1))
-    assert list(chosen) == reference
 
 
 def test_denoise_pipeline_keeps_frames_and_counts():
