@@ -21,7 +21,7 @@ import numpy as np
 
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.io.meshes import SurfaceMesh
-from comreg_core.io.volumes import Segment, Segmentation
+from comreg_core.io.segmentations import Segment, Segmentation
 from comreg_core.transforms import apply_transform
 
 log = logging.getLogger(__name__)

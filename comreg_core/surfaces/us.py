@@ -52,8 +52,11 @@ from scipy import ndimage
 from comreg_core.config import ConfigError, load_config, require
 from comreg_core.errors import ComRegError, CorruptFileError
 from comreg_core.io._files import file_extension, require_input_file
-from comreg_core.io.tracked_us import (FRAME_IMAGE_EXTENSIONS, TrackedSweep, read_frame_image,
-                                       read_tracked_sweep)
+from comreg_core.io.frame_folders import FRAME_IMAGE_EXTENSIONS, read_frame_image
+from comreg_core.io.plus_files import frames_to_mf, read_plus_frames
+from comreg_core.io.segmentations import read_segmentation
+from comreg_core.io.sweeps import TrackedSweep
+from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.pointsets import farthest_point_indices
 
 log = logging.getLogger(__name__)
@@ -592,13 +595,8 @@ def read_masks(path: str | Path, sweep: TrackedSweep) -> np.ndarray:
             raise CorruptFileError(path, f"not a valid .npy array ({exc})") from None
         return _check_masks(path, masks, sweep)
     if ext in (".igs.mha", ".seq.mha", ".igs.nrrd", ".seq.nrrd"):
-        from comreg_core.io.tracked_us import _read_plus_metaimage, _read_plus_nrrd, _to_mf
-
-        reader = _read_plus_nrrd if ext.endswith("nrrd") else _read_plus_metaimage
-        fields, masks = reader(path)
-        return _check_masks(path, _to_mf(path, fields, masks), sweep)
-    from comreg_core.io.volumes import read_segmentation
-
+        fields, masks = read_plus_frames(path)
+        return _check_masks(path, frames_to_mf(path, fields, masks), sweep)
     seg = read_segmentation(path)
     labels = seg.layers.max(axis=0) if len(seg.layers) else seg.layers
     if labels.shape == (W, H, N):

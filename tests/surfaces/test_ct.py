@@ -18,7 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from comreg_core.errors import ComRegError, EmptyMaskError, InvalidGeometryError, LabelNotFoundError
 from comreg_core.io.meshes import SurfaceMesh
-from comreg_core.io.volumes import Segment, Segmentation, Volume
+from comreg_core.io.segmentations import Segment, Segmentation
+from comreg_core.io.volumes import Volume
 from comreg_core.surfaces import (SurfaceExtractionOptions, extract_bone_surface,
                                   prepare_bone_mesh, voxelize_mesh)
 from comreg_core.transforms import T_RAS_LPS, apply_transform

@@ -14,7 +14,9 @@ import pytest
 
 from comreg_core.config import ConfigError
 from comreg_core.errors import ComRegError, UnsupportedFormatError
-from comreg_core.io.tracked_us import TrackedSweep, read_frame_folder, read_plus_sequence
+from comreg_core.io.frame_folders import read_frame_folder
+from comreg_core.io.plus_sequences import read_plus_sequence
+from comreg_core.io.sweeps import TrackedSweep
 from comreg_core.surfaces.us import (BoneDetectorConfig, DenoiseConfig, NoBoneFoundError,
                                      USExtractionConfig, USSurfacePoints, _viterbi,
                                      bone_evidence, cluster_labels, compound_sweep,
