@@ -80,8 +80,8 @@ def extract_ct(
     """
     from comreg_core.io import MESH_EXTENSIONS, read_mesh, read_segmentation, write_mesh
     from comreg_core.io._files import check_output_file, file_extension, require_extension
-    from comreg_core.surfaces.ct import (SurfaceExtractionOptions, extract_bone_surface,
-                                         prepare_bone_mesh)
+    from comreg_core.surfaces.ct import SurfaceExtractionOptions, extract_bone_surface
+    from comreg_core.surfaces.mesh_repair import prepare_bone_mesh
 
     require_extension(out, "mesh", MESH_EXTENSIONS)
     check_output_file(out, inputs=[segmentation], what="output mesh")
