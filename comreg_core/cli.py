@@ -164,8 +164,9 @@ def extract_us(
     """
     from comreg_core.io import write_volume
     from comreg_core.io.tracked_us import read_tracked_sweep
-    from comreg_core.surfaces.us import (check_us_outputs, compound_sweep, extract_us_to_file,
-                                         load_us_extraction_config)
+    from comreg_core.surfaces.us import check_us_outputs, extract_us_to_file
+    from comreg_core.surfaces.us_compounding import compound_sweep
+    from comreg_core.surfaces.us_config import load_us_extraction_config
 
     check_us_outputs(out, compound, inputs=[sweep, calibration, masks, config])
     settings = load_us_extraction_config(config)

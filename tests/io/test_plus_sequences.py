@@ -20,7 +20,7 @@ from comreg_core.io.plus_files import read_plus_calibration, read_plus_device_se
 from comreg_core.io.plus_sequences import read_plus_sequence
 from comreg_core.io.sweeps import CalibrationMismatchError, NoValidFramesError
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.surfaces.us import compounding_grid
+from comreg_core.surfaces.us_compounding import compounding_grid
 from tests.helpers import SHARED_DATA, assert_close
 
 PLUS = SHARED_DATA / "plus"
