@@ -81,8 +81,8 @@ def extract_ct(
     """
     from comreg_core.io import MESH_EXTENSIONS, read_mesh, read_segmentation, write_mesh
     from comreg_core.io._files import check_output_file, file_extension, require_extension
-    from comreg_core.surfaces.ct import (SurfaceExtractionOptions, extract_bone_surface,
-                                         prepare_bone_mesh)
+    from comreg_core.surfaces.ct import SurfaceExtractionOptions, extract_bone_surface
+    from comreg_core.surfaces.mesh_repair import prepare_bone_mesh
 
     require_extension(out, "mesh", MESH_EXTENSIONS)
     check_output_file(out, inputs=[segmentation], what="output mesh")
@@ -165,8 +165,9 @@ def extract_us(
     """
     from comreg_core.io import write_volume
     from comreg_core.io.tracked_us import read_tracked_sweep
-    from comreg_core.surfaces.us import (check_us_outputs, compound_sweep, extract_us_to_file,
-                                         load_us_extraction_config)
+    from comreg_core.surfaces.us import check_us_outputs, extract_us_to_file
+    from comreg_core.surfaces.us_compounding import compound_sweep
+    from comreg_core.surfaces.us_config import load_us_extraction_config
 
     check_us_outputs(out, compound, inputs=[sweep, calibration, masks, config])
     settings = load_us_extraction_config(config)

@@ -174,7 +174,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             path: PLUS sequence (``.igs.mha``, ``.seq.nrrd``, ...), frame folder or Slicer volume
                 sequence (:func:`comreg_core.io.read_tracked_sweep`).
             calibration: PLUS device-set XML or ``calibration.json`` (if not beside the data).
-            config: :class:`comreg_core.surfaces.us.USExtractionConfig` or its YAML file.
+            config: :class:`comreg_core.surfaces.us_config.USExtractionConfig` or its YAML file.
             progress: ``progress(done_frames, total_frames)``.
 
         Returns:
@@ -182,8 +182,8 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             ``usPoints``.
         """
         from comreg_core.io import read_tracked_sweep
-        from comreg_core.surfaces.us import (USExtractionConfig, extract_us_surface,
-                                             load_us_extraction_config)
+        from comreg_core.surfaces.us import extract_us_surface
+        from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
 
         if not isinstance(config, USExtractionConfig):
             config = load_us_extraction_config(config)

@@ -10,7 +10,7 @@ import argparse
 from pathlib import Path
 
 from comreg_core.io import read_mesh, write_segmentation
-from comreg_core.io.volumes import Segment
+from comreg_core.io.segmentations import Segment
 from comreg_core.surfaces import voxelize_mesh
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -17,31 +17,32 @@ from pathlib import Path
 
 import numpy as np
 
+from comreg_core.errors import UnsupportedFormatError
 from comreg_core.io._files import file_extension, require_input_file
 from comreg_core.io.meshes import MESH_EXTENSIONS, SurfaceMesh, read_mesh, write_mesh
 from comreg_core.io.pointclouds import (POINT_CLOUD_EXTENSIONS, PointCloud, read_points,
                                         write_points)
-from comreg_core.io.tracked_us import TrackedSweep, read_tracked_sweep
+from comreg_core.io.segmentations import (SEGMENTATION_READ_EXTENSIONS, Segment, Segmentation,
+                                          read_segmentation, write_segmentation)
+from comreg_core.io.sweeps import TrackedSweep
+from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.io.transform_files import (TRANSFORM_EXTENSIONS, ItkTransformFile,
                                             load_transform, read_itk_transform, save_transform,
                                             write_itk_transform)
-from comreg_core.io.volumes import (SEGMENTATION_READ_EXTENSIONS, VOLUME_READ_EXTENSIONS, Segment,
-                                    Segmentation, Volume, read_segmentation, read_volume,
-                                    write_segmentation, write_volume)
+from comreg_core.io.volumes import VOLUME_READ_EXTENSIONS, Volume, read_volume, write_volume
 
 __all__ = [
     "MESH_EXTENSIONS", "POINT_CLOUD_EXTENSIONS", "SEGMENTATION_READ_EXTENSIONS",
     "TRANSFORM_EXTENSIONS", "VOLUME_READ_EXTENSIONS", "ItkTransformFile", "PointCloud", "Segment",
-    "Segmentation", "SurfaceMesh", "TrackedSweep", "Volume", "read_tracked_sweep", "describe_file", "load_transform", "read_itk_transform",
-    "read_mesh", "read_points", "read_segmentation", "read_volume", "save_transform",
+    "Segmentation", "SurfaceMesh", "TrackedSweep", "Volume", "describe_file", "load_transform",
+    "read_itk_transform", "read_mesh", "read_points", "read_segmentation", "read_tracked_sweep",
+    "read_volume", "save_transform",
     "write_itk_transform", "write_mesh", "write_points", "write_segmentation", "write_volume",
 ]
 
 
 def describe_file(path: str | Path) -> str:
     """A few human-readable lines on what ComReg reads from ``path`` (kind, size, geometry)."""
-    from comreg_core.errors import UnsupportedFormatError
-
     path = require_input_file(path)
     ext = file_extension(path)
     fmt = lambda values: " ".join(f"{v:.6g}" for v in np.ravel(values))  # noqa: E731

@@ -11,11 +11,11 @@ All functions take batched tensors ``(B, N, 3)`` and work on the device of their
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 from torch import Tensor
+
+from comreg_core.pointsets import farthest_point_indices
 
 #: Above this many query x reference pairs a CPU neighbour search uses a KD-tree instead of cdist.
 _DENSE_PAIRS_CPU = 1 << 18
@@ -117,16 +117,10 @@ def furthest_point_sample(points: Tensor, n: int, start_index: int | None = 0,
         return _fps_torch(points.detach(), n, torch.tensor(starts, device=points.device))
     if backend != "fpsample":
         raise ValueError(f"unknown FPS backend {backend!r}")
-    import fpsample
-
     pts = points.detach().to("cpu", torch.float32).numpy()
-    # Bucket height: 2**h points per leaf; fpsample recommends 3 (small) to 9 (large clouds).
-    h = int(min(9, max(1, round(math.log2(N)) - 5)))
-    while 2 ** h > N:
-        h -= 1
     out = np.empty((B, n), dtype=np.int64)
     for b in range(B):
-        out[b] = fpsample.bucket_fps_kdline_sampling(pts[b], n, h, start_idx=starts[b])
+        out[b] = farthest_point_indices(pts[b], n, start=starts[b])
     return torch.from_numpy(out).to(points.device)
 
 

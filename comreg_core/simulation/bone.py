@@ -13,7 +13,8 @@ import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration.surface import CTSurface, mesh_arrays, sample_triangles
-from comreg_core.surfaces.ct import MIN_EXTENT_MM, check_millimetres  # noqa: F401 (re-exported)
+from comreg_core.surfaces.mesh_repair import (  # noqa: F401 (MIN_EXTENT_MM re-exported)
+    MIN_EXTENT_MM, check_millimetres)
 
 log = logging.getLogger(__name__)
 

@@ -44,8 +44,8 @@ def load_tracked_sweep_poses(folder: str | Path | None = None, *,
                              calibration_json: str | Path | None = None) -> TrackedSweepPoses:
     """Read ``tracking.csv`` + ``calibration.json`` (UltraBones100k layout, see the data README)
     from ``folder``, or from the two paths given, with the one frame-folder reader
-    (:func:`comreg_core.io.tracked_us.read_frame_folder_tracking`)."""
-    from comreg_core.io.tracked_us import read_frame_folder_tracking
+    (:func:`comreg_core.io.frame_folders.read_frame_folder_tracking`)."""
+    from comreg_core.io.frame_folders import read_frame_folder_tracking
 
     if folder is not None:
         folder = Path(folder)

@@ -15,8 +15,9 @@ import time
 
 import numpy as np
 
-from comreg_core.io.volumes import Segmentation, Volume
 from comreg_core.io import read_mesh
+from comreg_core.io.segmentations import Segmentation
+from comreg_core.io.volumes import Volume
 from comreg_core.surfaces import SurfaceExtractionOptions, extract_bone_surface, voxelize_mesh
 from tests.helpers import FIBULA_STL
 

@@ -24,9 +24,10 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from comreg_core.io.tracked_us import read_frame_folder, read_plus_sequence  # noqa: E402
-from comreg_core.surfaces.us import (bone_evidence, detect_bone_surface,  # noqa: E402
-                                     extract_us_surface)
+from comreg_core.io.frame_folders import read_frame_folder  # noqa: E402
+from comreg_core.io.plus_sequences import read_plus_sequence  # noqa: E402
+from comreg_core.surfaces.us import extract_us_surface  # noqa: E402
+from comreg_core.surfaces.us_detector import bone_evidence, detect_bone_surface  # noqa: E402
 from tests.helpers import FIBULA_STL, SHARED_DATA  # noqa: E402
 
 

@@ -21,7 +21,7 @@ from comreg_core.errors import (ComRegError, CorruptFileError,  # noqa: E402
                                 InputFileNotFoundError, UnsupportedFormatError)
 from comreg_core.io import (load_transform, read_mesh, read_segmentation,  # noqa: E402
                             read_tracked_sweep, write_volume)
-from comreg_core.io.volumes import Segmentation  # noqa: E402
+from comreg_core.io.segmentations import Segmentation  # noqa: E402
 from comreg_core.surfaces.ct import extract_bone_surface  # noqa: E402
 from comreg_core.surfaces.us import extract_us_surface  # noqa: E402
 from comreg_core.transforms import T_RAS_LPS, apply_transform  # noqa: E402

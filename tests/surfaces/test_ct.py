@@ -1,4 +1,4 @@
-"""CT bone surface extraction and mesh preparation against independent references.
+"""CT bone surface extraction (and voxelization) against independent references.
 
 References: analytic ellipsoid and cylinder (exact point-surface distances, exact volumes) sampled
 on oblique, anisotropic and mirrored grids; the real CT fibula model (voxelized with VTK's
@@ -7,7 +7,6 @@ polygon-to-stencil rasterizer, compared with VTK's exact point-triangle distance
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, replace
 from typing import Callable
 
@@ -18,11 +17,12 @@ from scipy.spatial.transform import Rotation
 
 from comreg_core.errors import ComRegError, EmptyMaskError, InvalidGeometryError, LabelNotFoundError
 from comreg_core.io.meshes import SurfaceMesh
-from comreg_core.io.volumes import Segment, Segmentation, Volume
-from comreg_core.surfaces import (SurfaceExtractionOptions, extract_bone_surface,
-                                  prepare_bone_mesh, voxelize_mesh)
+from comreg_core.io.segmentations import Segment, Segmentation
+from comreg_core.io.volumes import Volume
+from comreg_core.surfaces import SurfaceExtractionOptions, extract_bone_surface, voxelize_mesh
 from comreg_core.transforms import T_RAS_LPS, apply_transform
-from tests.helpers import FIBULA_STL, assert_close
+from tests.helpers import assert_close
+from tests.surfaces.mesh_checks import check_closed_outward
 
 RAW = SurfaceExtractionOptions(smoothing=0.0, decimation=0.0)
 
@@ -111,14 +111,6 @@ def segmentation_of(shape: Shape, spacing, mirror=False, space="LPS") -> Segment
     M, dims = grid(shape, spacing, mirror=mirror)
     volume = Volume(label_map([(shape, 1)], M, dims), M, "LPS")
     return Segmentation.from_labelmap(volume.in_space(space))
-
-
-def check_closed_outward(mesh: SurfaceMesh) -> trimesh.Trimesh:
-    tm = mesh.to_trimesh()
-    assert tm.is_watertight, "mesh has open or non-manifold edges"
-    assert tm.is_winding_consistent, "mesh winding is inconsistent"
-    assert tm.volume > 0, f"mesh faces inward (signed volume {tm.volume:.1f} mm^3)"
-    return tm
 
 
 def test_reference_ellipsoid_distance_is_exact_along_normals():
@@ -287,12 +279,6 @@ def surface_samples(mesh: SurfaceMesh, n: int = 50_000, seed: int = 0) -> np.nda
 
 
 @pytest.fixture(scope="module")
-def fibula(shared_data) -> SurfaceMesh:
-    tm = trimesh.load_mesh(FIBULA_STL)
-    return SurfaceMesh(tm.vertices, tm.faces)
-
-
-@pytest.fixture(scope="module")
 def fibula_labelmaps(fibula) -> dict[float, Segmentation]:
     return {spacing: voxelize_mesh(fibula, spacing) for spacing in (1.0, 0.5)}
 
@@ -327,68 +313,3 @@ def test_default_smoothing_and_decimation_stay_within_0_2mm_of_the_unsmoothed_su
     assert d.max() <= 0.2, f"max {d.max():.3f} mm"
     assert np.percentile(d, 95) <= 0.1, f"p95 {np.percentile(d, 95):.3f} mm"
     assert len(smoothed.faces) == pytest.approx(0.5 * len(raw.faces), rel=0.01)
-
-
-# --- prepare_bone_mesh -----------------------------------------------------------------------
-
-
-def test_prepare_repairs_unmerged_vertices_and_flipped_faces(fibula, caplog):
-    rng = np.random.default_rng(7)
-    faces = fibula.faces.copy()
-    flipped = rng.random(len(faces)) < 0.5
-    faces[flipped] = faces[flipped, ::-1]
-    soup = SurfaceMesh(fibula.vertices[faces].reshape(-1, 3),  # 3 own vertices per face
-                       np.arange(3 * len(faces)).reshape(-1, 3))
-    assert not soup.to_trimesh().is_watertight
-
-    with caplog.at_level(logging.INFO, logger="comreg_core.surfaces.ct"):
-        repaired = prepare_bone_mesh(soup)
-
-    tm = check_closed_outward(repaired)
-    assert len(repaired.vertices) == len(fibula.vertices)
-    assert_close(tm.volume, fibula.to_trimesh().volume, rtol=1e-9, what="volume (mm^3)")
-    assert "duplicate vertices merged" in caplog.text and "faces flipped" in caplog.text
-
-
-def test_prepare_fills_a_small_hole_and_drops_duplicate_and_degenerate_faces(fibula):
-    faces = np.vstack([fibula.faces[1:], fibula.faces[:5], [[0, 0, 1]]])  # hole, dups, degenerate
-    repaired = prepare_bone_mesh(SurfaceMesh(fibula.vertices, faces))
-    tm = check_closed_outward(repaired)
-    assert len(repaired.faces) == len(fibula.faces)
-    assert_close(tm.volume, fibula.to_trimesh().volume, rtol=1e-4, what="volume (mm^3)")
-
-
-def test_prepare_keeps_a_cavity_facing_inward_and_can_keep_the_largest_part():
-    outer = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
-    inner = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
-    island = trimesh.creation.icosphere(subdivisions=1, radius=2.0)
-    island.apply_translation([50.0, 0.0, 0.0])
-    vertices = np.vstack([outer.vertices, inner.vertices, island.vertices])
-    n_outer, n_inner = len(outer.vertices), len(inner.vertices)
-    faces = np.vstack([outer.faces[:, ::-1], inner.faces + n_outer,  # both wound wrongly
-                       island.faces + n_outer + n_inner])
-    hollow = outer.volume - inner.volume
-
-    repaired = prepare_bone_mesh(SurfaceMesh(vertices, faces)).to_trimesh()
-    assert_close(repaired.volume, hollow + island.volume, rtol=1e-9, what="volume (mm^3)")
-    largest = prepare_bone_mesh(SurfaceMesh(vertices, faces), largest_component=True)
-    assert_close(largest.to_trimesh().volume, outer.volume, rtol=1e-9, what="outer only")
-
-
-def test_prepare_leaves_a_clean_mesh_alone_and_warns_about_a_big_hole(fibula, caplog):
-    with caplog.at_level(logging.INFO, logger="comreg_core.surfaces.ct"):
-        clean = prepare_bone_mesh(fibula)
-    assert caplog.text == ""
-    np.testing.assert_array_equal(clean.faces, fibula.faces)
-    assert_close(clean.vertices, fibula.vertices, what="vertices")
-
-    opened = SurfaceMesh(fibula.vertices, fibula.faces[200:])  # a hole far beyond "small"
-    with caplog.at_level(logging.WARNING, logger="comreg_core.surfaces.ct"):
-        prepare_bone_mesh(opened)
-    assert "not closed" in caplog.text
-
-
-def test_prepare_rejects_a_mesh_of_only_degenerate_triangles():
-    flat = SurfaceMesh(np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]), np.array([[0, 1, 2]]))
-    with pytest.raises(InvalidGeometryError, match="zero area"):
-        prepare_bone_mesh(flat)
