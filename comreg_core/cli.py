@@ -123,7 +123,7 @@ def simulate(
 
     with _progress_bar(count, "simulating") as advance:
         paths = simulate_to_directory(ct_mesh, out, count=count, seed=seed, config=config,
-                                      progress=lambda done, total: advance(done))
+                                      progress=lambda done, total, note="": advance(done))
     typer.echo(f"wrote {len(paths)} sweep(s) and config.yaml to {out}")
 
 
@@ -174,7 +174,7 @@ def extract_us(
     tracked = read_tracked_sweep(sweep, calibration=calibration, reference=settings.reference)
     with _progress_bar(len(tracked.frames), "detecting bone") as advance:
         result = extract_us_to_file(tracked, out, masks=masks, config=settings,
-                                    progress=lambda done, total: advance(done))
+                                    progress=lambda done, total, note="": advance(done))
     typer.echo(f"wrote {result.summary()}")
     if compound is not None:
         volume = compound_sweep(tracked, compound_spacing, compound_mode.value)
@@ -218,7 +218,7 @@ def pretrain(
         result = run_pretraining(
             ct_mesh, out, preset=preset.value, config=config, max_minutes=max_minutes,
             epochs=epochs, resume=resume, seed=seed, device=device.value,
-            progress=lambda done, total, info=None: advance(int(1000 * done / max(total, 1))))
+            progress=lambda done, total, note="": advance(int(1000 * done / max(total, 1))))
     validation = result.validation or {}
     summary = ", ".join(f"{key} {value:.3g}" for key, value in validation.items()
                         if key in ("val_RTE_mm_median", "val_RRE_deg_median", "val_success_rate"))
@@ -344,7 +344,7 @@ def evaluate(
     with _progress_bar(trials * len(methods), "evaluating") as advance:
         result = run_evaluation(methods, clouds, ct, trials=trials, seed=seed,
                                 perturbation=perturbation.value, T_gt=T_gt,
-                                progress=lambda done, total: advance(done))
+                                progress=lambda done, total, note="": advance(done))
     failed = [row["error"] for row in result["trials"] if row["error"] is not None]
     if result["trials"] and len(failed) == len(result["trials"]):
         from comreg_core.errors import ComRegError

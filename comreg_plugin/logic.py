@@ -17,12 +17,13 @@ Method names are camelCase here, as in 3D Slicer modules.
 
 import logging
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
 from comreg_core.errors import ComRegError, UnsupportedFormatError
 from comreg_core.io._files import file_extension, require_input_file
+from comreg_core.progress import Progress, silent
 from comreg_core.transforms import apply_transform, space_change
 from comreg_plugin.parameter_node import ComRegParameterNode
 from comreg_plugin.pretraining_job import (PretrainingJob, PretrainingStatus, checkRunFolder,
@@ -98,7 +99,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
     # -- CT ---------------------------------------------------------------------------------
 
     def loadSegmentation(self, path, segmentNames=None, options=None,
-                         progress: Optional[Callable[[float, str], None]] = None) -> tuple:
+                         progress: Optional[Progress] = None) -> tuple:
         """Load a CT segmentation and make one closed-surface bone model per segment.
 
         Args:
@@ -106,7 +107,8 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
                 segment) or a 3D Slicer ``.seg.nrrd`` (read by Slicer's own storage node).
             segmentNames: only these segments get models (default: all).
             options: :class:`comreg_core.surfaces.ct.SurfaceExtractionOptions`.
-            progress: ``progress(fraction, message)``.
+            progress: ``progress(done, total, note)`` (:class:`comreg_core.progress.Progress`):
+                reading, then one step per segment.
 
         Returns:
             ``(segmentationNode, [modelNode, ...])``; the first model becomes the parameter
@@ -123,8 +125,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         ext = file_extension(path)
         if ext not in SEGMENTATION_READ_EXTENSIONS:
             raise UnsupportedFormatError(path, "CT segmentation", SEGMENTATION_READ_EXTENSIONS)
-        report = progress or (lambda fraction, message: None)
-        report(0.0, "reading")
+        report = progress or silent
         seg = read_segmentation(path)
         segments = seg.segments
         if segmentNames is not None:
@@ -136,15 +137,16 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             segNode = segmentationNodeFromArrays(self.scene, seg, base, BONE_COLOR)
         segNode.CreateDefaultDisplayNodes()
         models = []
+        report(0, len(segments) + 1, "reading")
         for i, segment in enumerate(segments):
-            report(0.1 + 0.9 * i / len(segments), f"surface of '{segment.name}'")
+            report(i + 1, len(segments) + 1, f"surface of '{segment.name}'")
             mesh = extract_bone_surface(seg, segment=segment, options=options)
             model = self.addBoneModel(mesh, f"{segment.name} bone",
                                       segment.color or BONE_COLOR)
             model.SetAttribute(ATTRIBUTE_PREFIX + "segment", segment.name)
             model.SetAttribute(ATTRIBUTE_PREFIX + "source", str(path))
             models.append(model)
-        report(1.0, "done")
+        report(len(segments) + 1, len(segments) + 1, "done")
         p = self.getParameterNode()
         p.segmentation = segNode
         if models:
@@ -167,7 +169,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
     # -- US ---------------------------------------------------------------------------------
 
     def loadTrackedSweep(self, path, calibration=None, config=None, name=US_POINTS_NODE_NAME,
-                         progress: Optional[Callable[[int, int], None]] = None) -> tuple:
+                         progress: Optional[Progress] = None) -> tuple:
         """Read a tracked US sweep, extract its bone surface points and add them as a model.
 
         Args:
@@ -175,7 +177,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
                 sequence (:func:`comreg_core.io.read_tracked_sweep`).
             calibration: PLUS device-set XML or ``calibration.json`` (if not beside the data).
             config: :class:`comreg_core.surfaces.us_config.USExtractionConfig` or its YAML file.
-            progress: ``progress(done_frames, total_frames)``.
+            progress: ``progress(done_frames, total_frames, note)``.
 
         Returns:
             ``(pointsNode, USExtractionResult)``; the node becomes the parameter node's

@@ -59,6 +59,7 @@ from typing import Any
 
 import numpy as np
 
+from comreg_core.progress import Progress
 from comreg_core.config import ConfigError
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.registration.metrics import (DEFAULT_CT_SAMPLES, as_surface, completion_metrics,
@@ -158,7 +159,7 @@ def _check_methods(methods) -> dict[str, Callable]:
 def evaluate(methods: Mapping[str, Callable], us_points, ct_mesh, *, trials: int,
              seed: int = 0, perturbation: str = "paper", T_gt: np.ndarray | None = None,
              simulation_config=None, n_ct_samples: int = DEFAULT_CT_SAMPLES,
-             progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+             progress: Progress | None = None) -> dict[str, Any]:
     """Register ``trials`` randomly moved copies of the US cloud(s) with every method.
 
     Args:

@@ -16,6 +16,7 @@ import numpy as np
 from comreg_core.errors import CorruptFileError, InvalidGeometryError
 from comreg_core.io._files import atomic_output, require_extension, require_input_file
 from comreg_core.io._vtk import run_vtk
+from comreg_core.io.pointclouds import check_ply_size
 from comreg_core.transforms import apply_transform, as_points, check_space, space_change
 
 
@@ -97,8 +98,6 @@ def read_mesh(path: str | Path) -> SurfaceMesh:
     path = require_input_file(path, "mesh file")
     ext = require_extension(path, "mesh", MESH_EXTENSIONS)
     if ext == ".ply":  # VTK's reader allocates what the header claims, and can crash on it
-        from comreg_core.io.pointclouds import check_ply_size
-
         check_ply_size(path)
     import vtk
 

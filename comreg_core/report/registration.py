@@ -10,10 +10,11 @@ from typing import Any
 
 import numpy as np
 
+from comreg_core.progress import Progress
 from comreg_core import runs
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import check_output_folder, require_input_file
-from comreg_core.report.report import Progress, write_report
+from comreg_core.report.report import write_report
 
 
 def read_registration_result(out_dir: Path) -> dict[str, Any]:

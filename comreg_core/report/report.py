@@ -26,12 +26,13 @@ import platform
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from comreg_core.progress import Progress
 from comreg_core import runs
 from comreg_core import __version__
 from comreg_core.io._files import check_output_folder
@@ -46,8 +47,6 @@ log = logging.getLogger(__name__)
 
 IMAGES_DIR = "report_images"
 
-#: ``progress(done, total)``: screenshots written so far.
-Progress = Callable[[int, int], None]
 
 
 def image_name(scene: str, view: str) -> str:
@@ -98,7 +97,7 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
             file) instead of ``report_images/``.
         lateral_side: "left" or "right": the side the lateral view looks from.
         style: colours and sizes.
-        progress: ``progress(done, total)`` after each screenshot.
+        progress: ``progress(done, total, view)`` after each screenshot.
         verdict: a :class:`~comreg_core.registration.verdict.Verdict`: the page then starts with
             ``Verdict: OK`` or ``Verdict: CHECK`` and its reasons.
 
@@ -134,7 +133,7 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
                                                 else f"{IMAGES_DIR}/{name}")
             shots.append(shot)
             if progress is not None:
-                progress(len(shots), total)
+                progress(len(shots), total, name)
         render_s = time.perf_counter() - started
         page = build_html(
             title=title or "ComReg registration report",

@@ -4,12 +4,12 @@ fixed-size point cloud in the CT frame, with a per-point slice index."""
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from comreg_core.progress import Progress
 from comreg_core.errors import ComRegError
 from comreg_core.simulation.bone import BoneModel
 from comreg_core.simulation.config import SimulationConfig
@@ -170,7 +170,7 @@ def sweep_rng(seed: int, index: int) -> np.random.Generator:
 
 
 def simulate_sweeps(mesh, count: int, seed: int, config: SimulationConfig | None = None,
-                    progress: Callable[[int, int], None] | None = None) -> list[SimulatedSweep]:
+                    progress: Progress | None = None) -> list[SimulatedSweep]:
     """``count`` sweeps of ``mesh`` (anything :class:`BoneModel` accepts, or a BoneModel)."""
     bone = mesh if isinstance(mesh, BoneModel) else BoneModel(mesh)
     sweeps = []
@@ -184,7 +184,7 @@ def simulate_sweeps(mesh, count: int, seed: int, config: SimulationConfig | None
 def simulate_to_directory(ct_mesh_path: str | Path, out_dir: str | Path, *, count: int = 1,
                           seed: int | None = 0,
                           config: SimulationConfig | str | Path | None = None,
-                          progress: Callable[[int, int], None] | None = None) -> list[Path]:
+                          progress: Progress | None = None) -> list[Path]:
     """Simulate ``count`` sweeps of the CT bone mesh and write them to ``out_dir``.
 
     Files (``i`` = 0000, 0001, ...; every file written atomically):

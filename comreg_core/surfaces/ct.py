@@ -12,11 +12,11 @@ inverse. Checks and repairs of meshes given directly: :mod:`comreg_core.surfaces
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from comreg_core.progress import Progress
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.io.meshes import SurfaceMesh
 from comreg_core.io.segmentations import Segment, Segmentation
@@ -26,8 +26,9 @@ from comreg_core.transforms import apply_transform
 
 log = logging.getLogger(__name__)
 
-#: ``progress(fraction, message)``: called with fraction in [0, 1] as each stage starts.
-Progress = Callable[[float, str], None]
+#: Where each stage starts, in thousandths of the whole (``progress(done, 1000, stage)``).
+_STAGES = {"cropping": 0, "meshing": 100, "smoothing": 300, "decimating": 500,
+           "transforming": 900, "done": 1000}
 
 METHODS = ("flying_edges", "surface_nets")
 #: Windowed-sinc iterations, as 3D Slicer's closed-surface conversion uses.
@@ -100,29 +101,33 @@ def extract_bone_surface(
     voxels) and :class:`InvalidGeometryError` (too few voxels to enclose a volume).
     """
     options = options or SurfaceExtractionOptions()
-    report = progress or (lambda fraction, message: None)
+
+    def report(stage: str) -> None:
+        if progress is not None:
+            progress(_STAGES[stage], 1000, stage)
+
     segment = segment or segmentation.find_segment(name=name, label=label)
 
-    report(0.0, "cropping")
+    report("cropping")
     mask = segmentation.mask(segment)
     crop, offset = _crop(mask, options.pad)
 
-    report(0.1, "meshing")
+    report("meshing")
     points, faces = _contour(crop, options.method)
     if options.largest_component:
         points, faces = keep_largest_component(points, faces)
     spacing = np.linalg.norm(segmentation.ijk_to_space[:3, :3], axis=0)
     points = points * spacing  # local mm: crop index scaled by voxel size, no rotation
 
-    report(0.3, "smoothing")
+    report("smoothing")
     if options.smoothing > 0:
         points = _smooth(points, faces, options.smoothing, options.max_displacement)
 
-    report(0.5, "decimating")
+    report("decimating")
     if options.decimation > 0:
         points, faces = _decimate(points, faces, options.decimation)
 
-    report(0.9, "transforming")
+    report("transforming")
     volume = signed_volume(points, faces)
     if len(faces) < 4 or abs(volume) < np.prod(spacing):  # encloses less than one voxel
         raise InvalidGeometryError(
@@ -142,7 +147,7 @@ def extract_bone_surface(
                     segment.name)
     log.info("Extracted segment '%s': %d vertices, %d triangles, %.0f mm^3.",
              segment.name, len(vertices), len(faces), abs(volume))
-    report(1.0, "done")
+    report("done")
     return SurfaceMesh(vertices, faces, segmentation.space)
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from comreg_core.progress import Progress
 from comreg_core.errors import OutputPlaceError
 from comreg_core.io._files import check_output_file, require_extension
 from comreg_core.io.pointclouds import POINT_CLOUD_EXTENSIONS, PointCloud, write_points
@@ -31,7 +32,7 @@ from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extractio
 from comreg_core.surfaces.us_denoise import denoise_points
 from comreg_core.surfaces.us_detector import detect_sweep_surface
 from comreg_core.surfaces.us_masks import read_masks, surface_from_masks
-from comreg_core.surfaces.us_points import Progress, USSurfacePoints
+from comreg_core.surfaces.us_points import USSurfacePoints
 
 log = logging.getLogger(__name__)
 

@@ -36,9 +36,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from comreg_core.progress import Progress
 from comreg_core.io.sweeps import TrackedSweep
 from comreg_core.surfaces.us_config import BoneDetectorConfig
-from comreg_core.surfaces.us_points import (Progress, USSurfacePoints, collect_surface_points,
+from comreg_core.surfaces.us_points import (USSurfacePoints, collect_surface_points,
                                             frames_to_use)
 
 

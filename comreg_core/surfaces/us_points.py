@@ -6,7 +6,6 @@ share to produce it.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,8 +15,6 @@ from comreg_core.io.sweeps import TrackedSweep
 
 log = logging.getLogger(__name__)
 
-#: ``progress(done, total)``: frames processed so far.
-Progress = Callable[[int, int], None]
 
 
 class NoBoneFoundError(ComRegError):

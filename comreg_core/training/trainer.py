@@ -17,9 +17,9 @@
 Validation: ``training.validation_sweeps`` held-out samples (their own seed namespace, see
 :mod:`.data`) after every ``training.validation_every`` epochs (:mod:`.validation`).
 
-Progress: ``progress(done, total, info)`` after every step, ``done``/``total`` in steps over all
-epochs, ``info`` a dict with ``epoch``, ``loss``, ``completion``, ``registration`` and, after an
-epoch's validation, ``val_RTE_mm`` / ``val_RRE_deg`` (medians).
+Progress (:class:`~comreg_core.progress.Progress`): ``progress(done, total, note)`` after every
+step, ``done``/``total`` in steps over all epochs, ``note`` like ``"epoch 3, loss 0.412"`` (with
+the last validation's median RTE/RRE once there is one).
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ import csv
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from comreg_core.progress import Progress
 from comreg_core import runs
 from comreg_core.config import ConfigError, deep_merge, from_dict, to_dict
 from comreg_core.errors import ComRegError
@@ -64,9 +64,6 @@ LOG_COLUMNS = (
 )
 _LOSS_TERMS = ("total", "completion", "sparse", "dense", "registration", "reg_coarse",
                "reg_fine", "correspondence")
-
-Progress = Callable[[int, int, dict[str, Any]], None]
-
 
 @dataclass
 class TrainResult:
@@ -208,7 +205,7 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
         resume: continue the run in ``run_dir`` from its checkpoint.
         seed: run seed (default 0; when resuming it must match the run's).
         device: ``"auto"``, ``"cpu"`` or ``"cuda"`` (overrides ``training.device``).
-        progress: ``progress(done_steps, total_steps, info)`` callback.
+        progress: ``progress(done_steps, total_steps, note)`` callback.
 
     Raises:
         InputFileNotFoundError, CorruptFileError, InvalidGeometryError: unusable CT mesh.
@@ -431,7 +428,7 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
                 checkpoint()
                 last_ckpt = time.monotonic()
             if progress is not None:
-                progress(epoch * steps_per_epoch + step, total_steps, info)
+                progress(epoch * steps_per_epoch + step, total_steps, _progress_note(info))
     finally:
         batches = loader = None  # shuts the data workers down
     checkpoint()
@@ -455,3 +452,13 @@ class BudgetTooShortError(ComRegError):
     def __init__(self, message: str, hint: str, result: TrainResult):
         super().__init__(message, hint)
         self.result = result
+
+
+def _progress_note(info: dict[str, Any]) -> str:
+    """The progress note of a step: epoch, loss, and the last validation's medians."""
+    note = f"epoch {info.get('epoch', '?')}"
+    if "loss" in info:
+        note += f", loss {info['loss']:.3g}"
+    if "val_RTE_mm" in info:
+        note += f", validation {info['val_RTE_mm']:.1f} mm / {info['val_RRE_deg']:.1f} deg"
+    return note

@@ -18,7 +18,7 @@ from comreg_core.registration.icp import coarse_to_fine_icp
 from comreg_core.registration.search import (build_hypotheses, rotation_about, screen_starts,
                                              search_hypotheses, slide_offsets_mm, us_subset)
 from comreg_core.registration.surface import CTSurface, SurfaceCloud
-from comreg_core.surfaces.us import farthest_point_indices
+from comreg_core.pointsets import farthest_point_indices
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import FIBULA_STL, assert_close
 

@@ -254,7 +254,7 @@ def test_invalid_options_are_rejected(bad):
 def test_progress_reports_increasing_fractions_from_0_to_1():
     calls = []
     extract_bone_surface(segmentation_of(CYLINDER, (1.0, 1.0, 1.0)),
-                         progress=lambda f, m: calls.append((f, m)))
+                         progress=lambda done, total, note="": calls.append((done / total, note)))
     fractions = [f for f, _ in calls]
     assert fractions[0] == 0.0 and fractions[-1] == 1.0
     assert fractions == sorted(fractions)

@@ -121,7 +121,7 @@ def test_resume_after_kill_continues_exactly(tmp_path):
     class Killed(Exception):
         pass
 
-    def kill_in_epoch_2(done, total, info):
+    def kill_in_epoch_2(done, total, note=""):
         if done == 3:  # the first step of epoch 2 (2 steps per epoch): checkpoint just written
             raise Killed
 
