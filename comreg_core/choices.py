@@ -7,11 +7,13 @@ torch; the packages that implement them check their tables against these names
 
 #: Pretraining presets (``comreg pretrain --preset``): the network size and schedule.
 PRESETS = ("cpu", "paper")
+#: The pose search alone, no network (needs only the CT mesh).
+SEARCH_METHODS = ("search",)
 #: The pretrained network, with and without the pose search.
 COMREG_METHODS = ("comreg", "comreg-plain")
 #: The paper's baselines: Open3D RANSAC + ICP, and ICP from the ground truth.
 BASELINES = ("ransac", "icp-gt")
 #: Every registration method ``comreg evaluate --method`` offers (plus ``all``).
-METHODS = COMREG_METHODS + BASELINES
+METHODS = SEARCH_METHODS + COMREG_METHODS + BASELINES
 #: Where the network runs.
 DEVICES = ("auto", "cpu", "cuda")

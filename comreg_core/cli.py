@@ -13,7 +13,7 @@ import logging
 import sys
 from enum import Enum
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 
@@ -235,14 +235,19 @@ def pretrain(
 
 @app.command("register")
 def register(
-    run_dir: Path = typer.Argument(..., help="Run folder written by 'comreg pretrain'."),
-    us_points: Path = typer.Argument(..., help="US bone surface points (.ply, .pcd, .xyz, .npy, "
-                                     "...), e.g. from 'comreg extract-us'."),
+    inputs: list[Path] = typer.Argument(..., help="US bone surface points (.ply, .pcd, .xyz, "
+                                        ".npy, ...), e.g. from 'comreg extract-us'. (The older "
+                                        "form RUN_DIR US_POINTS is still accepted.)",
+                                        metavar="US_POINTS"),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="The CT bone mesh (mm). Alone: "
+                                           "register by the pose search, no network. With "
+                                           "--model: checked to be the run's CT."),
+    model: Optional[Path] = typer.Option(None, "--model", help="Run folder written by 'comreg "
+                                         "pretrain': the network's pose first, then the "
+                                         "search around it."),
     device: Device = typer.Option(Device.auto, help="Where to run the network."),
     seed: int = typer.Option(0, "--seed", min=0),
-    ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="The CT mesh, to check that the "
-                                           "run was trained for it."),
     hypotheses: bool = typer.Option(True, "--hypotheses/--no-hypotheses", help="After the "
                                     "network, also try the alternatives of its pose (flipped end "
                                     "to end, turned about the shaft, slid along it; around the "
@@ -254,8 +259,10 @@ def register(
                                           "section (the pose search's settings), e.g. the "
                                           "config.yaml of an earlier registration."),
 ) -> None:
-    """Register a US bone surface to the CT in one forward pass (completion, coarse pose, ICP),
-    then check the pose against its symmetric alternatives (unless --no-hypotheses).
+    """Register a US bone surface to the CT: with --ct alone by the pose search (principal axes,
+    flips, turns and slides of the US cloud, refined by ICP and scored against the CT), with
+    --model in one forward pass of the pretrained network (completion, coarse pose, ICP), then
+    the search around its pose (unless --no-hypotheses).
 
     Writes result.json (T_ct_us 4x4 in mm, the coarse transform, timings, residuals, the
     chosen hypothesis, confidence and the ambiguous flag), transform.tfm (ITK, LPS, as 3D Slicer
@@ -268,13 +275,15 @@ def register(
     from comreg_core.inference import register_to_directory
     from comreg_core.registration.config import load_register_config
 
+    run_dir, us_points = _run_and_points(inputs, model)
     search = load_register_config(config).hypotheses
     result = register_to_directory(run_dir, us_points, out, device=device.value, seed=seed,
                                    ct_mesh=ct_mesh,
                                    hypotheses=search if hypotheses else replace(search,
                                                                                 enabled=False))
-    typer.echo(f"wrote {out}: {result.n_points} points registered in {result.runtime_s:.2f} s on "
-               f"{result.device}; median residual {result.residuals['median']:.2f} mm")
+    how = "by the pose search (no network)" if run_dir is None else f"on {result.device}"
+    typer.echo(f"wrote {out}: {result.n_points} points registered in {result.runtime_s:.2f} s "
+               f"{how}; median residual {result.residuals['median']:.2f} mm")
     if result.hypotheses is not None:
         h = result.hypotheses
         gap = "no competing pose" if h.score_gap_mm is None else \
@@ -294,10 +303,15 @@ class Perturbation(str, Enum):
 
 @app.command("evaluate")
 def evaluate(
-    run_dir: Path = typer.Argument(..., help="Run folder written by 'comreg pretrain'."),
-    us_points: str = typer.Argument(..., help="US bone points file, or the word 'simulated' for "
-                                    "fresh simulated sweeps (seeds disjoint from training)."),
+    inputs: list[str] = typer.Argument(..., help="US bone points file, or the word 'simulated' "
+                                       "for fresh simulated sweeps (seeds disjoint from "
+                                       "training). (The older form RUN_DIR US_POINTS is still "
+                                       "accepted.)", metavar="US_POINTS|simulated"),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (metrics.json)."),
+    ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="The CT bone mesh (mm); default: "
+                                           "the run's own."),
+    model: Optional[Path] = typer.Option(None, "--model", help="Run folder written by 'comreg "
+                                         "pretrain' (needed by 'comreg' and 'comreg-plain')."),
     trials: int = typer.Option(100, "--trials", min=1, help="Random initial poses."),
     seed: int = typer.Option(0, "--seed", min=0),
     perturbation: Perturbation = typer.Option(Perturbation.paper, help="Initial poses: 'paper' "
@@ -306,14 +320,16 @@ def evaluate(
                                               "trained with data.pose: full covers it)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth T_ct_us (.tfm/.h5); "
                                       "identity if omitted."),
-    method: list[Method] = typer.Option(
-        [Method.comreg], "--method", help="What to evaluate; repeat to compare several in one "
-        "run: 'comreg' (with the hypotheses stage), 'comreg-plain' (the paper's pipeline, "
-        "without it), 'ransac', 'icp-gt', or 'all' (every method)."),
+    method: Optional[list[Method]] = typer.Option(
+        None, "--method", help="What to evaluate; repeat to compare several in one run: "
+        "'search' (the pose search alone, no network), 'comreg' (the network, then the search), "
+        "'comreg-plain' (the paper's pipeline: the network alone), 'ransac', 'icp-gt', or 'all' "
+        "(every method). Default: 'comreg' with --model, else 'search'."),
     device: Device = typer.Option(Device.auto, help="Where to run the network."),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML with sections "
-                                          "'hypotheses:' (the comreg method's pose search) and "
-                                          "'baselines:' ('ransac:', 'icp_gt:')."),
+                                          "'hypotheses:' (the pose search), 'baselines:' "
+                                          "('ransac:', 'icp_gt:') and 'simulation:' (the sweeps "
+                                          "of 'simulated')."),
 ) -> None:
     """Measure registration accuracy from random initial poses: RTE, RRE, CD, HD95, success and
     flip rates, runtime (and, for ComReg, how often it flags its result ambiguous), for ComReg
@@ -324,18 +340,25 @@ def evaluate(
     from comreg_core.evaluation.methods import (load_evaluate_config, method_names,
                                                 registration_methods)
     from comreg_core.inference import limit_us_points
-    from comreg_core.io import load_transform, read_points
+    from comreg_core.errors import ComRegError
+    from comreg_core.io import load_transform, read_mesh, read_points
     from comreg_core.io._files import check_output_folder
     from comreg_core.training import run_ct_mesh
 
+    run_dir, us_points = _run_and_points(inputs, model)
+    if run_dir is None and ct_mesh is None:
+        raise ComRegError("No CT to register to.", "Give --ct CT_MESH (and --model RUN_DIR for "
+                          "the network's methods).")
     simulated = us_points == "simulated"
-    check_output_folder(out, inputs=[run_dir, gt, config] + ([] if simulated else [us_points]))
+    check_output_folder(out, inputs=[run_dir, gt, config, ct_mesh]
+                        + ([] if simulated else [us_points]))
     settings = load_evaluate_config(config)
     cloud = None if simulated else read_points(us_points)  # the cheap inputs first
-    ct = run_ct_mesh(run_dir)
+    ct = run_ct_mesh(run_dir) if ct_mesh is None else read_mesh(ct_mesh)
     T_gt = load_transform(gt, space=ct.space) if gt is not None else None
     clouds = "simulated" if simulated else limit_us_points(cloud.in_space(ct.space).points, seed)
-    names = method_names([m.value for m in method])
+    chosen = [m.value for m in method] if method else ["comreg" if run_dir else "search"]
+    names = method_names(chosen)
     methods = registration_methods(names, run_dir, ct, device=device.value, seed=seed,
                                    hypotheses=settings.hypotheses,
                                    baseline_config=settings.baselines)
@@ -344,17 +367,30 @@ def evaluate(
     with _progress_bar(trials * len(methods), "evaluating") as advance:
         result = run_evaluation(methods, clouds, ct, trials=trials, seed=seed,
                                 perturbation=perturbation.value, T_gt=T_gt,
+                                simulation_config=settings.simulation,
                                 progress=lambda done, total, note="": advance(done))
     failed = [row["error"] for row in result["trials"] if row["error"] is not None]
     if result["trials"] and len(failed) == len(result["trials"]):
-        from comreg_core.errors import ComRegError
-
         raise ComRegError(f"Every trial failed, so there is nothing to measure; the first: "
                           f"{failed[0]}", "Fix the input above and run again.")
     path = write_metrics(result, Path(out) / runs.METRICS)
     typer.echo(f"wrote {path}")
     for name, summary in result["summary"].items():
         typer.echo(f"  {name}: {_summary_line(summary)}")
+
+
+def _run_and_points(inputs: list, model: Path | None) -> tuple[Path | None, Any]:
+    """``(run folder or None, US points)`` from the positional arguments: ``US_POINTS`` (the run,
+    if any, from ``--model``) or the older ``RUN_DIR US_POINTS``."""
+    from comreg_core.errors import ComRegError
+
+    if len(inputs) == 1:
+        return model, inputs[0]
+    if len(inputs) == 2 and model is None:
+        return Path(inputs[0]), inputs[1]
+    raise ComRegError(f"Expected the US points (and --model RUN_DIR), got {len(inputs)} "
+                      "arguments" + (" and --model" if model is not None else "") + ".",
+                      "Write: US_POINTS --ct CT_MESH [--model RUN_DIR] --out OUT_DIR.")
 
 
 def _check_us_cloud(methods: dict, points) -> None:

@@ -1,6 +1,11 @@
-"""One-pass registration with a pretrained ComReg run: ``Registrar`` and ``register_to_directory``.
+"""Registration of a US cloud to the CT: ``Registrar`` and ``register_to_directory``.
 
-``Registrar.from_run(run_dir).register(us_points)``:
+Two ways, one result type (:class:`~comreg_core.registration.result.RegistrationResult`):
+
+- ``Registrar.from_ct(ct_mesh).register(us_points)``: no network. The pose search
+  (:mod:`comreg_core.registration.search`) starts from the principal-axes pose of the US cloud
+  on the CT (base ``pca``) with its flips, turns and slides, and chooses by score.
+- ``Registrar.from_run(run_dir).register(us_points)``, the pretrained network:
 
 1. checks the US cloud (``(N, 3)`` finite mm, enough points, not in metres), normalises it with
    the *CT's* centre and scale (as in training);
@@ -42,11 +47,13 @@ import torch
 
 from comreg_core import runs
 from comreg_core.config import to_dict
-from comreg_core.errors import InvalidGeometryError
+from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
                                       as_hypothesis_config, judge_registration,
                                       search_hypotheses)
 from comreg_core.registration.result import RegistrationResult, residual_statistics
+from comreg_core.registration.search import principal_axes_pose
+from comreg_core.registration.surface import mesh_arrays
 from comreg_core.io._files import atomic_output, check_output_folder
 from comreg_core.io.pointclouds import PointCloud, read_points, write_points
 from comreg_core.io.transform_files import save_transform
@@ -92,7 +99,8 @@ class Registrar:
             result's ``warnings``.
     """
 
-    def __init__(self, model: ComRegNet, ct_points: np.ndarray, normalization: Normalization,
+    def __init__(self, model: ComRegNet | None, ct_points: np.ndarray,
+                 normalization: Normalization,
                  *, ct_vertices: np.ndarray | None = None, ct_faces: np.ndarray | None = None,
                  fingerprint: str = "", space: str = "LPS", device: str | torch.device = "cpu",
                  config: PretrainConfig | None = None,
@@ -100,7 +108,7 @@ class Registrar:
                  warnings: list[str] | None = None):
         self.device = resolve_device(device)
         self.warnings = list(warnings or [])
-        self.model = model.to(self.device).eval()
+        self.model = None if model is None else model.to(self.device).eval()
         self.ct_points = as_points(ct_points, "CT points")
         self.normalization = normalization
         self.fingerprint = fingerprint
@@ -111,6 +119,21 @@ class Registrar:
         self._surface = None
         self._encoding = None
         self._bare_cloud: SurfaceCloud | None = None
+
+    @classmethod
+    def from_ct(cls, ct_mesh, *, hypotheses: HypothesisConfig | bool | None = None
+                ) -> Registrar:
+        """A Registrar with no network: the pose search alone on the CT mesh ``ct_mesh`` (a
+        path, SurfaceMesh, ``(V, F)``, ...; mm). ``hypotheses`` as for :meth:`from_run`, but
+        the search cannot be turned off (it is the whole registration) and ties are broken by
+        score (there is no network's pose to prefer)."""
+        vertices, faces, space, _ = mesh_arrays(ct_mesh)
+        config = replace(as_hypothesis_config(hypotheses), enabled=True, tie_break="score",
+                         include_coarse=False)
+        return cls(None, vertices, Normalization.from_ct(vertices), ct_vertices=vertices,
+                   ct_faces=faces, fingerprint=ct_fingerprint(vertices, faces)["sha256"],
+                   space=space,
+                   device="cpu", hypotheses=config)
 
     @classmethod
     def from_run(cls, run_dir: str | Path, device: str = "auto", *, ct_mesh=None,
@@ -194,17 +217,17 @@ class Registrar:
         """The US cloud as ``(N, 3)`` float64 (at most :data:`MAX_US_POINTS`, see
         :func:`limit_us_points`), or a clear :class:`InvalidGeometryError`."""
         pts = limit_us_points(as_points(points, "US points"), seed)
-        need = max(self.model.completion.min_points, 3)
+        need = 6 if self.model is None else max(self.model.completion.min_points, 6)
         if len(pts) < need:
             raise InvalidGeometryError(
-                f"The US cloud has {len(pts)} points; this model needs at least {need}.",
+                f"The US cloud has {len(pts)} points; registration needs at least {need}.",
                 "Extract a denser US bone surface (more frames, less denoising).")
         extent = float((pts.max(0) - pts.min(0)).max())
         distinct = len(np.unique(pts, axis=0)) if extent < MIN_US_EXTENT_MM else len(pts)
         if distinct < need:
             raise InvalidGeometryError(
                 f"The US cloud has only {distinct} distinct point(s) among its {len(pts)}; "
-                f"this model needs at least {need} different points.",
+                f"registration needs at least {need} different points.",
                 "Check the export: the points should cover the bone surface seen in the sweep.")
         if extent < MIN_US_EXTENT_MM:
             raise InvalidGeometryError(
@@ -229,12 +252,15 @@ class Registrar:
         """
         hyp_cfg = (self.hypothesis_config if hypotheses is None
                    else as_hypothesis_config(hypotheses))
+        if self.model is None:  # the search is the whole registration; no network to prefer
+            hyp_cfg = replace(hyp_cfg, enabled=True, tie_break="score", include_coarse=False)
         t = {}
         start = time.perf_counter()
         n_given = len(points) if hasattr(points, "__len__") else None
         pts = self.check_points(points, seed)  # before the CT side is prepared
         check_s = time.perf_counter() - start
-        encoding = self.encoding  # cached CT half: not part of a registration's time
+        if self.model is not None:
+            self.encoding  # cached CT half: not part of a registration's time
         target = self.hypothesis_target(hyp_cfg.target_points) if hyp_cfg.enabled else None
         if target is not None and hyp_cfg.refine_top:
             target.closest_point_grid  # built once per CT: not part of a registration's time
@@ -244,41 +270,26 @@ class Registrar:
         warnings = list(self.warnings)
         if n_given is not None and n_given > len(pts):
             warnings.append(_subset_notice(n_given, len(pts)))
-        torch.manual_seed(int(seed))
-        norm = self.normalization
-        model, cfg = self.model, self.model.config
-        src = torch.from_numpy(norm.points_to_model(pts)).float()[None].to(self.device)  # 1 N 3
-        self._sync()
-        t["preprocess"] = time.perf_counter() - start
-        with torch.no_grad():
-            mark = time.perf_counter()
-            completion, pose = model.coarse_pose(src, encoding)
-            coarse = pose.transform
-            self._sync()
-            t["completion_and_coarse_pose"] = time.perf_counter() - mark
-            _check_finite_output(completion.dense, coarse)  # before the ICP searches with them
-            mark = time.perf_counter()
-            icp = model.refine(subsample(src, cfg.icp.num_points, 0), encoding, coarse)
-            self._sync()
-            t["icp"] = time.perf_counter() - mark
-        _check_finite_output(icp.transform)
-        mark = time.perf_counter()
-        T = norm.transform_to_mm(orthonormalize(icp.transform[0].double().cpu().numpy()))
-        T_coarse = norm.transform_to_mm(orthonormalize(coarse[0].double().cpu().numpy()))
-        dense = norm.points_to_mm(completion.dense[0].double().cpu().numpy())  # US frame, mm
-        icp_rmse = float(icp.rmse[0]) * norm.scale
-        t["postprocess"] = time.perf_counter() - mark
+        if self.model is None:
+            T = T_coarse = principal_axes_pose(pts, target)
+            dense, icp_rmse = None, float("nan")
+            t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
+                     icp=0.0, postprocess=0.0)
+        else:
+            T, T_coarse, dense, icp_rmse = self._network_pose(pts, seed, t, start)
         hyp, t["hypotheses"] = None, 0.0
         if hyp_cfg.enabled:
             mark = time.perf_counter()
-            hyp = search_hypotheses(pts, T, target, dense, hyp_cfg, T_coarse=T_coarse)
+            hyp = search_hypotheses(pts, T, target, dense, hyp_cfg,
+                                    T_coarse=None if self.model is None else T_coarse,
+                                    start_name="network" if self.model is not None else "pca")
             T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
             if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
                 icp_rmse = hyp.polish["rmse_mm"]
             self._sync()
             t["hypotheses"] = time.perf_counter() - mark
         mark = time.perf_counter()
-        completion_ct = apply_transform(T, dense)
+        completion_ct = np.zeros((0, 3)) if dense is None else apply_transform(T, dense)
         registered = apply_transform(T, pts)
         t["postprocess"] += time.perf_counter() - mark
         t["total"] = sum(t.values())
@@ -297,6 +308,36 @@ class Registrar:
             icp_rmse=icp_rmse, n_points=len(pts), hypotheses=hyp, info=info)
 
     __call__ = register
+
+    def _network_pose(self, pts: np.ndarray, seed: int, t: dict[str, float], start: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """The network's forward pass on ``(N, 3)`` US points (mm): ``(T_ct_us after its ICP,
+        the coarse T_ct_us, the completion (M, 3) in the US frame, the ICP's RMS residual
+        mm)``; stage timings go into ``t`` (``start``: when preprocessing began)."""
+        torch.manual_seed(int(seed))
+        norm = self.normalization
+        model, cfg = self.model, self.model.config
+        src = torch.from_numpy(norm.points_to_model(pts)).float()[None].to(self.device)  # 1 N 3
+        self._sync()
+        t["preprocess"] = time.perf_counter() - start
+        with torch.no_grad():
+            mark = time.perf_counter()
+            completion, pose = model.coarse_pose(src, self.encoding)
+            coarse = pose.transform
+            self._sync()
+            t["completion_and_coarse_pose"] = time.perf_counter() - mark
+            _check_finite_output(completion.dense, coarse)  # before the ICP searches with them
+            mark = time.perf_counter()
+            icp = model.refine(subsample(src, cfg.icp.num_points, 0), self.encoding, coarse)
+            self._sync()
+            t["icp"] = time.perf_counter() - mark
+        _check_finite_output(icp.transform)
+        mark = time.perf_counter()
+        T = norm.transform_to_mm(orthonormalize(icp.transform[0].double().cpu().numpy()))
+        T_coarse = norm.transform_to_mm(orthonormalize(coarse[0].double().cpu().numpy()))
+        dense = norm.points_to_mm(completion.dense[0].double().cpu().numpy())  # US frame, mm
+        t["postprocess"] = time.perf_counter() - mark
+        return T, T_coarse, dense, float(icp.rmse[0]) * norm.scale
 
     @property
     def surface(self):
@@ -356,19 +397,20 @@ def _check_finite_output(*tensors: torch.Tensor) -> None:
                               "train again with 'comreg pretrain'.")
 
 
-def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
+def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path,
                           out_dir: str | Path, *, device: str = "auto", seed: int = 0,
                           ct_mesh: str | Path | None = None, icp_points: int | None = None,
                           hypotheses: HypothesisConfig | bool | None = None
                           ) -> RegistrationResult:
-    """Register the US cloud in ``us_points_path`` with the run in ``run_dir``; write ``out_dir``.
+    """Register the US cloud in ``us_points_path`` with the run in ``run_dir`` (or, with
+    ``run_dir`` None, by the pose search alone on the CT mesh ``ct_mesh``); write ``out_dir``.
 
     Files (each written atomically; ``result.json`` last):
 
     - ``transform.tfm``: ``T_ct_us`` as an ITK transform (LPS, ITK's resampling direction, as
       3D Slicer writes it: :func:`comreg_core.io.save_transform`).
     - ``registered_us.ply``: the US points mapped into the CT frame (CT space tag).
-    - ``completion_ct.ply``: the completed bone in the CT frame.
+    - ``completion_ct.ply``: the completed bone in the CT frame (not without a network).
     - ``config.yaml``: inputs and settings (run folder, US file, device, seed, ICP points, the
       hypotheses settings).
     - ``result.json``: ``T_ct_us``, ``T_ct_us_coarse`` (4x4 mm), ``timings_s`` (per stage),
@@ -385,20 +427,37 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
     """
     import yaml
 
+    if run_dir is None and ct_mesh is None:
+        raise ComRegError("Nothing to register to: no CT mesh and no pretrained run.",
+                          "Give the CT bone mesh (--ct CT_MESH), and a run (--model RUN_DIR) "
+                          "to use the network too.")
     out = check_output_folder(out_dir, inputs=[run_dir, us_points_path, ct_mesh])
     cloud = read_points(us_points_path)  # the cheap input first
-    registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
-                                   hypotheses=hypotheses)
+    if run_dir is None:
+        if hypotheses is False or getattr(hypotheses, "enabled", True) is False:
+            raise ComRegError("Without a pretrained run the pose search is the registration; "
+                              "it cannot be turned off.",
+                              "Drop --no-hypotheses, or give --model RUN_DIR.")
+        registrar = Registrar.from_ct(ct_mesh, hypotheses=hypotheses)
+    else:
+        registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
+                                       hypotheses=hypotheses)
     result = registrar.register(cloud.in_space(registrar.space).points, seed=seed)
     out.mkdir(parents=True, exist_ok=True)
     files = {"transform": runs.TRANSFORM, "registered_us": runs.REGISTERED_US,
              "completion_ct": runs.COMPLETION_CT, "config": runs.CONFIG}
+    if registrar.model is None:
+        del files["completion_ct"]
     save_transform(result.T_ct_us, out / files["transform"], space=registrar.space)
     write_points(PointCloud(result.registered_points, registrar.space),
                  out / files["registered_us"])
-    write_points(PointCloud(result.completion_ct, registrar.space), out / files["completion_ct"])
-    inputs = {"run_dir": str(run_dir), "us_points": str(us_points_path), "device": device,
-              "seed": int(seed), "icp_points": registrar.model.config.icp.num_points,
+    if "completion_ct" in files:
+        write_points(PointCloud(result.completion_ct, registrar.space),
+                     out / files["completion_ct"])
+    inputs = {"run_dir": None if run_dir is None else str(run_dir),
+              "us_points": str(us_points_path), "device": device, "seed": int(seed),
+              "icp_points": None if registrar.model is None
+              else registrar.model.config.icp.num_points,
               "ct_mesh": None if ct_mesh is None else str(ct_mesh)}
     settings = {"hypotheses": to_dict(registrar.hypothesis_config), "inputs": inputs}
     with atomic_output(out / files["config"]) as tmp:  # comreg register --config reads it
@@ -406,7 +465,7 @@ def register_to_directory(run_dir: str | Path, us_points_path: str | Path,
     verdict = registration_verdict(result, registrar)
     payload = {**result.to_json(), **verdict.to_json(), "space": registrar.space,
                "ct_fingerprint": registrar.fingerprint,
-               "run_dir": str(Path(run_dir).absolute()),
+               "run_dir": None if run_dir is None else str(Path(run_dir).absolute()),
                "us_points": str(Path(us_points_path).absolute()),
                "ct_mesh": None if ct_mesh is None else str(Path(ct_mesh).absolute()),
                "files": files}

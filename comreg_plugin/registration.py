@@ -2,8 +2,10 @@
 
 - :class:`RegistrationMethods`: the methods :meth:`comreg_plugin.logic.ComRegLogic.register`
   runs: ``"comreg"`` (a pretrained run folder, :class:`comreg_core.inference.Registrar`),
-  ``"ransac"`` (the Open3D RANSAC + ICP baseline on the CT model) or any callable; each is
-  prepared once and reused while its inputs are unchanged.
+  ``"search"`` (the pose search alone on the CT model, no network:
+  :meth:`comreg_core.inference.Registrar.from_ct`), ``"ransac"`` (the Open3D RANSAC + ICP
+  baseline on the CT model) or any callable; each is prepared once and reused while its inputs
+  are unchanged.
 - :func:`runRegistration`: one method on ``(N, 3)`` RAS points -> ``T_ct_us`` in its space and
   in RAS.
 - :class:`RegistrationSummary`: the nodes and numbers a registration left in the scene.
@@ -25,7 +27,7 @@ from comreg_plugin.scene_io import arraysFromModelMesh, requireNode
 TRANSFORM_NODE_NAME = "ComReg US to CT"
 COMPLETED_BONE_NODE_NAME = "ComReg completed bone"
 COMPLETION_COLOR = (0.2, 0.8, 0.3)
-METHODS = ("comreg", "ransac")
+METHODS = ("comreg", "search", "ransac")
 
 
 @dataclass
@@ -102,14 +104,28 @@ class RegistrationMethods:
         unchanged)."""
         from comreg_core.evaluation.baselines import RansacIcpBaseline
 
+        return self._onCtModel("ransac", ctModelNode, seed,
+                               lambda mesh: RansacIcpBaseline(mesh, seed=seed))
+
+    def searchRegistrar(self, ctModelNode):
+        """The pose search alone (:meth:`comreg_core.inference.Registrar.from_ct`) prepared for
+        a CT model node (cached while it is unchanged)."""
+        from comreg_core.inference import Registrar
+
+        return self._onCtModel("search", ctModelNode, 0, Registrar.from_ct)
+
+    def _onCtModel(self, kind: str, ctModelNode, seed: int, build):
+        """``build((vertices, faces))`` of the CT model in LPS mm, cached per kind while the
+        model (and seed) is unchanged."""
         requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
                     "Pick the CT bone model (loaded from a segmentation or mesh).")
         polydata = ctModelNode.GetPolyData()
-        key = (ctModelNode.GetID(), polydata.GetMTime() if polydata else 0, int(seed))
+        key = (kind, ctModelNode.GetID(), polydata.GetMTime() if polydata else 0, int(seed))
         if key not in self._baselines:
             vertices, faces = arraysFromModelMesh(ctModelNode)
             lps = apply_transform(space_change("RAS", "LPS"), vertices)
-            self._baselines = {key: RansacIcpBaseline((lps, faces), seed=seed)}
+            self._baselines = {k: v for k, v in self._baselines.items() if k[0] != kind}
+            self._baselines[key] = build((lps, faces))
         return self._baselines[key]
 
     def prepare(self, method, parameters, *, runDirectory, ctModelNode, seed: int,
@@ -131,14 +147,21 @@ class RegistrationMethods:
 
             def run(points):
                 return registrar.register(points, seed=seed)
-        elif method == "ransac":
+        elif method in ("ransac", "search"):
             ctModelNode = ctModelNode if ctModelNode is not None else parameters.ctModel
             if ctModelNode is None:
-                raise ComRegError("The RANSAC baseline needs the CT bone model.",
+                raise ComRegError(f"The '{method}' method needs the CT bone model.",
                                   "Load a CT segmentation or bone mesh first.")
-            baseline = self.ransacBaseline(ctModelNode, seed)
-            baseline.reseed(seed)
-            space, run, methodName = "LPS", baseline, "ransac"
+            if method == "ransac":
+                baseline = self.ransacBaseline(ctModelNode, seed)
+                baseline.reseed(seed)
+                space, run, methodName = "LPS", baseline, "ransac"
+            else:
+                registrar = self.searchRegistrar(ctModelNode)
+                space, methodName = "LPS", "search"
+
+                def run(points):
+                    return registrar.register(points, seed=seed)
         else:
             raise ComRegError(f"Unknown registration method '{method}'.",
                               f"Use one of: {', '.join(METHODS)}, or pass a callable.")
@@ -165,6 +188,8 @@ def runRegistration(run, points_ras: np.ndarray, space: str) -> tuple:
     completion_ct = getattr(raw, "completion_ct", None)
     if completion_ct is None and output.completion is not None:
         completion_ct = apply_transform(T, output.completion)
+    if completion_ct is not None and len(completion_ct) == 0:  # a method without a completion
+        completion_ct = None
     return output, T, T_ras, completion_ct
 
 

@@ -1,5 +1,7 @@
 """Registration methods by name, as ``comreg evaluate --method`` offers them.
 
+- ``search``: the pose search alone, no network (:meth:`~comreg_core.inference.Registrar.
+  from_ct`: starts from the principal axes of the US cloud on the CT's);
 - ``comreg``: the pretrained run with the test-time hypotheses stage (the default pipeline;
   :mod:`comreg_core.registration.search`);
 - ``comreg-plain``: the same network without it (the paper's plain pipeline);
@@ -19,12 +21,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from comreg_core.choices import BASELINES, COMREG_METHODS, METHODS
+from comreg_core.choices import BASELINES, COMREG_METHODS, METHODS, SEARCH_METHODS
 from comreg_core.config import load_config
 from comreg_core.errors import ComRegError
 from comreg_core.evaluation.baselines import BaselineConfig, baseline_methods
 from comreg_core.inference import Registrar
 from comreg_core.registration import HypothesisConfig, as_hypothesis_config
+from comreg_core.simulation.config import SimulationConfig
 
 
 def method_names(names: str | Iterable[str]) -> list[str]:
@@ -47,11 +50,14 @@ def method_names(names: str | Iterable[str]) -> list[str]:
 
 @dataclass(frozen=True)
 class EvaluateConfig:
-    """The settings of ``comreg evaluate --config FILE``: sections ``hypotheses:`` (the
-    ``comreg`` method's pose search) and ``baselines:`` (``ransac:``, ``icp_gt:``)."""
+    """The settings of ``comreg evaluate --config FILE``: sections ``hypotheses:`` (the pose
+    search of ``search`` and ``comreg``), ``baselines:`` (``ransac:``, ``icp_gt:``) and
+    ``simulation:`` (the sweeps of ``simulated``, e.g. short one-face sweeps:
+    ``trajectory: {length_mm: [40, 50], side_drift_deg: 20, longitudinal_probability: 0}``)."""
 
     hypotheses: HypothesisConfig = field(default_factory=HypothesisConfig)
     baselines: BaselineConfig = field(default_factory=BaselineConfig)
+    simulation: SimulationConfig = field(default_factory=SimulationConfig)
 
 
 def load_evaluate_config(path: str | Path | None = None,
@@ -68,17 +74,26 @@ def registration_methods(names: str | Iterable[str], run_dir, ct_mesh, *, device
 
     Args:
         names: method names (:data:`METHODS`, or ``all``).
-        run_dir: the pretrained run (needed for ``comreg`` / ``comreg-plain``).
-        ct_mesh: the CT surface (the baselines; a fingerprint check of the run).
+        run_dir: the pretrained run (needed for ``comreg`` / ``comreg-plain``; None without).
+        ct_mesh: the CT surface (``search``, the baselines; a fingerprint check of the run).
         device: where the network runs.
         seed: the baselines' seed.
-        hypotheses: the ``comreg`` method's hypotheses settings (None = the defaults; see
-            :class:`~comreg_core.registration.HypothesisConfig`).
+        hypotheses: the pose search's settings of ``comreg`` and ``search`` (None = the
+            defaults; see :class:`~comreg_core.registration.HypothesisConfig`).
         baseline_config: the baselines' settings.
     """
     names = method_names(names)
     methods: dict[str, Any] = {}
+    search = {}
+    if any(name in SEARCH_METHODS for name in names):
+        search["search"] = Registrar.from_ct(ct_mesh, hypotheses=hypotheses)
+    comreg = {}
     if any(name in COMREG_METHODS for name in names):
+        if run_dir is None:
+            raise ComRegError(f"The method(s) {', '.join(n for n in names if n in COMREG_METHODS)}"
+                              " need a pretrained run.",
+                              "Give --model RUN_DIR (from 'comreg pretrain'), or evaluate "
+                              "'search' and the baselines alone.")
         config = as_hypothesis_config(hypotheses)
         if "comreg" in names and not config.enabled:
             raise ComRegError("The 'comreg' method was asked for with its hypotheses stage off.",
@@ -89,5 +104,5 @@ def registration_methods(names: str | Iterable[str], run_dir, ct_mesh, *, device
     baselines = [name for name in names if name in BASELINES]
     built = baseline_methods(baselines, ct_mesh, baseline_config, seed=seed) if baselines else {}
     for name in names:
-        methods[name] = comreg[name] if name in COMREG_METHODS else built[name]
+        methods[name] = {**search, **comreg, **built}[name]
     return methods

@@ -136,11 +136,23 @@ def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.nda
     return T
 
 
+def principal_axes_pose(points_us: np.ndarray, target: SurfaceCloud) -> np.ndarray:
+    """``(4, 4)`` ``T_ct_us`` putting the principal frame of ``(N, 3)`` points (US frame, mm)
+    onto the CT's: centroid onto centroid, axes onto axes (up to the axes' signs, which the
+    search's flips and turns cover)."""
+    c_us, a_us = principal_frame(points_us)
+    T = np.eye(4)
+    T[:3, :3] = target.axes @ a_us.T
+    T[:3, 3] = target.centre - T[:3, :3] @ c_us
+    return T
+
+
 def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
                      completion: np.ndarray | None = None,
                      config: HypothesisConfig | None = None, *,
                      T_coarse: np.ndarray | None = None,
-                     grid_offset: float = 0.0) -> dict[str, np.ndarray]:
+                     grid_offset: float = 0.0, start_name: str = "network"
+                     ) -> dict[str, np.ndarray]:
     """The start poses ``{name: T_ct_us (4, 4) mm}`` of the hypotheses (module docstring).
 
     Args:
@@ -151,17 +163,15 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
         T_coarse: ``(4, 4)`` mm, the network's coarse pose, or None.
         grid_offset: shift of the rotations and slides, as a share of their steps (0.5: the
             grid interleaved with the default one; the bases themselves are not included).
+        start_name: the name of ``T_start``'s base (``"pca"`` when the search runs without a
+            network, from :func:`principal_axes_pose`).
     """
     cfg = config or HypothesisConfig()
-    bases = {"network": check_rigid(T_start)}
+    bases = {start_name: check_rigid(T_start)}
     if T_coarse is not None and cfg.include_coarse:
         bases["coarse"] = check_rigid(T_coarse)
     if completion is not None and cfg.principal_axes_solve:
-        c_us, a_us = principal_frame(completion)
-        T = np.eye(4)
-        T[:3, :3] = target.axes @ a_us.T
-        T[:3, 3] = target.centre - T[:3, :3] @ c_us
-        bases["pca"] = T
+        bases["pca"] = principal_axes_pose(completion, target)
     starts: dict[str, np.ndarray] = {}
     slides = slide_offsets_mm(target, cfg) + grid_offset * cfg.slide_step_mm
     for base, T_base in bases.items():
@@ -250,7 +260,8 @@ def us_subset(points: np.ndarray, count: int) -> np.ndarray:
 def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
                       completion: np.ndarray | None = None,
                       config: HypothesisConfig | None = None, *,
-                      T_coarse: np.ndarray | None = None) -> HypothesisResult:
+                      T_coarse: np.ndarray | None = None,
+                      start_name: str = "network") -> HypothesisResult:
     """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
 
     With ``retry_ambiguous``, an ambiguous result gets a second round from the grid of starts
@@ -266,6 +277,7 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
         config: settings (default :class:`HypothesisConfig`; ``enabled`` is not looked at
             here: calling this function runs the stage).
         T_coarse: ``(4, 4)`` mm, the coarse pose before the network's ICP, or None.
+        start_name: the name of ``T_start``'s base (see :func:`build_hypotheses`).
 
     Returns:
         :class:`HypothesisResult` (all mm).
@@ -290,7 +302,7 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
     tried = 0
     for offset in (0.0, 0.5) if cfg.retry_ambiguous else (0.0,):
         grid = build_hypotheses(T_network, target, completion, cfg, T_coarse=T_coarse,
-                                grid_offset=offset)
+                                grid_offset=offset, start_name=start_name)
         tried += len(grid)
         new_names, new_starts, new_poses, new_rmse = refine_starts(
             subset_mm, grid, target, cfg, keep_first=offset == 0.0)

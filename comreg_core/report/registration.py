@@ -18,14 +18,17 @@ from comreg_core.report.report import write_report
 
 
 def read_registration_result(out_dir: Path) -> dict[str, Any]:
-    """``out_dir/result.json`` checked to hold ``T_ct_us``, ``run_dir`` and ``us_points``.
-    Relative paths in it (results written before they were stored absolute) are taken as
-    relative to the current directory, as they were written."""
+    """``out_dir/result.json`` checked to hold ``T_ct_us``, ``us_points`` and a ``run_dir`` or
+    a ``ct_mesh`` (a registration without a network has no run). Relative paths in it (results
+    written before they were stored absolute) are taken as relative to the current directory,
+    as they were written."""
     path = require_input_file(Path(out_dir) / runs.RESULT, "registration result")
     try:
         result = json.loads(path.read_text(encoding="utf-8"))
         np.asarray(result["T_ct_us"], dtype=np.float64).reshape(4, 4)
-        str(result["run_dir"]), str(result["us_points"])
+        str(result["us_points"])
+        if result.get("run_dir") is None and result.get("ct_mesh") is None:
+            raise KeyError("run_dir or ct_mesh")
     except (ValueError, KeyError, TypeError) as exc:
         raise ComRegError(f"'{path}' is not a ComReg registration result ({exc}).",
                           "Run 'comreg register' into this folder first.") from None
@@ -55,7 +58,7 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     require_input_file(out_dir / runs.RESULT, "registration result")
     check_output_folder(out_dir, what="report folder")  # before reading and rendering
     result = read_registration_result(out_dir)
-    run_dir, us_path = Path(result["run_dir"]), Path(result["us_points"])
+    run_dir, us_path = result.get("run_dir"), Path(result["us_points"])
     ct_path = ct_mesh or result.get("ct_mesh")
     if ct_path is None:
         from comreg_core.training import run_ct_mesh
@@ -83,7 +86,8 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     return write_report(
         out_dir, ct_mesh=ct, us_before=us_points, us_after=apply_transform(T_ct_us, us_points),
         completion=completion, metrics=metrics, verdict=verdict,
-        inputs={"run folder": str(run_dir), "US points": str(us_path),
+        inputs={"run folder": str(run_dir or "none (the pose search alone)"),
+                "US points": str(us_path),
                 "CT mesh": str(ct_path or f"stored in {run_dir}"),
                 "transform": str(transform or "result.json (the registration's)")},
         seed=result.get("seed"), device=result.get("device"), embed_images=embed_images,

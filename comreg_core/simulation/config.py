@@ -55,6 +55,10 @@ class TrajectoryConfig:
             moved along it, as in the real data).
         n_slices: inclusive range of the slice count N of one sweep.
         coverage_fraction: range of a transverse sweep's length as a fraction of bone length.
+        length_mm: range of a transverse sweep's length in mm instead (e.g. ``[30, 60]`` for
+            the short sweeps of intraoperative US; with ``side_drift_deg`` small and
+            ``longitudinal_probability: 0``, a short sweep over one face); null = use
+            ``coverage_fraction``.
         end_margin_mm: a transverse sweep may run this far past either bone end.
         longitudinal_width_mm: range of a longitudinal sweep's lateral travel.
         direction_jitter_deg: variation of the global sweep direction: the probe array is turned
@@ -74,6 +78,7 @@ class TrajectoryConfig:
     longitudinal_probability: float = 0.2
     n_slices: tuple[int, int] = (200, 500)
     coverage_fraction: tuple[float, float] = (0.5, 1.0)
+    length_mm: Optional[tuple[float, float]] = None
     end_margin_mm: float = 20.0
     longitudinal_width_mm: tuple[float, float] = (15.0, 40.0)
     direction_jitter_deg: float = 10.0
@@ -90,6 +95,8 @@ class TrajectoryConfig:
                 "must lie in [0, 1]")
         _require_range(self.n_slices, "trajectory.n_slices", 2, 100_000)
         _require_range(self.coverage_fraction, "trajectory.coverage_fraction", 0.01, 2.0)
+        if self.length_mm is not None:
+            _require_range(self.length_mm, "trajectory.length_mm", 1.0, 2000.0)
         require(0.0 <= self.end_margin_mm <= 200.0, "trajectory.end_margin_mm",
                 "must lie in [0, 200] mm")
         _require_range(self.longitudinal_width_mm, "trajectory.longitudinal_width_mm", 0.1, 500.0)

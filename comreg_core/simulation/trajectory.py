@@ -125,7 +125,9 @@ def sample_trajectory(bone: BoneModel, config: SimulationConfig, rng: np.random.
         s_min, s_max = -width / 2, width / 2
     else:
         lo, hi = a_min - tc.end_margin_mm, a_max + tc.end_margin_mm
-        length = min(rng.uniform(*tc.coverage_fraction) * bone.length, hi - lo)
+        length = (rng.uniform(*tc.coverage_fraction) * bone.length if tc.length_mm is None
+                  else rng.uniform(*tc.length_mm))
+        length = min(length, hi - lo)
         start = rng.uniform(lo, hi - length)
         s_min, s_max = (start, start + length) if sign > 0 else (-start - length, -start)
     positions, multipliers = slice_positions(

@@ -54,7 +54,7 @@ def main(argv=None) -> None:
           f"{methods['icp-gt'].prepare_s:.2f} s (total {time.perf_counter() - t0:.2f} s)")
     print(f"  RANSAC: max_iterations {args.max_iterations}, confidence {args.confidence}")
 
-    def progress(done, total):
+    def progress(done, total, note=""):
         if done % 10 == 0 or done == total:
             print(f"  {done}/{total} registrations, {time.perf_counter() - t0:.0f} s", flush=True)
 

@@ -200,6 +200,19 @@ def test_registration_recovers_the_known_transform(registered, case):
     assert summary.completedBoneNode is None  # the baseline completes nothing
 
 
+def test_search_registers_in_the_scene_without_a_network(registered, case):
+    """The pose search alone on the CT model recovers the known transform too; no completed
+    bone, and its confidence reaches the parameter node."""
+    logic, _, us = registered
+    summary = logic.register(us, "search", seed=0)
+    T_node = transformToParentRAS(summary.transformNode)
+    errors = testing.poseErrors(T_RAS_LPS @ T_node @ T_RAS_LPS, case.T_ct_us, case.usPoints)
+    assert errors["translation_mm"] < 2.0 and errors["rotation_deg"] < 2.0, errors
+    assert summary.method == "search" and summary.completedBoneNode is None
+    assert summary.info["ambiguous"] is False
+    assert logic.getParameterNode().confidence == summary.info["confidence"]
+
+
 def test_transform_files_read_back_by_slicer_and_comreg(registered, tmp_path):
     logic, summary, _ = registered
     T_ras = transformToParentRAS(summary.transformNode)

@@ -55,12 +55,14 @@ def test_a_callable_is_a_method_named_after_itself():
 def test_unknown_or_incomplete_methods_are_refused():
     methods = RegistrationMethods()
     kwargs = dict(runDirectory=None, ctModelNode=None, seed=0, device="cpu")
-    with pytest.raises(ComRegError, match="Unknown registration method 'magic'.*comreg, ransac"):
+    with pytest.raises(ComRegError, match="Unknown registration method 'magic'.*comreg, search, "
+                                          "ransac"):
         methods.prepare("magic", NO_DEFAULTS, **kwargs)
     with pytest.raises(ComRegError, match="No pretrained run folder"):
         methods.prepare("comreg", NO_DEFAULTS, **kwargs)
-    with pytest.raises(ComRegError, match="needs the CT bone model"):
-        methods.prepare("ransac", NO_DEFAULTS, **kwargs)
+    for method in ("ransac", "search"):
+        with pytest.raises(ComRegError, match=f"'{method}' method needs the CT bone model"):
+            methods.prepare(method, NO_DEFAULTS, **kwargs)
 
 
 def test_missing_inputs_default_to_the_parameter_node():

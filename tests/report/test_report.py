@@ -66,7 +66,7 @@ def report(case, tmp_path_factory):
     path = write_report(out, ct_mesh=case.ct, us_before=case.us_before, us_after=case.us_after,
                         completion=case.completion, metrics=METRICS, inputs=INPUTS, seed=7,
                         device="cpu", title=TITLE, window_size=TEST_WINDOW,
-                        progress=lambda done, total: calls.append((done, total)))
+                        progress=lambda done, total, note="": calls.append((done, total)))
     return path, calls
 
 

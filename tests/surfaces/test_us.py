@@ -97,7 +97,7 @@ def test_extract_us_to_file_from_a_frame_folder(tmp_path, fibula_sweep):
                       "other_section:\n  x: 1\n")
     done = []
     result = extract_us_to_file(fibula_sweep, tmp_path / "out" / "us.ply", config=config,
-                                progress=lambda i, n: done.append((i, n)))
+                                progress=lambda i, n, note="": done.append((i, n)))
     assert done[-1] == (12, 12) and result.raw.frames_examined == 12
     cloud = read_points(tmp_path / "out" / "us.ply")
     assert_close(cloud.points, result.points.points, atol=0)

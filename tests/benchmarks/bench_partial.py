@@ -1,0 +1,140 @@
+"""Benchmark: short sweeps over one face of the bone (issue 21), registered by the pose search
+alone and, given pretrained runs, by ComReg and its plain pipeline.
+
+``.venv/bin/python -m tests.benchmarks.bench_partial [--trials 100] [--seed 0]
+[--set simulated-fibula,simulated-tibia,real-fibula] [--perturbation paper,full]
+[--model RUN] [--untrained RUN0]``
+
+Sets:
+
+- ``simulated-fibula`` / ``simulated-tibia``: fresh simulated sweeps (the project's simulator,
+  seeds disjoint from training) of the shared fibula CT and of the tibia-like bone of
+  ``tests.helpers.tibia_like_mesh``, transverse only, 40-50 mm long (``trajectory.length_mm``),
+  over one face (the probe's side drifts by at most 20 deg), never past the bone's ends;
+- ``real-fibula``: the shared real fibula sweep (111 B-mode frames) cut into runs of
+  consecutive frames whose probe path covers 30-60 mm (non-overlapping), bone points from the
+  project's detector, truth = the recorded tracking (itself ~3 mm off: the data's floor).
+
+Every trial moves a sweep by a random rigid pose (``paper``: one axis, +-90 deg, +-100 mm;
+``full``: any rotation, up to 500 mm). Success: RTE < 4 mm and RRE < 5 deg (the issue's
+criterion for partial sweeps); flips: RRE > 90 deg; unflagged flips: flips not flagged
+ambiguous. Latency: median and 90th percentile of the method's own time (machine load stated
+by the caller). ``--model RUN`` adds ``comreg`` / ``comreg-plain`` for the fibula sets (a run
+trained on the shared fibula CT), ``--untrained RUN0`` the same network at 0 epochs (the control).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+SETS = ("simulated-fibula", "simulated-tibia", "real-fibula")
+#: The short one-face sweeps of the simulated sets.
+PARTIAL_SWEEPS = {"trajectory": {"length_mm": [40.0, 50.0], "side_drift_deg": 20.0,
+                                 "longitudinal_probability": 0.0, "end_margin_mm": 0.0,
+                                 "n_slices": [100, 250]}}
+
+
+def real_runs(shared_data, lengths=(30.0, 60.0)) -> list[np.ndarray]:
+    """The real fibula sweep's bone points cut into runs of consecutive frames whose probe path
+    (image-centre positions) covers ``lengths[0]``-``lengths[1]`` mm; non-overlapping."""
+    from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.surfaces.us import extract_us_surface
+
+    sweep = read_tracked_sweep(shared_data / "ultrabones100k-fibula")
+    points = extract_us_surface(sweep).points
+    h, w = sweep.image_shape
+    centre = np.array([w * sweep.spacing[0] / 2, h * sweep.spacing[1] / 2, 0.0, 1.0])
+    valid = np.flatnonzero(sweep.valid)
+    path = (sweep.T_ref_image[valid] @ centre)[:, :3]
+    travel = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+    runs, start = [], 0
+    target = float(np.mean(lengths))
+    while start < len(valid):
+        end = int(np.searchsorted(travel, travel[start] + target))
+        if end >= len(valid):
+            break
+        frames = valid[start:end + 1]
+        if lengths[0] <= travel[end] - travel[start] <= lengths[1]:
+            cloud = points.points[np.isin(points.frame_index, frames)]
+            if len(cloud) >= 200:
+                runs.append(cloud)
+        start = end + 1
+    return runs
+
+
+def _methods(bone: str, ct, args) -> dict:
+    from comreg_core.inference import Registrar
+
+    methods = {"search": Registrar.from_ct(ct)}
+    if bone == "fibula":
+        for label, run in (("comreg", args.model), ("untrained", args.untrained)):
+            if run:
+                registrar = Registrar.from_run(run, "cpu", ct_mesh=ct)
+                methods[label] = registrar
+                methods[f"{label}-plain"] = (
+                    lambda points, r=registrar: r.register(points, hypotheses=False))
+    return methods
+
+
+def _row(name: str, rows: list[dict]) -> str:
+    rte = np.array([r["RTE_mm"] for r in rows])
+    rre = np.array([r["RRE_deg"] for r in rows])
+    ok = (rte < 4.0) & (rre < 5.0)
+    flips = rre > 90.0
+    amb = np.array([bool(r.get("ambiguous")) for r in rows])
+    secs = np.array([r["runtime_s"] for r in rows])
+    has_flag = any(r.get("ambiguous") is not None for r in rows)
+    return (f"{name:>16} {ok.mean():8.0%} {flips.mean():6.0%} "
+            f"{(f'{amb.mean():.0%}' if has_flag else '-'):>7} "
+            f"{(f'{(flips & ~amb).mean():.0%}' if has_flag else '-'):>9} "
+            f"{np.median(rte):8.2f} {np.median(rre):8.2f} {np.median(secs):7.2f} "
+            f"{np.percentile(secs, 90):6.2f}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    from comreg_core.config import from_dict
+    from comreg_core.evaluation.evaluate import evaluate
+    from comreg_core.simulation.config import SimulationConfig
+    from tests.helpers import FIBULA_STL, SHARED_DATA, tibia_like_mesh
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--trials", type=int, default=100)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", default=",".join(SETS))
+    p.add_argument("--perturbation", default="paper,full")
+    p.add_argument("--model", default=None, help="a run trained on the shared fibula CT")
+    p.add_argument("--untrained", default=None, help="the same network at 0 epochs")
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+
+    config = from_dict(SimulationConfig, PARTIAL_SWEEPS, "simulation")
+    print(f"success: RTE < 4 mm and RRE < 5 deg; {args.trials} trials per set and perturbation; "
+          f"seed {args.seed}")
+    print(f"{'method':>16} {'success':>8} {'flips':>6} {'ambig.':>7} {'unflagged':>9} "
+          f"{'RTE med':>8} {'RRE med':>8} {'median s':>7} {'p90 s':>6}")
+    for name in args.set.split(","):
+        bone = name.split("-")[1]
+        ct = FIBULA_STL if bone == "fibula" else tibia_like_mesh()
+        if name.startswith("simulated"):
+            clouds, extra = "simulated", {"simulation_config": config}
+        else:
+            clouds, extra = real_runs(SHARED_DATA), {}
+            lengths = [float(np.ptp(c, axis=0).max()) for c in clouds]
+            print(f"{name}: {len(clouds)} runs, {int(np.median([len(c) for c in clouds]))} "
+                  f"points (median), extent {min(lengths):.0f}-{max(lengths):.0f} mm")
+        methods = _methods(bone, ct, args)
+        for perturbation in args.perturbation.split(","):
+            start = time.perf_counter()
+            result = evaluate(methods, clouds, ct, trials=args.trials, seed=args.seed,
+                              perturbation=perturbation, **extra)
+            print(f"-- {name}, {perturbation} poses ({time.perf_counter() - start:.0f} s)")
+            for method in methods:
+                print(_row(method, [r for r in result["trials"] if r["method"] == method
+                                    and r["error"] is None]), flush=True)
+
+
+if __name__ == "__main__":
+    main()

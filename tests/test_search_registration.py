@@ -1,0 +1,102 @@
+"""Registration with no pretrained model: the pose search alone (Registrar.from_ct, `comreg
+register US --ct CT`, `comreg evaluate --method search`), on the real fibula sweep and known
+simulated poses."""
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from comreg_core.cli import app
+from comreg_core.errors import ComRegError
+from comreg_core.inference import Registrar, register_to_directory
+from comreg_core.io import PointCloud, read_mesh, write_points
+from comreg_core.registration.metrics import registration_metrics
+from comreg_core.simulation import sample_initial_pose
+from comreg_core.transforms import apply_transform, invert_rigid
+from tests.helpers import FIBULA_STL
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def real_sweep(shared_data):
+    """The shared real fibula sweep's bone points (CT frame: the recorded tracking)."""
+    from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.surfaces.us import extract_us_surface
+
+    points = extract_us_surface(read_tracked_sweep(
+        shared_data / "ultrabones100k-fibula")).points.points
+    return points[::3]  # a third of the points: the same pose, a faster test
+
+
+@pytest.fixture(scope="module")
+def search(shared_data):
+    return Registrar.from_ct(FIBULA_STL)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_real_sweep_from_full_rotation_starts(search, real_sweep, seed):
+    """From any rotation up to 180 deg and 500 mm away, the search alone lands where ICP from
+    the recorded tracking lands (the recording is ~3 mm off: success on real data is RTE < 4 mm,
+    RRE < 5 deg)."""
+    T_moved = sample_initial_pose(np.random.default_rng(seed), "full",
+                                  center=real_sweep.mean(axis=0))
+    moved = apply_transform(T_moved, real_sweep)
+    result = search.register(moved)
+    errors = registration_metrics(result.T_ct_us, invert_rigid(T_moved), moved, FIBULA_STL)
+    assert errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0, errors
+    assert result.hypotheses.chosen.startswith("pca") and not result.ambiguous
+    assert result.completion_ct.shape == (0, 3) and result.residuals["median"] < 1.0
+
+
+def test_search_cannot_be_turned_off_and_needs_points(search):
+    result = search.register(read_mesh(FIBULA_STL).vertices[::50], hypotheses=False)
+    assert result.hypotheses is not None  # the search is the whole registration
+    with pytest.raises(ComRegError, match="at least 6"):
+        search.register(np.zeros((4, 3)))
+
+
+def test_register_and_report_without_a_run(tmp_path, real_sweep):
+    us = write_points(PointCloud(real_sweep), tmp_path / "us.ply")
+    out = tmp_path / "reg"
+    result = runner.invoke(app, ["register", str(us), "--ct", str(FIBULA_STL), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "by the pose search (no network)" in result.output
+    saved = json.loads((out / "result.json").read_text())
+    assert saved["run_dir"] is None and saved["verdict"] == "ok", saved["verdict_reasons"]
+    assert not (out / "completion_ct.ply").exists() and "completion_ct" not in saved["files"]
+    errors = registration_metrics(np.asarray(saved["T_ct_us"]), np.eye(4), real_sweep,
+                                  FIBULA_STL)
+    assert errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0, errors
+    result = runner.invoke(app, ["report", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "none (the pose search alone)" in (out / "report.html").read_text()
+    # no CT and no run; --no-hypotheses without a network; three positionals: one line, exit 2
+    for args in (["register", str(us), "--out", str(tmp_path / "x")],
+                 ["register", str(us), "--ct", str(FIBULA_STL), "--no-hypotheses", "--out",
+                  str(tmp_path / "y")],
+                 ["register", str(us), str(us), str(us), "--out", str(tmp_path / "z")]):
+        result = runner.invoke(app, args)
+        assert result.exit_code == 2 and len(result.output.strip().splitlines()) <= 2, \
+            result.output
+        assert not any((tmp_path / n).exists() for n in "xyz")
+
+
+def test_evaluate_search_without_a_run(tmp_path, real_sweep):
+    us = write_points(PointCloud(real_sweep), tmp_path / "us.ply")
+    result = runner.invoke(app, ["evaluate", str(us), "--ct", str(FIBULA_STL), "--out",
+                                 str(tmp_path / "ev"), "--trials", "2", "--method", "search",
+                                 "--method", "icp-gt", "--perturbation", "full"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert list(metrics["summary"]) == ["search", "icp-gt"]
+    rows = [r for r in metrics["trials"] if r["method"] == "search"]
+    assert all(r["RTE_mm"] < 4.0 and r["RRE_deg"] < 5.0 for r in rows), rows
+    assert metrics["summary"]["search"]["ambiguous_rate"] == 0.0
+    result = runner.invoke(app, ["evaluate", str(us), "--ct", str(FIBULA_STL), "--out",
+                                 str(tmp_path / "ev2"), "--method", "comreg"])
+    assert result.exit_code == 2 and "--model RUN_DIR" in result.output
+    with pytest.raises(ComRegError, match="no CT mesh and no pretrained run"):
+        register_to_directory(None, us, tmp_path / "none")
