@@ -104,3 +104,15 @@ def box_distance(points: np.ndarray) -> np.ndarray:
     outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
     inside = -q.max(axis=1)
     return np.where((q > 0).any(axis=1), outside, inside)
+
+
+def rigid_about(rotvec_deg, translation, about) -> np.ndarray:
+    """``(4, 4)`` rigid transform: a rotation (rotation vector, deg) about the point ``about``
+    (mm), then a translation (mm)."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    T[:3, 3] = np.asarray(about) - T[:3, :3] @ np.asarray(about) + np.asarray(translation,
+                                                                              dtype=np.float64)
+    return T

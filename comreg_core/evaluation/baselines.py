@@ -14,8 +14,8 @@
   CT side is ``ct_samples`` area-uniform points of the CT mesh (with the triangles' exact normals
   for the point-to-plane ICP; the FPFH path re-estimates normals on the down-sampled cloud
   exactly as for the US cloud, as the tutorial does). One safeguard beyond the tutorial: if ICP
-  ends with a lower fitness than the RANSAC pose had at the ICP distance (point-to-plane ICP can slide along
-  a near-cylindrical shaft and lose every correspondence), the RANSAC pose is kept.
+  ends with a lower fitness than the RANSAC pose had at the ICP distance (point-to-plane ICP can
+  slide along a near-cylindrical shaft and lose every correspondence), the RANSAC pose is kept.
 - ``"icp-gt"`` (:class:`IcpGtBaseline`): the paper's pseudo ground truth, ICP started from the
   ground truth ("near-perfect initialisation"): point-to-plane ICP in numpy/scipy
   (:func:`~comreg_core.registration.icp.point_to_plane_icp`, no Open3D) to the (near-)exact

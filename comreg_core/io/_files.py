@@ -151,3 +151,15 @@ def current_umask() -> int:
     os.umask(mask)
     return mask
 
+
+def parse_numbers(text: str, count: int, dtype=float):
+    """The ``count`` numbers written (space separated) in ``text`` as a ``(count,)`` numpy array,
+    or None when ``text`` does not hold exactly ``count`` numbers of that type (the caller says
+    which file and field is wrong)."""
+    import numpy as np
+
+    try:
+        values = np.array([dtype(v) for v in text.split()])
+    except ValueError:
+        return None
+    return values if values.size == count else None

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from comreg_core.errors import ComRegError, CorruptFileError, MissingSpatialMetadataError
-from comreg_core.io._files import atomic_output, require_input_file
+from comreg_core.io._files import atomic_output, parse_numbers, require_input_file
 from comreg_core.io.image_files import (STORABLE_DTYPE_CODES, format_numbers, grid_axes,
                                         grid_matrix, parse_errors_as_corrupt,
                                         refuse_tracked_sequence, storable_array)
@@ -70,16 +70,13 @@ def header_field(fields: dict[str, str], *names: str) -> str | None:
 
 
 def header_numbers(path: Path, fields: dict[str, str], names: tuple[str, ...], count: int,
-             dtype=float) -> np.ndarray | None:
+                   dtype=float) -> np.ndarray | None:
     """The ``count`` numbers of the first present field of ``names``, or None if absent."""
     value = header_field(fields, *names)
     if value is None:
         return None
-    try:
-        numbers = np.array([dtype(v) for v in value.split()])
-    except ValueError:
-        numbers = np.array([])
-    if numbers.size != count:
+    numbers = parse_numbers(value, count, dtype)
+    if numbers is None:
         raise CorruptFileError(path, f"'{names[0]} = {value}' should hold {count} numbers")
     return numbers
 

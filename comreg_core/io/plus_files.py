@@ -17,7 +17,7 @@ import nrrd
 import numpy as np
 
 from comreg_core.errors import ComRegError, CorruptFileError
-from comreg_core.io._files import file_extension, require_input_file
+from comreg_core.io._files import file_extension, parse_numbers, require_input_file
 from comreg_core.io.image_files import parse_errors_as_corrupt
 from comreg_core.io.metaimage_files import (METAIMAGE_DTYPES, header_field, header_flag,
                                             read_metaimage_header, read_metaimage_voxels)
@@ -67,11 +67,8 @@ def read_plus_device_set(path: str | Path) -> PlusDeviceSet:
         text = element.get(name) if element is not None else None
         if text is None:
             return None
-        try:
-            values = np.array([dtype(v) for v in text.split()])
-        except ValueError:
-            values = np.array([])
-        if values.size != count:
+        values = parse_numbers(text, count, dtype)
+        if values is None:
             raise CorruptFileError(path, f"<{element.tag} {name}=\"{text.strip()[:80]}\"> "
                                          f"should hold {count} numbers")
         return values

@@ -22,7 +22,8 @@ from comreg_core.registration.verdict import Verdict, judge_registration
 
 __all__ = [
     "CTSurface", "FLIP_RRE_DEG", "Hypothesis", "HypothesisConfig", "HypothesisResult",
-    "ICPResult", "RegistrationResult", "SUCCESS_RRE_DEG", "SUCCESS_RTE_MM", "SurfaceCloud", "Verdict",
+    "ICPResult", "RegistrationResult", "SUCCESS_RRE_DEG", "SUCCESS_RTE_MM", "SurfaceCloud",
+    "Verdict",
     "as_hypothesis_config", "as_surface", "build_hypotheses", "coarse_to_fine_icp",
     "completion_metrics", "is_flip", "is_success", "judge_registration", "point_to_plane_icp",
     "registration_metrics", "rotation_error_deg", "search_hypotheses", "translation_error_mm",

@@ -26,8 +26,8 @@ class RegistrationResult:
         timings: seconds per stage (:mod:`comreg_core.inference`).
         runtime_s: registration time (= ``timings["total"]``).
         device: torch device used.
-        seed: the seed given to :meth:`comreg_core.inference.Registrar.register` (torch's generator is seeded with it;
-            the eval-mode forward pass is deterministic anyway).
+        seed: the seed given to :meth:`comreg_core.inference.Registrar.register` (torch's
+            generator is seeded with it; the eval-mode forward pass is deterministic anyway).
         residuals: distances (mm) of ``registered_points`` to the CT surface: ``mean``,
             ``median``, ``p90``, ``p95``, ``max``, ``rmse``, and ``inlier_fraction`` (share
             within :data:`INLIER_MM`).

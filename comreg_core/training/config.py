@@ -155,9 +155,9 @@ class PretrainConfig:
 #: (which are the paper's values), one nested dict per preset with the sections of
 #: :class:`PretrainConfig`.
 #:
-#: The ``cpu`` model was chosen by timing one training step (forward + backward + full loss, batch 4, CT
-#: through ``f`` once per step) on 2 shared CPU cores, torch 2.13, 2 threads; minimum of 5 runs:
-#: this preset 0.53 s (6.7 M parameters); the same with ICP on 4096 points 0.85 s, with 4096
+#: The ``cpu`` model was chosen by timing one training step (forward + backward + full loss,
+#: batch 4, CT through ``f`` once per step) on 2 shared CPU cores, torch 2.13, 2 threads;
+#: minimum of 5 runs: this preset 0.53 s (6.7 M parameters); the same with ICP on 4096 points 0.85 s, with 4096
 #: input points 0.79 s, 256 queries 0.68 s, 32 ICP neighbours 0.72 s, a 256-wide depth-4
 #: transformer 0.66 s, depth 2 0.53 s, a 128-wide depth-2 net on 1024 points 0.38 s; the
 #: ``paper`` preset 8.2 s. ICP has no weights, so inference may use ``icp.num_points = 4096``

@@ -5,7 +5,6 @@ import sys
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from comreg_core.config import ConfigError
 from comreg_core.errors import ComRegError
@@ -14,14 +13,7 @@ from comreg_core.evaluation import (BaselineConfig, IcpGtBaseline, RansacConfig,
                                     require_open3d)
 from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.transforms import apply_transform, invert_rigid
-from tests.helpers import assert_close, box_distance
-
-
-def _pose(rotvec_deg, t, about):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
-    T[:3, 3] = about - T[:3, :3] @ about + np.asarray(t, dtype=np.float64)
-    return T
+from tests.helpers import assert_close, box_distance, rigid_about
 
 
 def _errors(T_est, T_true, points):
@@ -39,7 +31,7 @@ def ransac(fibula_surface):
 
 def test_ransac_recovers_a_known_pose_of_a_fibula_patch(ransac, fibula_patch, fibula_surface):
     # the patch moved by 60 deg about a skew axis through its centroid and 80 mm
-    T_us_ct = _pose(np.array([40.0, -25.0, 30.0]) * 60 / np.linalg.norm([40, -25, 30]),
+    T_us_ct = rigid_about(np.array([40.0, -25.0, 30.0]) * 60 / np.linalg.norm([40, -25, 30]),
                     [30.0, -50.0, 50.0], fibula_patch.mean(axis=0))
     moved = apply_transform(T_us_ct, fibula_patch)
     truth = invert_rigid(T_us_ct)

@@ -17,10 +17,11 @@ from tests.training.tiny import tiny_run
 
 
 def test_method_names():
-    assert METHODS == ("comreg", "comreg-plain", "ransac", "icp-gt")
+    assert METHODS == ("search", "comreg", "comreg-plain", "ransac", "icp-gt")
     assert method_names("all") == list(METHODS)
     assert method_names(["comreg-plain", "comreg", "comreg-plain"]) == ["comreg-plain", "comreg"]
-    assert method_names(["icp-gt", "all"]) == ["icp-gt", "comreg", "comreg-plain", "ransac"]
+    assert method_names(["icp-gt", "all"]) == ["icp-gt", "search", "comreg", "comreg-plain",
+                                               "ransac"]
     with pytest.raises(ComRegError, match="Unknown registration method 'comreg-x'"):
         method_names(["comreg-x"])
     with pytest.raises(ComRegError, match="No registration method"):

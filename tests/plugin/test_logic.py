@@ -200,10 +200,12 @@ def test_registration_recovers_the_known_transform(registered, case):
     assert summary.completedBoneNode is None  # the baseline completes nothing
 
 
-def test_search_registers_in_the_scene_without_a_network(registered, case):
+def test_search_registers_in_the_scene_without_a_network(case):
     """The pose search alone on the CT model recovers the known transform too; no completed
     bone, and its confidence reaches the parameter node."""
-    logic, _, us = registered
+    logic = ComRegLogic()
+    logic.loadSegmentation(case.segmentationPath)
+    us = logic.loadUSPoints(case.usPointsPath)
     summary = logic.register(us, "search", seed=0)
     T_node = transformToParentRAS(summary.transformNode)
     errors = testing.poseErrors(T_RAS_LPS @ T_node @ T_RAS_LPS, case.T_ct_us, case.usPoints)

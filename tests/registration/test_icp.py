@@ -2,18 +2,10 @@
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from comreg_core.registration.icp import coarse_to_fine_icp, point_to_plane_icp
 from comreg_core.transforms import apply_transform
-from tests.helpers import assert_close, box_distance
-
-
-def _pose(rotvec_deg, t, about):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
-    T[:3, 3] = about - T[:3, :3] @ about + np.asarray(t, dtype=np.float64)
-    return T
+from tests.helpers import assert_close, box_distance, rigid_about
 
 
 def _errors(T_est, T_true, points):
@@ -29,7 +21,7 @@ def test_exact_icp_converges_from_1mm_1deg_on_clean_data(fibula_surface, fibula_
     axis, direction = rng.normal(size=3), rng.normal(size=3)
     axis, direction = axis / np.linalg.norm(axis), direction / np.linalg.norm(direction)
     points = fibula_patch[::2]
-    start = _pose(axis * 1.0, direction * 1.0, points.mean(axis=0))  # truth = identity
+    start = rigid_about(axis * 1.0, direction * 1.0, points.mean(axis=0))  # truth = identity
     assert_close(_errors(start, np.eye(4), points), [1.0, 1.0], atol=1e-9)
     fit = point_to_plane_icp(points, start, fibula_surface.matcher(3.0), iterations=50,
                              tolerance_mm=1e-5)
@@ -44,7 +36,7 @@ def test_a_batch_of_starts_equals_each_start_alone(fibula_surface, fibula_patch)
     points = fibula_patch[::8]
     cloud = fibula_surface.cloud(20_000)
     rng = np.random.default_rng(1)
-    starts = np.stack([_pose(rng.normal(size=3) * 3, rng.normal(size=3) * 3, points.mean(0))
+    starts = np.stack([rigid_about(rng.normal(size=3) * 3, rng.normal(size=3) * 3, points.mean(0))
                        for _ in range(4)])
     batch = point_to_plane_icp(points, starts, cloud.match, iterations=30, trim_fraction=0.1)
     for i in range(4):
@@ -71,7 +63,7 @@ def test_trimming_leaves_out_far_outliers(fibula_surface, fibula_patch):
     rng = np.random.default_rng(0)
     outliers = points[:len(points) // 20] + rng.normal(size=(len(points) // 20, 3)) * 15
     noisy = np.vstack([points, outliers])
-    start = _pose([1.0, -1.0, 0.5], [1.0, 0.5, -1.0], points.mean(0))
+    start = rigid_about([1.0, -1.0, 0.5], [1.0, 0.5, -1.0], points.mean(0))
     cloud = fibula_surface.cloud(20_000)
     trimmed = point_to_plane_icp(noisy, start, cloud.match, iterations=60, trim_fraction=0.1)
     plain = point_to_plane_icp(noisy, start, cloud.match, iterations=60)
@@ -90,8 +82,8 @@ def test_too_few_pairs_stop_without_moving(box_surface, box_cloud):
 def test_coarse_to_fine_drops_starts_far_behind(fibula_surface, fibula_patch):
     points = fibula_patch[::4]
     cloud = fibula_surface.cloud(20_000)
-    near = _pose([2.0, 0, 0], [2.0, 0, 0], points.mean(0))
-    far = _pose([0, 0, 150.0], [0, 0, 60.0], points.mean(0))
+    near = rigid_about([2.0, 0, 0], [2.0, 0, 0], points.mean(0))
+    far = rigid_about([0, 0, 150.0], [0, 0, 60.0], points.mean(0))
     T, rmse = coarse_to_fine_icp(points, np.stack([near, far]), cloud.match, iterations=30,
                                  margin_mm=1.0, trim_fraction=0.1)
     assert _errors(T[0], np.eye(4), points)[0] < 0.3
