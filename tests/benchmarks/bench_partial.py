@@ -3,7 +3,7 @@ alone and, given pretrained runs, by ComReg and its plain pipeline.
 
 ``.venv/bin/python -m tests.benchmarks.bench_partial [--trials 100] [--seed 0]
 [--set simulated-fibula,simulated-tibia,real-fibula] [--perturbation paper,full]
-[--model RUN] [--untrained RUN0]``
+[--model fibula=RUN --untrained fibula=RUN0 --model tibia=RUN ...]``
 
 Sets:
 
@@ -19,8 +19,9 @@ Every trial moves a sweep by a random rigid pose (``paper``: one axis, +-90 deg,
 ``full``: any rotation, up to 500 mm). Success: RTE < 4 mm and RRE < 5 deg (the issue's
 criterion for partial sweeps); flips: RRE > 90 deg; unflagged flips: flips not flagged
 ambiguous. Latency: median and 90th percentile of the method's own time (machine load stated
-by the caller). ``--model RUN`` adds ``comreg`` / ``comreg-plain`` for the fibula sets (a run
-trained on the shared fibula CT), ``--untrained RUN0`` the same network at 0 epochs (the control).
+by the caller). ``--model BONE=RUN`` adds ``comreg`` / ``comreg-plain`` for that bone's sets (a run
+trained on that CT: the shared fibula, or ``tibia_like_mesh()``, e.g. from ``bench_learning
+--bone tibia-like``), ``--untrained BONE=RUN0`` the same network at 0 epochs (the control).
 """
 
 from __future__ import annotations
@@ -70,13 +71,14 @@ def _methods(bone: str, ct, args) -> dict:
     from comreg_core.inference import Registrar
 
     methods = {"search": Registrar.from_ct(ct)}
-    if bone == "fibula":
-        for label, run in (("comreg", args.model), ("untrained", args.untrained)):
-            if run:
-                registrar = Registrar.from_run(run, "cpu", ct_mesh=ct)
-                methods[label] = registrar
-                methods[f"{label}-plain"] = (
-                    lambda points, r=registrar: r.register(points, hypotheses=False))
+    runs = {"comreg": dict(a.split("=", 1) for a in args.model),
+            "untrained": dict(a.split("=", 1) for a in args.untrained)}
+    for label, by_bone in runs.items():
+        if bone in by_bone:
+            registrar = Registrar.from_run(by_bone[bone], "cpu")
+            methods[label] = registrar
+            methods[f"{label}-plain"] = (
+                lambda points, r=registrar: r.register(points, hypotheses=False))
     return methods
 
 
@@ -106,8 +108,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", default=",".join(SETS))
     p.add_argument("--perturbation", default="paper,full")
-    p.add_argument("--model", default=None, help="a run trained on the shared fibula CT")
-    p.add_argument("--untrained", default=None, help="the same network at 0 epochs")
+    p.add_argument("--model", action="append", default=[], help="BONE=RUN trained on that CT")
+    p.add_argument("--untrained", action="append", default=[],
+                   help="BONE=RUN of the same network at 0 epochs")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
 
     config = from_dict(SimulationConfig, PARTIAL_SWEEPS, "simulation")
