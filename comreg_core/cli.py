@@ -339,7 +339,7 @@ def evaluate(
     from comreg_core.evaluation.evaluate import write_metrics
     from comreg_core.evaluation.methods import (load_evaluate_config, method_names,
                                                 registration_methods)
-    from comreg_core.inference import limit_us_points
+    from comreg_core.registration.inputs import limit_us_points
     from comreg_core.errors import ComRegError
     from comreg_core.io import load_transform, read_mesh, read_points
     from comreg_core.io._files import check_output_folder

@@ -51,6 +51,7 @@ from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
                                       as_hypothesis_config, judge_registration,
                                       search_hypotheses)
+from comreg_core.registration.inputs import beam_origins_for, limit_us_points, subset_notice
 from comreg_core.registration.result import RegistrationResult, residual_statistics
 from comreg_core.registration.search import principal_axes_pose
 from comreg_core.registration.surface import mesh_arrays
@@ -70,10 +71,6 @@ log = logging.getLogger(__name__)
 
 #: A US cloud whose largest bounding-box extent is below this (mm) is taken to be in metres.
 MIN_US_EXTENT_MM = 1.0
-#: The most US points a registration uses: a larger cloud is replaced by a uniform random
-#: subset of this size (seeded, with a logged notice and a warning in the result), so 10 million
-#: points cost about what 100,000 do. The network itself only sees a few thousand.
-MAX_US_POINTS = 100_000
 
 
 class Registrar:
@@ -241,7 +238,8 @@ class Registrar:
         return pts
 
     def register(self, points, seed: int = 0, *,
-                 hypotheses: HypothesisConfig | bool | None = None) -> RegistrationResult:
+                 hypotheses: HypothesisConfig | bool | None = None,
+                 beam_origins: np.ndarray | None = None) -> RegistrationResult:
         """Register a US bone cloud ``(N, 3)`` (mm, in the CT's patient space) to the CT.
 
         Args:
@@ -249,6 +247,9 @@ class Registrar:
             seed: seeds torch's generator (the forward pass is deterministic anyway).
             hypotheses: this call's hypotheses setting (True/False/a config); None = the
                 Registrar's (:attr:`hypothesis_config`).
+            beam_origins: ``(N, 3)`` mm, where each point's ultrasound beam started (the
+                probe's element; same frame as ``points``), or None. The pose search then
+                rules out poses under which the CT surface faces away from the probe.
         """
         hyp_cfg = (self.hypothesis_config if hypotheses is None
                    else as_hypothesis_config(hypotheses))
@@ -257,6 +258,12 @@ class Registrar:
         t = {}
         start = time.perf_counter()
         n_given = len(points) if hasattr(points, "__len__") else None
+        origins = None
+        if beam_origins is not None:  # subset both alike (above MAX_US_POINTS)
+            both = np.hstack([as_points(points, "US points"),
+                              beam_origins_for(beam_origins, len(points))])
+            both = limit_us_points(both, seed)
+            points, origins = both[:, :3], both[:, 3:]
         pts = self.check_points(points, seed)  # before the CT side is prepared
         check_s = time.perf_counter() - start
         if self.model is not None:
@@ -269,7 +276,7 @@ class Registrar:
         start = time.perf_counter() - check_s  # the checks count as preprocessing
         warnings = list(self.warnings)
         if n_given is not None and n_given > len(pts):
-            warnings.append(_subset_notice(n_given, len(pts)))
+            warnings.append(subset_notice(n_given, len(pts)))
         if self.model is None:
             T = T_coarse = principal_axes_pose(pts, target)
             dense, icp_rmse = None, float("nan")
@@ -282,7 +289,8 @@ class Registrar:
             mark = time.perf_counter()
             hyp = search_hypotheses(pts, T, target, dense, hyp_cfg,
                                     T_coarse=None if self.model is None else T_coarse,
-                                    start_name="network" if self.model is not None else "pca")
+                                    start_name="network" if self.model is not None else "pca",
+                                    beam_origins=origins)
             T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
             if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
                 icp_rmse = hyp.polish["rmse_mm"]
@@ -369,24 +377,6 @@ def registration_verdict(result: RegistrationResult, registrar: Registrar):
     points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
     return judge_registration(points, result.T_ct_us, registrar.surface,
                               confidence=result.confidence, ambiguous=result.ambiguous)
-
-
-def limit_us_points(points: np.ndarray, seed: int = 0,
-                    limit: int | None = None) -> np.ndarray:
-    """``points`` unchanged up to ``limit`` (default :data:`MAX_US_POINTS`), else a uniform
-    random subset of ``limit`` of them (drawn from ``seed``, original order kept), with a
-    logged notice."""
-    limit = MAX_US_POINTS if limit is None else int(limit)
-    if len(points) <= limit:
-        return points
-    log.warning("%s", _subset_notice(len(points), limit))
-    keep = np.sort(np.random.default_rng(int(seed)).choice(len(points), limit, replace=False))
-    return points[keep]
-
-
-def _subset_notice(given: int, used: int) -> str:
-    return (f"The US cloud has {given:,} points; registered a uniform random subset of "
-            f"{used:,} (the limit, comreg_core.inference.MAX_US_POINTS).")
 
 
 def _check_finite_output(*tensors: torch.Tensor) -> None:

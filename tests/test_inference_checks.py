@@ -54,7 +54,7 @@ def test_identical_points_are_called_identical(registrar):
 
 def test_a_cloud_above_the_limit_is_registered_as_a_subset(registrar, patch_points,
                                                           monkeypatch):
-    monkeypatch.setattr("comreg_core.inference.MAX_US_POINTS", 300)
+    monkeypatch.setattr("comreg_core.registration.inputs.MAX_US_POINTS", 300)
     result = registrar.register(patch_points, seed=2)
     assert result.n_points == 300 and len(result.registered_points) == 300
     assert any("subset of 300" in w for w in result.info["warnings"])

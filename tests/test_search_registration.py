@@ -21,14 +21,22 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def real_sweep(shared_data):
-    """The shared real fibula sweep's bone points (CT frame: the recorded tracking)."""
+def real_sweep_beams(shared_data):
+    """The shared real fibula sweep's bone points and each one's beam origin (CT frame: the
+    recorded tracking); a third of the points: the same pose, a faster test."""
     from comreg_core.io.tracked_us import read_tracked_sweep
     from comreg_core.surfaces.us import extract_us_surface
+    from comreg_core.surfaces.us_points import beam_origins
 
-    points = extract_us_surface(read_tracked_sweep(
-        shared_data / "ultrabones100k-fibula")).points.points
-    return points[::3]  # a third of the points: the same pose, a faster test
+    sweep = read_tracked_sweep(shared_data / "ultrabones100k-fibula")
+    points = extract_us_surface(sweep).points
+    origins = beam_origins(points.points, sweep.T_ref_image[points.frame_index])
+    return points.points[::3], origins[::3]
+
+
+@pytest.fixture(scope="module")
+def real_sweep(real_sweep_beams):
+    return real_sweep_beams[0]
 
 
 @pytest.fixture(scope="module")
@@ -100,3 +108,22 @@ def test_evaluate_search_without_a_run(tmp_path, real_sweep):
     assert result.exit_code == 2 and "--model RUN_DIR" in result.output
     with pytest.raises(ComRegError, match="no CT mesh and no pretrained run"):
         register_to_directory(None, us, tmp_path / "none")
+
+
+def test_beam_origins_lie_above_the_bone_and_keep_the_pose(search, real_sweep_beams):
+    """Each echo's beam starts at the transducer face, outside the bone, 5-45 mm above its
+    echo (the image depth); with them the search lands at the same pose, the chosen surface
+    facing its probe."""
+    points, origins = real_sweep_beams
+    depth = np.linalg.norm(points - origins, axis=1)
+    assert depth.min() > 0.0 and depth.max() < 45.0, (depth.min(), depth.max())
+    assert (search.surface.distance(origins) > 2.0).all()  # measured: at least 2.8 mm
+    T_moved = sample_initial_pose(np.random.default_rng(5), "paper", center=points.mean(axis=0))
+    result = search.register(apply_transform(T_moved, points),
+                             beam_origins=apply_transform(T_moved, origins))
+    errors = registration_metrics(result.T_ct_us, invert_rigid(T_moved),
+                                  apply_transform(T_moved, points), FIBULA_STL)
+    assert errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0, errors
+    assert result.hypotheses.polish["facing_away"] < 0.1
+    with pytest.raises(ComRegError, match="beam origins for"):
+        search.register(points, beam_origins=origins[:-1])

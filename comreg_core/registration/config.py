@@ -68,6 +68,10 @@ class HypothesisConfig:
         polish_iterations: most iterations of a polish.
         score_floor_mm: score differences are measured relative to at least this (mm) in the
             confidence: below it they are noise (step 6).
+        facing_penalty_mm: with beam origins (a tracked sweep knows where the probe was for
+            every echo), each US point whose matched CT surface faces away from its probe adds
+            this to its distance in every score (screening, refinement, polish): a pose the
+            beams could not have seen loses to one they could, whatever its fit; 0 = off.
         min_confidence: a result is ambiguous when its confidence is below this (a different
             pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score, or
             within ``min_confidence * score_floor_mm`` of it).
@@ -101,6 +105,7 @@ class HypothesisConfig:
     polish_iterations: int = 100
     score_floor_mm: float = 0.05
     min_confidence: float = 0.3
+    facing_penalty_mm: float = 5.0
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "hypotheses.enabled", "must be true or false")
@@ -139,6 +144,8 @@ class HypothesisConfig:
                 "must be at least 1")
         require(0.0 <= self.min_confidence < 1.0, "hypotheses.min_confidence",
                 "must be in [0, 1)")
+        require(self.facing_penalty_mm >= 0, "hypotheses.facing_penalty_mm",
+                "must be 0 (off) or more (mm)")
 
 
 def as_hypothesis_config(value) -> HypothesisConfig:

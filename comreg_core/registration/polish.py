@@ -14,14 +14,15 @@ from comreg_core.registration.config import (POLISH_TOLERANCE_MM, QUICK_POLISH_I
 from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
 from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
                                               trimmed_mean)
-from comreg_core.registration.surface import SurfaceCloud
+from comreg_core.registration.surface import SurfaceCloud, facing_away
 from comreg_core.transforms import apply_transform
 
 
 def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.ndarray,
                       scores: np.ndarray, polishes: list[dict[str, Any] | None],
                       T_network: np.ndarray, target: SurfaceCloud,
-                      config: HypothesisConfig) -> tuple[int, int | None]:
+                      config: HypothesisConfig, *, origins: np.ndarray | None = None
+                      ) -> tuple[int, int | None]:
     """Steps 5-6 of the search: polish the poses tied with the best (``poses``
     ``(B, 4, 4)``, ``scores`` ``(B,)`` and ``polishes`` are updated in place; poses polished
     before are not polished again), choose, and find the runner-up. Returns ``(chosen,
@@ -36,13 +37,15 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
         for i in candidates:
             if polishes[i] is None:
                 poses[i], scores[i], polishes[i] = polish_pose(subset_mm, centroid, poses[i],
-                                                               target, config, quick=quick)
+                                                               target, config, quick=quick,
+                                                               origins=origins)
         placed = apply_poses(poses, centroid[None])[:, 0]
         eligible = np.array([p is not None for p in polishes])
     best = choose(scores, poses, placed, T_network, config, eligible)
     if polishes[best] is not None and polishes[best]["quick"]:
         poses[best], scores[best], polishes[best] = polish_pose(
-            subset_mm, centroid, poses[best], target, config, after=polishes[best])
+            subset_mm, centroid, poses[best], target, config, after=polishes[best],
+            origins=origins)
         placed[best] = apply_transform(poses[best], centroid[None])[0]
     others = np.array([i for i in range(len(poses)) if i != best], dtype=np.int64)
     distinct = others[~same_pose(poses, placed, best, others, config)]
@@ -52,7 +55,8 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
 
 def polish_pose(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,
                 target: SurfaceCloud, config: HypothesisConfig, *, quick: bool = False,
-                after: dict[str, Any] | None = None) -> tuple[np.ndarray, float, dict[str, Any]]:
+                after: dict[str, Any] | None = None, origins: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float, dict[str, Any]]:
     """Step 5 of the search for one pose ``T`` ``(4, 4)``: the polished pose, its
     exact score (trimmed mean distance of ``subset_mm`` ``(n, 3)`` to the mesh, mm) and the
     polish's record (:attr:`~comreg_core.registration.scoring.Hypothesis.polish`;
@@ -72,7 +76,12 @@ def polish_pose(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,
             "rmse_mm": float(fit.rmse_mm), "converged": bool(fit.converged)}
     info["moved_mm"] = float(np.linalg.norm(apply_transform(polished, centroid[None])
                                             - apply_transform(T, centroid[None])))
-    _, _, distances = surface.closest(apply_transform(polished, subset_mm))
+    registered = apply_transform(polished, subset_mm)
+    _, normals, distances = surface.closest(registered)
+    if origins is not None:  # share of points whose surface faces away from their probe
+        away = facing_away(normals, registered, apply_transform(polished, origins))
+        info["facing_away"] = float(away.mean())
+        distances = distances + config.facing_penalty_mm * away
     score = float(trimmed_mean(distances[None], config.score_trim)[0])
     info["quick"] = quick
     info["runtime_s"] = time.perf_counter() - mark

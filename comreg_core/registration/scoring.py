@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from comreg_core.registration.config import HypothesisConfig
+from comreg_core.registration.icp import apply_poses
 from comreg_core.registration.metrics import rotation_error_deg
 
 
@@ -24,6 +25,19 @@ def trimmed_mean(distances: np.ndarray, trim: float) -> np.ndarray:
     distances: the hypotheses' score."""
     n = distances.shape[1]
     return np.sort(distances, axis=1)[:, :max(1, n - int(trim * n))].mean(axis=1)
+
+
+def score_poses(poses: np.ndarray, points: np.ndarray, target, config: HypothesisConfig, *,
+                origins: np.ndarray | None = None, approximate: bool = False) -> np.ndarray:
+    """``(B,)`` scores (mm) of ``(B, 4, 4)`` poses for ``(n, 3)`` US points: the trimmed mean of
+    their distances to the CT cloud ``target`` (:meth:`SurfaceCloud.surface_distances`), each
+    point facing away from its beam origin (``origins`` ``(n, 3)``, US frame, or None)
+    penalised by ``facing_penalty_mm``."""
+    moved = apply_poses(poses, points)  # B n 3
+    beams = None if origins is None else apply_poses(poses, origins)
+    return trimmed_mean(target.surface_distances(moved, approximate, origins=beams,
+                                                 facing_penalty_mm=config.facing_penalty_mm),
+                        config.score_trim)
 
 
 def same_pose(poses: np.ndarray, centroids: np.ndarray, i: int, others: np.ndarray,

@@ -119,7 +119,7 @@ from comreg_core.registration.icp import (apply_poses, coarse_to_fine_icp, point
                                           strided)
 from comreg_core.registration.polish import choose_and_polish
 from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, confidence_over,
-                                              same_pose, trimmed_mean)
+                                              same_pose, score_poses)
 from comreg_core.registration.surface import SurfaceCloud, principal_frame
 from comreg_core.transforms import apply_transform, as_points, check_rigid, orthonormalize
 
@@ -208,8 +208,8 @@ def slide_offsets_mm(target: SurfaceCloud, config: HypothesisConfig) -> np.ndarr
 
 
 def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceCloud,
-                  config: HypothesisConfig, *, keep_first: bool = True
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  config: HypothesisConfig, *, keep_first: bool = True,
+                  origins: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pick the starts worth a full ICP: ``screen_iterations`` of point-to-plane ICP on
     ``screen_points`` US points for every start at once (correspondences from the CT's
     closest-point grid, :meth:`SurfaceCloud.nearest_approx`), then a quick score (trimmed
@@ -222,6 +222,7 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
     Args:
         us_points: ``(n, 3)`` mm, US points (US frame).
         starts: ``(B, 4, 4)`` mm start poses ``T_ct_us``.
+        origins: ``(n, 3)`` mm, each US point's beam origin (US frame), or None.
 
     Returns:
         ``(K,)`` indices of the kept starts and their ``(K, 4, 4)`` screened poses.
@@ -233,8 +234,9 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
                                target.match_approx, iterations=config.screen_iterations,
                                trim_fraction=config.icp_trim, tolerance_mm=0.1).T
     sub = strided(us_points, config.screen_score_points)
-    moved = apply_poses(poses, sub)  # B n 3
-    scores = trimmed_mean(target.surface_distances(moved, approximate=True), config.score_trim)
+    scores = score_poses(poses, sub, target, config, approximate=True,
+                         origins=None if origins is None
+                         else strided(origins, config.screen_score_points))
     centroids = apply_poses(poses, us_points.mean(axis=0)[None])[:, 0]  # B 3
     chosen = [0] if keep_first else []
     for i in np.argsort(scores, kind="stable"):
@@ -252,16 +254,22 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
 def us_subset(points: np.ndarray, count: int) -> np.ndarray:
     """``min(count, N)`` of the ``(N, 3)`` US points (mm) for the hypotheses' ICP and score: a
     uniform subset (seed 0: the same points every run) kept in sweep order."""
-    if len(points) <= count:
-        return points
-    return points[np.sort(np.random.default_rng(0).choice(len(points), count, replace=False))]
+    return points[us_subset_indices(len(points), count)]
+
+
+def us_subset_indices(n: int, count: int) -> np.ndarray:
+    """The indices of :func:`us_subset` of ``n`` points (all of them when ``n <= count``)."""
+    if n <= count:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(0).choice(n, count, replace=False))
 
 
 def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
                       completion: np.ndarray | None = None,
                       config: HypothesisConfig | None = None, *,
                       T_coarse: np.ndarray | None = None,
-                      start_name: str = "network") -> HypothesisResult:
+                      start_name: str = "network",
+                      beam_origins: np.ndarray | None = None) -> HypothesisResult:
     """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
 
     With ``retry_ambiguous``, an ambiguous result gets a second round from the grid of starts
@@ -278,6 +286,9 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
             here: calling this function runs the stage).
         T_coarse: ``(4, 4)`` mm, the coarse pose before the network's ICP, or None.
         start_name: the name of ``T_start``'s base (see :func:`build_hypotheses`).
+        beam_origins: ``(N, 3)`` mm, where each US point's beam started (the probe's
+            transducer element, US frame), or None. With them every score penalises poses
+            under which the CT surface faces away from the probe (``facing_penalty_mm``).
 
     Returns:
         :class:`HypothesisResult` (all mm).
@@ -291,7 +302,15 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
         completion = as_points(completion, "completion points")
         if len(completion) < 4:
             completion = None
-    subset_mm = us_subset(pts, cfg.icp_points)  # n 3
+    keep = us_subset_indices(len(pts), cfg.icp_points)
+    subset_mm = pts[keep]  # n 3
+    origins = None
+    if beam_origins is not None:
+        origins = as_points(beam_origins, "beam origins")
+        if origins.shape != pts.shape:
+            raise InvalidGeometryError(f"{len(origins)} beam origins for {len(pts)} US points.",
+                                       "Pass one beam origin per US point (or none).")
+        origins = origins[keep]
     centroid = pts.mean(axis=0)  # the US centroid, placed by each pose
     T_network = check_rigid(T_start)
     names: list[str] = []
@@ -305,16 +324,16 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                                 grid_offset=offset, start_name=start_name)
         tried += len(grid)
         new_names, new_starts, new_poses, new_rmse = refine_starts(
-            subset_mm, grid, target, cfg, keep_first=offset == 0.0)
+            subset_mm, grid, target, cfg, keep_first=offset == 0.0, origins=origins)
         names += new_names
         starts += new_starts
         poses = np.concatenate([poses, new_poses])
         rmse = np.concatenate([rmse, new_rmse])
-        scores = np.concatenate([scores, trimmed_mean(
-            target.surface_distances(apply_poses(new_poses, subset_mm)), cfg.score_trim)])
+        scores = np.concatenate([scores, score_poses(new_poses, subset_mm, target, cfg,
+                                                     origins=origins)])
         polishes += [None] * len(new_names)
         best, runner = choose_and_polish(subset_mm, centroid, poses, scores, polishes,
-                                         T_network, target, cfg)
+                                         T_network, target, cfg, origins=origins)
         confidence = 1.0 if runner is None else float(
             confidence_over(scores[best], scores[runner], cfg))
         if confidence >= cfg.min_confidence:
@@ -332,7 +351,8 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
 
 
 def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: SurfaceCloud,
-                  config: HypothesisConfig, *, keep_first: bool
+                  config: HypothesisConfig, *, keep_first: bool,
+                  origins: np.ndarray | None = None
                   ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
     """Steps 2-3 of the module docstring for the start poses ``grid`` ``{name: (4, 4)}``:
     screen them (``keep_first``: the first one, the network's own pose, always goes on), refine
@@ -340,7 +360,7 @@ def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: Su
     ``(K,)`` ICP residuals (mm)."""
     all_names = list(grid)
     kept, screened = screen_starts(subset_mm, np.stack(list(grid.values())), target, config,
-                                   keep_first=keep_first)
+                                   keep_first=keep_first, origins=origins)
     names = [all_names[i] for i in kept]
     refined, rmse = coarse_to_fine_icp(subset_mm, screened, target.match,
                                        iterations=config.icp_iterations,

@@ -96,6 +96,13 @@ def principal_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, axes
 
 
+def facing_away(normals: np.ndarray, points: np.ndarray, origins: np.ndarray) -> np.ndarray:
+    """``(...)`` bool: the surface at each point, outward unit normal ``normals`` ``(..., 3)``,
+    faces away from where its ultrasound beam came from (``origins``, the probe): an echo
+    there is acoustically impossible (the beam would meet the bone from inside)."""
+    return np.einsum("...i,...i->...", normals, np.asarray(origins) - np.asarray(points)) < 0
+
+
 def estimate_normals(points: np.ndarray, tree=None, k: int = 12) -> np.ndarray:
     """Unit normals ``(N, 3)`` of a surface cloud by local PCA (the least-variance direction of
     each point's ``k`` nearest neighbours; the sign is arbitrary, which point-to-plane ICP does
@@ -371,13 +378,23 @@ class SurfaceCloud:
         q = self.points[idx]
         return q, self.normals[idx], np.linalg.norm(np.asarray(points) - q, axis=-1)
 
-    def surface_distances(self, points: np.ndarray, approximate: bool = False) -> np.ndarray:
+    def surface_distances(self, points: np.ndarray, approximate: bool = False, *,
+                          origins: np.ndarray | None = None,
+                          facing_penalty_mm: float = 0.0) -> np.ndarray:
         """Distances (mm) of ``(..., 3)`` points to the surface, approximated by the tangent
         plane at the nearest cloud point: ``|(p - q) . n_q|``. On a smooth surface this is the
         point-to-surface distance without most of the sampling bias of the plain
         nearest-neighbour distance (about half the sample spacing, ~0.4 mm at 20,000 samples
         of a fibula); it never exceeds the nearest-neighbour distance. ``approximate``: with
-        :meth:`nearest_approx`'s points (fast, for screening)."""
+        :meth:`nearest_approx`'s points (fast, for screening).
+
+        ``origins`` (same shape as ``points``): where each point's ultrasound beam started (the
+        probe); a point whose nearest surface faces away from its probe (outward normal
+        against the beam) could not have echoed there and gets ``facing_penalty_mm`` added
+        (needs outward normals, as :class:`CTSurface` samples of a closed mesh have)."""
         pts = np.asarray(points, dtype=np.float64)
         idx = self.nearest_approx(pts) if approximate else self.nearest(pts)[1]
-        return np.abs(np.einsum("...i,...i->...", pts - self.points[idx], self.normals[idx]))
+        d = np.abs(np.einsum("...i,...i->...", pts - self.points[idx], self.normals[idx]))
+        if origins is not None and facing_penalty_mm > 0:
+            d = d + facing_penalty_mm * facing_away(self.normals[idx], pts, origins)
+        return d

@@ -81,3 +81,15 @@ def collect_surface_points(sweep: TrackedSweep, points: list, frames: list, scor
                  examined, source)
     return USSurfacePoints(np.concatenate(points), np.concatenate(frames),
                            np.concatenate(scores), examined, with_bone, sweep.reference)
+
+
+def beam_origins(points: np.ndarray, T_ref_image: np.ndarray) -> np.ndarray:
+    """``(M, 3)`` where the ultrasound beam of each echo started: the point moved back along its
+    image's beam axis (image y, into the tissue) to the transducer face (image y = 0). ``points``
+    ``(M, 3)`` mm and ``T_ref_image`` ``(M, 4, 4)`` (each point's frame pose, image mm -> the
+    points' frame) in the same frame. A tracked sweep knows this for every point; the pose
+    search uses it to rule out poses the probe could not have seen."""
+    beam = T_ref_image[:, :3, 1]
+    beam = beam / np.linalg.norm(beam, axis=1, keepdims=True)
+    depth = np.einsum("mi,mi->m", points - T_ref_image[:, :3, 3], beam)
+    return points - depth[:, None] * beam

@@ -39,14 +39,17 @@ PARTIAL_SWEEPS = {"trajectory": {"length_mm": [40.0, 50.0], "side_drift_deg": 20
                                  "n_slices": [100, 250]}}
 
 
-def real_runs(shared_data, lengths=(30.0, 60.0)) -> list[np.ndarray]:
+def real_runs(shared_data, lengths=(30.0, 60.0)) -> list[tuple[np.ndarray, np.ndarray]]:
     """The real fibula sweep's bone points cut into runs of consecutive frames whose probe path
-    (image-centre positions) covers ``lengths[0]``-``lengths[1]`` mm; non-overlapping."""
+    (image-centre positions) covers ``lengths[0]``-``lengths[1]`` mm; non-overlapping. Each run:
+    ``(points (n, 3), beam origins (n, 3))`` in the tracking's (= CT) frame."""
     from comreg_core.io.tracked_us import read_tracked_sweep
     from comreg_core.surfaces.us import extract_us_surface
+    from comreg_core.surfaces.us_points import beam_origins
 
     sweep = read_tracked_sweep(shared_data / "ultrabones100k-fibula")
     points = extract_us_surface(sweep).points
+    origins = beam_origins(points.points, sweep.T_ref_image[points.frame_index])
     h, w = sweep.image_shape
     centre = np.array([w * sweep.spacing[0] / 2, h * sweep.spacing[1] / 2, 0.0, 1.0])
     valid = np.flatnonzero(sweep.valid)
@@ -58,12 +61,27 @@ def real_runs(shared_data, lengths=(30.0, 60.0)) -> list[np.ndarray]:
         end = int(np.searchsorted(travel, travel[start] + target))
         if end >= len(valid):
             break
-        frames = valid[start:end + 1]
         if lengths[0] <= travel[end] - travel[start] <= lengths[1]:
-            cloud = points.points[np.isin(points.frame_index, frames)]
-            if len(cloud) >= 200:
-                runs.append(cloud)
+            keep = np.isin(points.frame_index, valid[start:end + 1])
+            if keep.sum() >= 200:
+                runs.append((points.points[keep], origins[keep]))
         start = end + 1
+    return runs
+
+
+def simulated_runs(ct, count: int, seed: int, config) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``count`` fresh simulated short sweeps of ``ct`` (evaluation seeds, disjoint from
+    training): ``(points, beam origins)`` each, CT frame."""
+    from comreg_core.evaluation.evaluate import STREAM_CLOUDS, evaluation_rng
+    from comreg_core.simulation import BoneModel, simulate_sweep
+    from comreg_core.surfaces.us_points import beam_origins
+
+    bone = BoneModel(ct)
+    runs = []
+    for i in range(count):
+        sweep = simulate_sweep(bone, config, evaluation_rng(seed, STREAM_CLOUDS, i))
+        poses = sweep.trajectory.T_ct_image[sweep.slice_index]
+        runs.append((sweep.points, beam_origins(sweep.points, poses)))
     return runs
 
 
@@ -99,7 +117,6 @@ def _row(name: str, rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     from comreg_core.config import from_dict
-    from comreg_core.evaluation.evaluate import evaluate
     from comreg_core.simulation.config import SimulationConfig
     from tests.helpers import FIBULA_STL, SHARED_DATA, tibia_like_mesh
 
@@ -115,28 +132,56 @@ def main(argv: list[str] | None = None) -> None:
 
     config = from_dict(SimulationConfig, PARTIAL_SWEEPS, "simulation")
     print(f"success: RTE < 4 mm and RRE < 5 deg; {args.trials} trials per set and perturbation; "
-          f"seed {args.seed}")
+          f"seed {args.seed}; '+beams': the same method given each point's beam origin")
     print(f"{'method':>16} {'success':>8} {'flips':>6} {'ambig.':>7} {'unflagged':>9} "
           f"{'RTE med':>8} {'RRE med':>8} {'median s':>7} {'p90 s':>6}")
     for name in args.set.split(","):
         bone = name.split("-")[1]
         ct = FIBULA_STL if bone == "fibula" else tibia_like_mesh()
         if name.startswith("simulated"):
-            clouds, extra = "simulated", {"simulation_config": config}
+            runs = simulated_runs(ct, args.trials, args.seed, config)
         else:
-            clouds, extra = real_runs(SHARED_DATA), {}
-            lengths = [float(np.ptp(c, axis=0).max()) for c in clouds]
-            print(f"{name}: {len(clouds)} runs, {int(np.median([len(c) for c in clouds]))} "
-                  f"points (median), extent {min(lengths):.0f}-{max(lengths):.0f} mm")
+            runs = real_runs(SHARED_DATA)
+        extents = [float(np.ptp(c, axis=0).max()) for c, _ in runs]
+        print(f"{name}: {len(runs)} sweeps, {int(np.median([len(c) for c, _ in runs]))} points "
+              f"(median), extent {min(extents):.0f}-{max(extents):.0f} mm")
         methods = _methods(bone, ct, args)
         for perturbation in args.perturbation.split(","):
             start = time.perf_counter()
-            result = evaluate(methods, clouds, ct, trials=args.trials, seed=args.seed,
-                              perturbation=perturbation, **extra)
+            rows = _trials(methods, runs, ct, args.trials, args.seed, perturbation)
             print(f"-- {name}, {perturbation} poses ({time.perf_counter() - start:.0f} s)")
-            for method in methods:
-                print(_row(method, [r for r in result["trials"] if r["method"] == method
-                                    and r["error"] is None]), flush=True)
+            for method, method_rows in rows.items():
+                print(_row(method, method_rows), flush=True)
+
+
+def _trials(methods: dict, runs: list, ct, trials: int, seed: int, perturbation: str) -> dict:
+    """Every method (and ``search+beams``) on ``trials`` random poses of the runs (trial ``k``
+    moves run ``k % len(runs)``, its points and beam origins alike)."""
+    from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
+    from comreg_core.registration.metrics import registration_metrics
+    from comreg_core.registration.surface import CTSurface
+    from comreg_core.simulation import sample_initial_pose
+    from comreg_core.transforms import apply_transform, invert_rigid
+
+    surface = CTSurface(ct)
+    names = list(methods) + ["search+beams"]
+    rows: dict[str, list] = {name: [] for name in names}
+    for k in range(trials):
+        points, origins = runs[k % len(runs)]
+        T_p = sample_initial_pose(evaluation_rng(seed, STREAM_POSES, k), perturbation,
+                                  surface.bbox_centre)
+        moved, moved_origins = apply_transform(T_p, points), apply_transform(T_p, origins)
+        for name in names:
+            start = time.perf_counter()
+            if name == "search+beams":
+                result = methods["search"].register(moved, beam_origins=moved_origins)
+            else:
+                result = methods[name](moved)
+            seconds = time.perf_counter() - start
+            errors = registration_metrics(result.T_ct_us, invert_rigid(T_p), moved, surface)
+            rows[name].append({**errors, "runtime_s": seconds,
+                               "ambiguous": getattr(result, "ambiguous", None)})
+    return rows
 
 
 if __name__ == "__main__":
