@@ -291,6 +291,8 @@ def register(
         typer.echo(f"hypothesis '{h.chosen}' of {h.starts_tried} starts, {gap}; confidence "
                    f"{h.confidence:.2f}"
                    + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
+        if h.advice:
+            typer.echo(h.advice["advice"])
 
 
 Method = Enum("Method", {name: name for name in choices.METHODS + ("all",)}, type=str)

@@ -290,7 +290,7 @@ class Registrar:
             hyp = search_hypotheses(pts, T, target, dense, hyp_cfg,
                                     T_coarse=None if self.model is None else T_coarse,
                                     start_name="network" if self.model is not None else "pca",
-                                    beam_origins=origins)
+                                    beam_origins=origins, space=self.space)
             T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
             if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
                 icp_rmse = hyp.polish["rmse_mm"]

@@ -129,6 +129,8 @@ class HypothesisResult:
         ambiguous: ``confidence < min_confidence``.
         hypotheses: every refined :class:`Hypothesis`, in generation order.
         starts_tried: start poses built and screened before the best ``refine_top`` were refined.
+        advice: when ambiguous, where the runner-up puts the sweep and what to scan to tell the
+            poses apart (:func:`comreg_core.registration.advice.ambiguity_advice`), else None.
     """
 
     T_ct_us: np.ndarray
@@ -139,6 +141,7 @@ class HypothesisResult:
     ambiguous: bool
     hypotheses: tuple[Hypothesis, ...] = field(default=())
     starts_tried: int = 0
+    advice: dict[str, Any] | None = None
 
     @property
     def polish(self) -> dict[str, Any] | None:
@@ -165,4 +168,4 @@ class HypothesisResult:
                 "score_mm": self.best.score_mm, "score_gap_mm": self.score_gap_mm,
                 "confidence": self.confidence, "ambiguous": self.ambiguous,
                 "starts_tried": self.starts_tried, "scores_mm": self.scores,
-                "polish": self.polish, "polished": self.polished}
+                "polish": self.polish, "polished": self.polished, "advice": self.advice}

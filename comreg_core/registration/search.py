@@ -114,6 +114,7 @@ from typing import Any
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
+from comreg_core.registration.advice import ambiguity_advice
 from comreg_core.registration.config import HypothesisConfig
 from comreg_core.registration.icp import (apply_poses, coarse_to_fine_icp, point_to_plane_icp,
                                           strided)
@@ -269,7 +270,8 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                       config: HypothesisConfig | None = None, *,
                       T_coarse: np.ndarray | None = None,
                       start_name: str = "network",
-                      beam_origins: np.ndarray | None = None) -> HypothesisResult:
+                      beam_origins: np.ndarray | None = None,
+                      space: str = "LPS") -> HypothesisResult:
     """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
 
     With ``retry_ambiguous``, an ambiguous result gets a second round from the grid of starts
@@ -289,6 +291,8 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
         beam_origins: ``(N, 3)`` mm, where each US point's beam started (the probe's
             transducer element, US frame), or None. With them every score penalises poses
             under which the CT surface faces away from the probe (``facing_penalty_mm``).
+        space: the CT's patient space, for naming the bone's ends in the advice of an
+            ambiguous result.
 
     Returns:
         :class:`HypothesisResult` (all mm).
@@ -343,11 +347,14 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                                   float(rmse[i]) if math.isfinite(rmse[i]) else float("nan"),
                                   polishes[i])
                        for i, n in enumerate(names))
+    ambiguous = confidence < cfg.min_confidence
+    advice = None
+    if ambiguous and runner is not None:
+        advice = ambiguity_advice(poses[best], poses[runner], centroid, target, space=space)
     return HypothesisResult(T_ct_us=poses[best], chosen=names[best],
                             runner_up=None if runner is None else names[runner],
-                            score_gap_mm=gap, confidence=confidence,
-                            ambiguous=confidence < cfg.min_confidence,
-                            hypotheses=hypotheses, starts_tried=tried)
+                            score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,
+                            hypotheses=hypotheses, starts_tried=tried, advice=advice)
 
 
 def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: SurfaceCloud,

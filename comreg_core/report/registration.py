@@ -152,6 +152,8 @@ def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], 
                 "next best pose": _hypothesis_words(hypotheses.get("runner_up")),
                 "trimmed mean distance of the kept pose_mm": hypotheses.get("score_mm"),
                 "next best pose is worse by_mm": hypotheses.get("score_gap_mm")}
+        if hypotheses.get("advice"):  # an ambiguous result: what would tell the poses apart
+            pose["what would resolve it"] = hypotheses["advice"]["advice"]
         polish = hypotheses.get("polish")
         if polish:
             pose["final polish"] = (

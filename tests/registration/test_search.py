@@ -192,6 +192,12 @@ def test_cylinder_patch_is_flagged_ambiguous():
     assert one_round.ambiguous and result.starts_tried == 2 * one_round.starts_tried
     assert any("rot22.5" in h.name for h in result.hypotheses)
     assert not any("rot22.5" in h.name for h in one_round.hypotheses)
+    # an ambiguous result says where the runner-up puts the sweep and what to scan
+    runner = next(h for h in result.hypotheses if h.name == result.runner_up)
+    advice = result.advice
+    assert advice is not None and result.to_json()["advice"] == advice
+    assert_close(advice["turn_deg"], _errors(result.T_ct_us, runner.T_ct_us, us)[1], atol=1e-6)
+    assert "sweep" in advice["advice"]
 
 
 # --- hypotheses, refinement, options --------------------------------------------------------
