@@ -270,17 +270,14 @@ def register(
     100,000 points is registered as a seeded uniform subset of 100,000 (said in a warning).
     --out must not be the run folder or inside it.
     """
-    from dataclasses import replace
-
     from comreg_core.inference import register_to_directory
     from comreg_core.registration.config import load_register_config
 
     run_dir, us_points = _run_and_points(inputs, model)
-    search = load_register_config(config).hypotheses
+    search = load_register_config(config, {"hypotheses": {"enabled": False}} if not hypotheses
+                                  else None).hypotheses
     result = register_to_directory(run_dir, us_points, out, device=device.value, seed=seed,
-                                   ct_mesh=ct_mesh,
-                                   hypotheses=search if hypotheses else replace(search,
-                                                                                enabled=False))
+                                   ct_mesh=ct_mesh, hypotheses=search)
     how = "by the pose search (no network)" if run_dir is None else f"on {result.device}"
     typer.echo(f"wrote {out}: {result.n_points} points registered in {result.runtime_s:.2f} s "
                f"{how}; median residual {result.residuals['median']:.2f} mm")
