@@ -432,7 +432,8 @@ def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path
     else:
         registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
                                        hypotheses=hypotheses)
-    result = registrar.register(cloud.in_space(registrar.space).points, seed=seed)
+    cloud = cloud.in_space(registrar.space)
+    result = registrar.register(cloud.points, seed=seed, beam_origins=cloud.beam_origins)
     out.mkdir(parents=True, exist_ok=True)
     files = {"transform": runs.TRANSFORM, "registered_us": runs.REGISTERED_US,
              "completion_ct": runs.COMPLETION_CT, "config": runs.CONFIG}
@@ -448,12 +449,14 @@ def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path
               "us_points": str(us_points_path), "device": device, "seed": int(seed),
               "icp_points": None if registrar.model is None
               else registrar.model.config.icp.num_points,
-              "ct_mesh": None if ct_mesh is None else str(ct_mesh)}
+              "ct_mesh": None if ct_mesh is None else str(ct_mesh),
+              "beam_origins": cloud.beam_origins is not None}
     settings = {"hypotheses": to_dict(registrar.hypothesis_config), "inputs": inputs}
     with atomic_output(out / files["config"]) as tmp:  # comreg register --config reads it
         tmp.write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
     verdict = registration_verdict(result, registrar)
     payload = {**result.to_json(), **verdict.to_json(), "space": registrar.space,
+               "beam_origins_used": cloud.beam_origins is not None,
                "ct_fingerprint": registrar.fingerprint,
                "run_dir": None if run_dir is None else str(Path(run_dir).absolute()),
                "us_points": str(Path(us_points_path).absolute()),

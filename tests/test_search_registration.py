@@ -127,3 +127,32 @@ def test_beam_origins_lie_above_the_bone_and_keep_the_pose(search, real_sweep_be
     assert result.hypotheses.polish["facing_away"] < 0.1
     with pytest.raises(ComRegError, match="beam origins for"):
         search.register(points, beam_origins=origins[:-1])
+
+
+def test_extract_us_keeps_beam_origins_and_register_uses_them(tmp_path, shared_data):
+    """`comreg extract-us` writes each point's beam origin into the PLY (beam_x/y/z); read
+    back, moved with the points, and used by `comreg register` (recorded in result.json)."""
+    from comreg_core.io import read_points
+    from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.surfaces.us import extract_us_to_file
+    from comreg_core.surfaces.us_points import beam_origins
+
+    sweep = read_tracked_sweep(shared_data / "ultrabones100k-fibula")
+    result = extract_us_to_file(sweep, tmp_path / "us.ply")
+    cloud = read_points(tmp_path / "us.ply")
+    expected = beam_origins(result.points.points, sweep.T_ref_image[result.points.frame_index])
+    np.testing.assert_allclose(cloud.beam_origins, expected, atol=1e-9)
+    ras = cloud.in_space("RAS")
+    np.testing.assert_allclose(ras.beam_origins[:, :2], -expected[:, :2], atol=1e-9)
+    out = tmp_path / "reg"
+    run = runner.invoke(app, ["register", str(tmp_path / "us.ply"), "--ct", str(FIBULA_STL),
+                              "--out", str(out)])
+    assert run.exit_code == 0, run.output
+    saved = json.loads((out / "result.json").read_text())
+    assert saved["beam_origins_used"] is True
+    assert saved["hypotheses"]["polish"]["facing_away"] < 0.1
+    errors = registration_metrics(np.asarray(saved["T_ct_us"]), np.eye(4), cloud.points,
+                                  FIBULA_STL)
+    assert errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0, errors
+    with pytest.raises(ComRegError, match="beam origins for"):
+        PointCloud(cloud.points, beam_origins=cloud.points[:-1])

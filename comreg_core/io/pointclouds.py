@@ -30,11 +30,15 @@ class PointCloud:
         points: ``(N, 3)`` float64 coordinates in mm (N >= 1, all finite).
         space: "LPS" or "RAS".
         path: the file it was read from, if any.
+        beam_origins: ``(N, 3)`` mm, where each point's ultrasound beam started (the probe's
+            element, same space), or None. Kept by PLY files (vertex properties ``beam_x``,
+            ``beam_y``, ``beam_z``); other formats hold the points only.
     """
 
     points: np.ndarray
     space: str = "LPS"
     path: Path | None = None
+    beam_origins: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.space = check_space(self.space)
@@ -43,12 +47,21 @@ class PointCloud:
         if len(self.points) == 0:
             raise InvalidGeometryError(f"The point cloud{where} is empty.",
                                        "Provide at least one point.")
+        if self.beam_origins is not None:
+            self.beam_origins = as_points(self.beam_origins, f"beam origins{where}")
+            if self.beam_origins.shape != self.points.shape:
+                raise InvalidGeometryError(f"The point cloud{where} has "
+                                           f"{len(self.beam_origins)} beam origins for "
+                                           f"{len(self.points)} points.",
+                                           "Give one beam origin per point, or none.")
 
     def in_space(self, space: str) -> "PointCloud":
-        """The same points expressed in ``space``."""
+        """The same points (and beam origins) expressed in ``space``."""
         space = check_space(space)
-        return replace(self, points=apply_transform(space_change(self.space, space), self.points),
-                       space=space)
+        change = space_change(self.space, space)
+        return replace(self, points=apply_transform(change, self.points), space=space,
+                       beam_origins=None if self.beam_origins is None
+                       else apply_transform(change, self.beam_origins))
 
 
 def read_points(path: str | Path) -> PointCloud:
@@ -58,7 +71,10 @@ def read_points(path: str | Path) -> PointCloud:
     """
     path = require_input_file(path, "point cloud file")
     ext = require_extension(path, "point cloud", POINT_CLOUD_EXTENSIONS)
-    reader = {".npy": _read_npy, ".ply": _read_ply, ".pcd": _read_pcd}.get(ext, _read_xyz)
+    if ext == ".ply":
+        points, space, origins = _read_ply_with_beams(path)
+        return PointCloud(points, space, path, origins)
+    reader = {".npy": _read_npy, ".pcd": _read_pcd}.get(ext, _read_xyz)
     points, space = reader(path)
     return PointCloud(points, space, path)
 
@@ -191,8 +207,18 @@ def check_ply_size(path: str | Path) -> None:
     _ply_header(Path(path))
 
 
+#: PLY vertex properties of the beam origins.
+BEAM_PROPERTIES = ("beam_x", "beam_y", "beam_z")
+
+
 def _read_ply(path: Path) -> tuple[np.ndarray, str]:
     """Vertices of a PLY file (faces, if any, are ignored)."""
+    points, space, _ = _read_ply_with_beams(path)
+    return points, space
+
+
+def _read_ply_with_beams(path: Path) -> tuple[np.ndarray, str, np.ndarray | None]:
+    """Vertices of a PLY file and their beam origins when it has them (faces are ignored)."""
     fmt, elements, header_lines, data_start = _ply_header(path)
     names = [e[0] for e in elements]
     if "vertex" not in names:
@@ -228,15 +254,22 @@ def _read_ply(path: Path) -> tuple[np.ndarray, str]:
             raise CorruptFileError(path, f"unknown PLY format '{fmt}'")
         dtype = np.dtype([(name, order + t) for name, t in vertex_props])
         columns = _read_binary_records(path, data_start, dtype, vertex_count)
-    return np.column_stack([columns["x"], columns["y"], columns["z"]]).astype(np.float64), space
+    points = np.column_stack([columns["x"], columns["y"], columns["z"]]).astype(np.float64)
+    origins = None
+    if set(BEAM_PROPERTIES) <= set(names):
+        origins = np.column_stack([columns[k] for k in BEAM_PROPERTIES]).astype(np.float64)
+    return points, space, origins
 
 
 def _write_ply(cloud: PointCloud, tmp: Path, binary: bool) -> None:
     fmt = "binary_little_endian" if binary else "ascii"
+    names = ("x", "y", "z") + (BEAM_PROPERTIES if cloud.beam_origins is not None else ())
     header = (f"ply\nformat {fmt} 1.0\ncomment ComReg point cloud, millimetres\n"
               f"comment SPACE={cloud.space}\nelement vertex {len(cloud.points)}\n"
-              "property double x\nproperty double y\nproperty double z\nend_header\n")
-    _write_header_and_xyz(tmp, header, cloud.points, binary)
+              + "".join(f"property double {name}\n" for name in names) + "end_header\n")
+    table = cloud.points if cloud.beam_origins is None else \
+        np.hstack([cloud.points, cloud.beam_origins])
+    _write_header_and_xyz(tmp, header, table, binary)
 
 
 # --- PCD ----------------------------------------------------------------------------------------
@@ -388,7 +421,8 @@ def _read_binary_records(path: Path, start: int, dtype: np.dtype, count: int) ->
 
 
 def _write_header_and_xyz(tmp: Path, header: str, points: np.ndarray, binary: bool) -> None:
-    """A text header, then ``(N, 3)`` points as little-endian float64 or full-precision text."""
+    """A text header, then ``(N, C)`` rows (points, with their beam origins in a PLY) as
+    little-endian float64 or full-precision text."""
     with open(tmp, "wb") as f:
         f.write(header.encode("ascii"))
         if binary:

@@ -32,7 +32,7 @@ from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extractio
 from comreg_core.surfaces.us_denoise import denoise_points
 from comreg_core.surfaces.us_detector import detect_sweep_surface
 from comreg_core.surfaces.us_masks import read_masks, surface_from_masks
-from comreg_core.surfaces.us_points import USSurfacePoints
+from comreg_core.surfaces.us_points import USSurfacePoints, beam_origins
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +89,9 @@ def extract_us_to_file(sweep: str | Path | TrackedSweep, out: str | Path, *,
                        progress: Progress | None = None) -> USExtractionResult:
     """``comreg extract-us SWEEP --out POINTS [--calibration FILE] [--masks DIR] [--config FILE]``:
     read the sweep, extract and denoise its bone surface, write the points (``.ply``, ``.pcd``,
-    ``.xyz``, ``.npy``, ... in the sweep's reference frame, tagged LPS) atomically."""
+    ``.xyz``, ``.npy``, ... in the sweep's reference frame, tagged LPS) atomically; a ``.ply``
+    also keeps each point's beam origin (:func:`~comreg_core.surfaces.us_points.beam_origins`),
+    which ``comreg register`` uses to rule out poses the probe could not have seen."""
     check_us_outputs(out, inputs=[sweep, calibration, masks, config])  # fail before the work
     if not isinstance(config, USExtractionConfig):
         config = load_us_extraction_config(config)
@@ -97,7 +99,11 @@ def extract_us_to_file(sweep: str | Path | TrackedSweep, out: str | Path, *,
         sweep = read_tracked_sweep(sweep, calibration=calibration, reference=config.reference)
     mask_frames = read_masks(masks, sweep) if masks is not None else None
     result = extract_us_surface(sweep, config, masks=mask_frames, progress=progress)
-    result.output = write_points(PointCloud(result.points.points, "LPS"), out)
+    found = result.points
+    origins = None
+    if (found.frame_index >= 0).all():  # each point's beam origin (a PLY keeps them)
+        origins = beam_origins(found.points, sweep.T_ref_image[found.frame_index])
+    result.output = write_points(PointCloud(found.points, "LPS", beam_origins=origins), out)
     log.info("%s", result.summary())
     return result
 
