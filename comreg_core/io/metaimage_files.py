@@ -81,6 +81,15 @@ def header_numbers(path: Path, fields: dict[str, str], names: tuple[str, ...], c
     return numbers
 
 
+def metaimage_dtype(path: Path, fields: dict[str, str]) -> np.dtype:
+    """The voxel type of a MetaImage header (``ElementType`` and its byte order)."""
+    element_type = (header_field(fields, "ElementType") or "").upper()
+    if element_type not in METAIMAGE_DTYPES:
+        raise CorruptFileError(path, f"unsupported or missing 'ElementType = {element_type}'")
+    msb = header_flag(fields, "BinaryDataByteOrderMSB", "ElementByteOrderMSB")
+    return np.dtype(METAIMAGE_DTYPES[element_type]).newbyteorder(">" if msb else "<")
+
+
 def header_flag(fields: dict[str, str], *names: str) -> bool:
     """True when the first of ``names`` present says "True" or "1" (absent = False)."""
     return (header_field(fields, *names) or "False").strip().lower() in ("true", "1")
@@ -102,11 +111,7 @@ def read_metaimage_grid(path: Path) -> tuple[np.ndarray, dict[str, str], np.ndar
     if dims is None or (dims < 1).any():
         raise CorruptFileError(path, f"'DimSize = {header_field(fields, 'DimSize')}' is not 3 "
                                      "sizes")
-    element_type = (header_field(fields, "ElementType") or "").upper()
-    if element_type not in METAIMAGE_DTYPES:
-        raise CorruptFileError(path, f"unsupported or missing 'ElementType = {element_type}'")
-    msb = header_flag(fields, "BinaryDataByteOrderMSB", "ElementByteOrderMSB")
-    dtype = np.dtype(METAIMAGE_DTYPES[element_type]).newbyteorder(">" if msb else "<")
+    dtype = metaimage_dtype(path, fields)
     channels = header_numbers(path, fields, ("ElementNumberOfChannels",), 1, int)
     channels = 1 if channels is None else int(channels[0])
 

@@ -19,7 +19,7 @@ import numpy as np
 from comreg_core.errors import ComRegError, CorruptFileError
 from comreg_core.io._files import file_extension, parse_numbers, require_input_file
 from comreg_core.io.image_files import parse_errors_as_corrupt
-from comreg_core.io.metaimage_files import (METAIMAGE_DTYPES, header_field, header_flag,
+from comreg_core.io.metaimage_files import (header_field, metaimage_dtype,
                                             read_metaimage_header, read_metaimage_voxels)
 from comreg_core.io.sweeps import NoValidFramesError, frames_to_grey
 
@@ -126,11 +126,7 @@ def read_plus_metaimage_frames(path: Path) -> tuple[dict[str, str], np.ndarray]:
     if len(dims) != 3 or min(dims) < 0:
         raise CorruptFileError(path, f"'DimSize = {header_field(fields, 'DimSize')}' does not "
                                      "describe 2D frames over time (width height count)")
-    element_type = (header_field(fields, "ElementType") or "").upper()
-    if element_type not in METAIMAGE_DTYPES:
-        raise CorruptFileError(path, f"unsupported or missing 'ElementType = {element_type}'")
-    msb = header_flag(fields, "BinaryDataByteOrderMSB", "ElementByteOrderMSB")
-    dtype = np.dtype(METAIMAGE_DTYPES[element_type]).newbyteorder(">" if msb else "<")
+    dtype = metaimage_dtype(path, fields)
     channels = int(header_field(fields, "ElementNumberOfChannels") or 1)
     W, H, N = dims
     if N == 0 or W == 0 or H == 0:
