@@ -290,7 +290,10 @@ class Registrar:
             hyp = search_hypotheses(pts, T, target, dense, hyp_cfg,
                                     T_coarse=None if self.model is None else T_coarse,
                                     start_name="network" if self.model is not None else "pca",
-                                    beam_origins=origins, space=self.space)
+                                    beam_origins=origins, space=self.space,
+                                    extra_bases=None if self.model is not None else {
+                                        f"pca-axis{k}": principal_axes_pose(pts, target, k)
+                                        for k in range(1, hyp_cfg.patch_axes)})
             T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
             if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
                 icp_rmse = hyp.polish["rmse_mm"]

@@ -68,6 +68,9 @@ class HypothesisConfig:
         polish_iterations: most iterations of a polish.
         score_floor_mm: score differences are measured relative to at least this (mm) in the
             confidence: below it they are noise (step 6).
+        patch_axes: without a network, how many of the US cloud's principal axes are tried
+            as the bone's long axis (1-3; bases ``pca``, ``pca-axis1``, ``pca-axis2``): a
+            short sweep's largest spread may run across the bone. Each adds a full grid.
         facing_penalty_mm: with beam origins (a tracked sweep knows where the probe was for
             every echo), each US point whose matched CT surface faces away from its probe adds
             this to its distance in every score (screening, refinement, polish): a pose the
@@ -106,6 +109,7 @@ class HypothesisConfig:
     score_floor_mm: float = 0.05
     min_confidence: float = 0.3
     facing_penalty_mm: float = 5.0
+    patch_axes: int = 1
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "hypotheses.enabled", "must be true or false")
@@ -146,6 +150,7 @@ class HypothesisConfig:
                 "must be in [0, 1)")
         require(self.facing_penalty_mm >= 0, "hypotheses.facing_penalty_mm",
                 "must be 0 (off) or more (mm)")
+        require(self.patch_axes in (1, 2, 3), "hypotheses.patch_axes", "must be 1, 2 or 3")
 
 
 def as_hypothesis_config(value) -> HypothesisConfig:

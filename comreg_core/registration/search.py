@@ -137,11 +137,17 @@ def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.nda
     return T
 
 
-def principal_axes_pose(points_us: np.ndarray, target: SurfaceCloud) -> np.ndarray:
+def principal_axes_pose(points_us: np.ndarray, target: SurfaceCloud, long_axis: int = 0
+                        ) -> np.ndarray:
     """``(4, 4)`` ``T_ct_us`` putting the principal frame of ``(N, 3)`` points (US frame, mm)
-    onto the CT's: centroid onto centroid, axes onto axes (up to the axes' signs, which the
-    search's flips and turns cover)."""
+    onto the CT's: centroid onto centroid, the points' axis ``long_axis`` (0 = their largest
+    spread) onto the CT's long axis, the others in order (up to the axes' signs, which the
+    search's flips and turns cover). A short sweep's largest spread may run across the bone:
+    ``long_axis`` 1 tries its second axis along it."""
     c_us, a_us = principal_frame(points_us)
+    order = [long_axis] + [k for k in range(3) if k != long_axis]
+    a_us = a_us[:, order]
+    a_us[:, 2] = np.cross(a_us[:, 0], a_us[:, 1])  # right-handed again
     T = np.eye(4)
     T[:3, :3] = target.axes @ a_us.T
     T[:3, 3] = target.centre - T[:3, :3] @ c_us
@@ -152,7 +158,8 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
                      completion: np.ndarray | None = None,
                      config: HypothesisConfig | None = None, *,
                      T_coarse: np.ndarray | None = None,
-                     grid_offset: float = 0.0, start_name: str = "network"
+                     grid_offset: float = 0.0, start_name: str = "network",
+                     extra_bases: dict[str, np.ndarray] | None = None
                      ) -> dict[str, np.ndarray]:
     """The start poses ``{name: T_ct_us (4, 4) mm}`` of the hypotheses (module docstring).
 
@@ -166,9 +173,11 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
             grid interleaved with the default one; the bases themselves are not included).
         start_name: the name of ``T_start``'s base (``"pca"`` when the search runs without a
             network, from :func:`principal_axes_pose`).
+        extra_bases: more named bases, each with its flips, turns and slides.
     """
     cfg = config or HypothesisConfig()
     bases = {start_name: check_rigid(T_start)}
+    bases.update({name: check_rigid(T) for name, T in (extra_bases or {}).items()})
     if T_coarse is not None and cfg.include_coarse:
         bases["coarse"] = check_rigid(T_coarse)
     if completion is not None and cfg.principal_axes_solve:
@@ -271,7 +280,8 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                       T_coarse: np.ndarray | None = None,
                       start_name: str = "network",
                       beam_origins: np.ndarray | None = None,
-                      space: str = "LPS") -> HypothesisResult:
+                      space: str = "LPS",
+                      extra_bases: dict[str, np.ndarray] | None = None) -> HypothesisResult:
     """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
 
     With ``retry_ambiguous``, an ambiguous result gets a second round from the grid of starts
@@ -293,6 +303,7 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
             under which the CT surface faces away from the probe (``facing_penalty_mm``).
         space: the CT's patient space, for naming the bone's ends in the advice of an
             ambiguous result.
+        extra_bases: more named start poses, each with its own flips, turns and slides.
 
     Returns:
         :class:`HypothesisResult` (all mm).
@@ -325,7 +336,8 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
     tried = 0
     for offset in (0.0, 0.5) if cfg.retry_ambiguous else (0.0,):
         grid = build_hypotheses(T_network, target, completion, cfg, T_coarse=T_coarse,
-                                grid_offset=offset, start_name=start_name)
+                                grid_offset=offset, start_name=start_name,
+                                extra_bases=extra_bases)
         tried += len(grid)
         new_names, new_starts, new_poses, new_rmse = refine_starts(
             subset_mm, grid, target, cfg, keep_first=offset == 0.0, origins=origins)

@@ -15,8 +15,9 @@ from scipy.spatial.transform import Rotation
 from comreg_core.config import ConfigError
 from comreg_core.registration.config import HypothesisConfig, as_hypothesis_config
 from comreg_core.registration.icp import coarse_to_fine_icp
-from comreg_core.registration.search import (build_hypotheses, rotation_about, screen_starts,
-                                             search_hypotheses, slide_offsets_mm, us_subset)
+from comreg_core.registration.search import (build_hypotheses, principal_axes_pose,
+                                             rotation_about, screen_starts, search_hypotheses,
+                                             slide_offsets_mm, us_subset)
 from comreg_core.registration.surface import CTSurface, SurfaceCloud
 from comreg_core.pointsets import farthest_point_indices
 from comreg_core.transforms import apply_transform, invert_rigid
@@ -409,7 +410,8 @@ def test_target_from_points_estimates_normals():
     ("screen_points", 2), ("screen_iterations", -1), ("screen_score_points", 0),
     ("refine_top", -1), ("tie_break", "random"), ("polish", "yes"),
     ("polish_max_distance_mm", 0.0), ("polish_iterations", 0), ("polish_top", 0),
-    ("score_floor_mm", 0.0), ("retry_ambiguous", "yes"),
+    ("score_floor_mm", 0.0), ("retry_ambiguous", "yes"), ("patch_axes", 0), ("patch_axes", 4),
+    ("facing_penalty_mm", -1.0),
 ])
 def test_config_validation(key, value):
     with pytest.raises(ConfigError, match=f"hypotheses.{key}"):
@@ -434,3 +436,17 @@ def test_too_few_us_points_is_a_clear_error(fibula_target, count):
 
     with pytest.raises(InvalidGeometryError, match="need at least 6"):
         search_hypotheses(fibula_target.points[:count], np.eye(4), fibula_target)
+
+
+def test_principal_axes_pose_puts_the_chosen_patch_axis_along_the_bone(fibula_target):
+    """Axis 0 (the patch's largest spread) or axis 1 onto the CT's long axis, right-handed,
+    centroid onto the CT's centre."""
+    rng = np.random.default_rng(2)
+    patch = rng.normal(size=(500, 3)) * [30.0, 10.0, 2.0]  # spreads along x, y, z
+    for k, along in ((0, [1.0, 0, 0]), (1, [0, 1.0, 0])):
+        T = principal_axes_pose(patch, fibula_target, k)
+        assert_close(np.linalg.det(T[:3, :3]), 1.0, atol=1e-9)
+        assert_close(abs(T[:3, :3] @ np.array(along) @ fibula_target.axes[:, 0]), 1.0,
+                     atol=0.02, what=f"patch axis {k} along the bone")
+        assert_close(apply_transform(T, patch.mean(axis=0)[None])[0], fibula_target.centre,
+                     atol=1e-9)
