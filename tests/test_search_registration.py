@@ -156,3 +156,31 @@ def test_extract_us_keeps_beam_origins_and_register_uses_them(tmp_path, shared_d
     assert errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0, errors
     with pytest.raises(ComRegError, match="beam origins for"):
         PointCloud(cloud.points, beam_origins=cloud.points[:-1])
+
+
+def test_the_search_gives_the_same_pose_at_any_thread_count(tmp_path, shared_data):
+    """Same inputs, same output: the pose search alone run at 1 and at 2 threads (BLAS and
+    OpenMP) returns bit-identical transforms."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, sys\n"
+            "from comreg_core.inference import Registrar\n"
+            "from comreg_core.io import read_mesh\n"
+            "from comreg_core.simulation import sample_initial_pose\n"
+            "from comreg_core.transforms import apply_transform\n"
+            f"ct = read_mesh({str(FIBULA_STL)!r})\n"
+            "pts = ct.vertices[::40]\n"
+            "T = sample_initial_pose(np.random.default_rng(2), 'full', center=pts.mean(0))\n"
+            "r = Registrar.from_ct(ct).register(apply_transform(T, pts))\n"
+            "np.save(sys.argv[1], r.T_ct_us)\n")
+    results = []
+    for threads in ("1", "2"):
+        env = {**os.environ, "OMP_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads,
+               "MKL_NUM_THREADS": threads}
+        path = tmp_path / f"T{threads}.npy"
+        subprocess.run([sys.executable, "-c", code, str(path)], env=env, check=True,
+                       capture_output=True)
+        results.append(np.load(path))
+    assert np.array_equal(results[0], results[1])
