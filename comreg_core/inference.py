@@ -112,10 +112,18 @@ class Registrar:
         self.space = space
         self.config = config
         self._ct_vertices, self._ct_faces = ct_vertices, ct_faces
-        self.hypothesis_config = as_hypothesis_config(hypotheses)
+        self.hypothesis_config = self._search_config(hypotheses)
         self._surface = None
         self._encoding = None
         self._bare_cloud: SurfaceCloud | None = None
+
+    def _search_config(self, hypotheses) -> HypothesisConfig:
+        """``hypotheses`` as a :class:`HypothesisConfig`; without a network the search is the
+        whole registration (always on) and ties go to the best score (no network's pose)."""
+        config = as_hypothesis_config(hypotheses)
+        if self.model is None:
+            config = replace(config, enabled=True, tie_break="score", include_coarse=False)
+        return config
 
     @classmethod
     def from_ct(cls, ct_mesh, *, hypotheses: HypothesisConfig | bool | None = None
@@ -125,12 +133,9 @@ class Registrar:
         the search cannot be turned off (it is the whole registration) and ties are broken by
         score (there is no network's pose to prefer)."""
         vertices, faces, space, _ = mesh_arrays(ct_mesh)
-        config = replace(as_hypothesis_config(hypotheses), enabled=True, tie_break="score",
-                         include_coarse=False)
         return cls(None, vertices, Normalization.from_ct(vertices), ct_vertices=vertices,
                    ct_faces=faces, fingerprint=ct_fingerprint(vertices, faces)["sha256"],
-                   space=space,
-                   device="cpu", hypotheses=config)
+                   space=space, device="cpu", hypotheses=hypotheses)
 
     @classmethod
     def from_run(cls, run_dir: str | Path, device: str = "auto", *, ct_mesh=None,
@@ -252,9 +257,7 @@ class Registrar:
                 rules out poses under which the CT surface faces away from the probe.
         """
         hyp_cfg = (self.hypothesis_config if hypotheses is None
-                   else as_hypothesis_config(hypotheses))
-        if self.model is None:  # the search is the whole registration; no network to prefer
-            hyp_cfg = replace(hyp_cfg, enabled=True, tie_break="score", include_coarse=False)
+                   else self._search_config(hypotheses))
         t = {}
         start = time.perf_counter()
         n_given = len(points) if hasattr(points, "__len__") else None

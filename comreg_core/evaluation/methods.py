@@ -83,7 +83,6 @@ def registration_methods(names: str | Iterable[str], run_dir, ct_mesh, *, device
         baseline_config: the baselines' settings.
     """
     names = method_names(names)
-    methods: dict[str, Any] = {}
     search = {}
     if any(name in SEARCH_METHODS for name in names):
         search["search"] = Registrar.from_ct(ct_mesh, hypotheses=hypotheses)
@@ -103,6 +102,5 @@ def registration_methods(names: str | Iterable[str], run_dir, ct_mesh, *, device
         comreg = {"comreg": registrar, "comreg-plain": plain}
     baselines = [name for name in names if name in BASELINES]
     built = baseline_methods(baselines, ct_mesh, baseline_config, seed=seed) if baselines else {}
-    for name in names:
-        methods[name] = {**search, **comreg, **built}[name]
-    return methods
+    available = {**search, **comreg, **built}
+    return {name: available[name] for name in names}

@@ -207,15 +207,15 @@ def refit(points_ct: np.ndarray, surface, *, iterations: int = 25, gate_mm: floa
                                tolerance_mm=REFIT_TOLERANCE_MM).T
     rigid = apply_transform(moved, pts)
     shift = float(np.sqrt(np.mean(np.sum((rigid - pts) ** 2, axis=1))))
-    sources = np.stack([c + s * (rigid - rigid.mean(0)) for s in SCALES])  # S n 3
-    sources[unit] = rigid
-    fits = point_to_plane_icp(sources, np.tile(np.eye(4), (len(SCALES), 1, 1)),
+    scaled = [k for k in range(len(SCALES)) if k != unit]  # the unscaled cloud is fitted
+    sources = np.stack([c + SCALES[k] * (rigid - rigid.mean(0)) for k in scaled])  # S-1 n 3
+    fits = point_to_plane_icp(sources, np.tile(np.eye(4), (len(scaled), 1, 1)),
                               partial(cloud.match, max_distance=gate_mm),
                               iterations=iterations, trim_fraction=0.1,
                               tolerance_mm=REFIT_TOLERANCE_MM).T
-    fits[unit] = np.eye(4)  # the unscaled cloud is already fitted
-    scores = [_fit_score(apply_transform(T, src), cloud, gate_mm)
-              for T, src in zip(fits, sources)]
+    fitted = {unit: rigid, **{k: apply_transform(T, src)
+                              for k, T, src in zip(scaled, fits, sources)}}
+    scores = [_fit_score(fitted[k], cloud, gate_mm) for k in range(len(SCALES))]
     best = int(np.argmin(scores))
     score_1 = scores[unit]
     gain = 0.0 if score_1 <= 0 else max(0.0, 1.0 - scores[best] / score_1)
