@@ -27,6 +27,14 @@ from vtkmodules.util import numpy_support  # noqa: E402
 log = logging.getLogger(__name__)
 
 SCENE_EXTENSIONS = [".mrml"]
+#: The ``<MRML version=...>`` header of scenes saved outside the 3D Slicer application, in the
+#: "<application> <major>.<minor>.<patch> <revision>" form Slicer 5 writes (e.g. a scene saved by
+#: Slicer 5.6.1 reads ``version="Slicer 5.6.1 32438"``). Slicer warns that a scene "may not load
+#: correctly" when its application name is not "Slicer" or its version is newer than the running
+#: one (qSlicerSceneReader); slicer-core's MRML would write "slicer-core 4.0.0 0". Version 5.0.0
+#: is the oldest Slicer 5, so every Slicer 5 release opens the file without that warning; the
+#: revision 0 says it is not a Slicer build. Inside the application the scene keeps its own.
+HEADLESS_SCENE_VERSION = "Slicer 5.0.0 0"
 # Data file extension per storable node class when saving a scene (Slicer's defaults, except
 # models: .vtk, whose header carries SPACE=LPS).
 _SCENE_FILE_EXTENSIONS = {
@@ -271,6 +279,10 @@ def writeScene(scene, path) -> Path:
                                   f"to '{target}'.", "Check that the folder is writable.")
     scene.SetRootDirectory(str(folder))
     scene.SetURL(str(path.resolve()))
+    if sceneApplication(scene.GetVersion())[0] != "Slicer":  # headless: slicer-core's own name
+        scene.SetVersion(HEADLESS_SCENE_VERSION)
+    if scene.GetUserTagTable() is None:  # the application's scene has one: userTags=""
+        scene.SetUserTagTable(slicer.vtkTagTable())
     scene.SetSaveToXMLString(1)  # the XML text, written atomically below
     try:
         ok = scene.Commit()
@@ -284,6 +296,16 @@ def writeScene(scene, path) -> Path:
         tmp.write_text(xml, encoding="utf-8")
     log.info("Saved the scene to '%s' (%d data files)", path, len(used))
     return path
+
+
+def sceneApplication(version: Optional[str]) -> tuple:
+    """``(application, (major, minor, patch), revision)`` of a scene version string parsed by
+    MRML's own ``vtkMRMLScene.ParseVersion``; ``("", (0, 0, 0), 0)`` when it does not parse."""
+    parts = [vtk.reference(""), *(vtk.reference(0) for _ in range(4))]
+    if not version or not slicer.vtkMRMLScene.ParseVersion(version, *parts):
+        return "", (0, 0, 0), 0
+    application, major, minor, patch, revision = (part.get() for part in parts)
+    return application, (major, minor, patch), revision
 
 
 def readScene(scene, path):
