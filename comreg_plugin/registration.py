@@ -24,7 +24,10 @@ from comreg_core.transforms import apply_transform, check_rigid, space_change
 from comreg_plugin.pretraining_job import PretrainingJob
 from comreg_plugin.scene_io import arraysFromModelMesh, requireNode
 
-TRANSFORM_NODE_NAME = "ComReg US to CT"
+#: Default name of the output transform, SlicerIGT style ``<From>To<To>``: it maps the tracking
+#: reference frame, in which the US points (and the sweep's ImageToReference poses) are given,
+#: to the CT.
+TRANSFORM_NODE_NAME = "ReferenceToCT"
 COMPLETED_BONE_NODE_NAME = "ComReg completed bone"
 COMPLETION_COLOR = (0.2, 0.8, 0.3)
 METHODS = ("comreg", "search", "ransac")
@@ -193,14 +196,15 @@ def runRegistration(run, points_ras: np.ndarray, space: str) -> tuple:
     return output, T, T_ras, completion_ct
 
 
-def resultAttributes(output, methodName: str, space: str, runDirectory) -> dict:
+def resultAttributes(output, methodName: str, runDirectory) -> dict:
     """The transform node attributes (names without the ``ComReg.`` prefix) that record a
-    registration: ``method``, ``runtime_s``, ``space``, ``info`` (JSON), and ``runDirectory``
-    for "comreg"."""
+    registration: ``method``, ``runtime_s``, ``info`` (JSON), and for "comreg" ``run`` (the run
+    folder's name, not its path: a saved scene moves between machines). The node itself is RAS,
+    like every Slicer transform node."""
     attributes = {"method": methodName, "runtime_s": f"{output.runtime_s:.6g}",
-                  "space": space, "info": json.dumps(dict(output.info), default=_jsonable)}
+                  "info": json.dumps(dict(output.info), default=_jsonable)}
     if methodName == "comreg":
-        attributes["runDirectory"] = str(runDirectory)
+        attributes["run"] = Path(runDirectory).name
     return attributes
 
 

@@ -36,7 +36,7 @@ def test_the_readme_slicer_example_runs(tmp_path):
     assert (tmp_path / "out" / "T_ct_us.tfm").stat().st_size > 0
     assert (tmp_path / "out" / "scene" / "comreg.mrml").stat().st_size > 0
     node = namespace["summary"].transformNode
-    assert node.GetName() == "ComReg US to CT"
+    assert node.GetName() == "ReferenceToCT"
     from vtkmodules.vtkCommonMath import vtkMatrix4x4
 
     matrix = vtkMatrix4x4()

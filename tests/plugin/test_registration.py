@@ -103,13 +103,14 @@ def test_the_transform_node_attributes():
     output = RegistrationOutput(np.eye(4), 0.123456789, info={
         "residuals_mm": np.array([1.0, 2.0]), "ambiguous": np.bool_(True), "n": np.int64(3),
         "other": object})
-    attributes = resultAttributes(output, "comreg", "LPS", "/runs/a")
-    assert set(attributes) == {"method", "runtime_s", "space", "info", "runDirectory"}
-    assert attributes["runtime_s"] == "0.123457" and attributes["runDirectory"] == "/runs/a"
+    attributes = resultAttributes(output, "comreg", "/runs/a")
+    # no "space" (the node is RAS like every Slicer transform) and no absolute path
+    assert set(attributes) == {"method", "runtime_s", "info", "run"}
+    assert attributes["runtime_s"] == "0.123457" and attributes["run"] == "a"
     info = json.loads(attributes["info"])
     assert info["residuals_mm"] == [1.0, 2.0] and info["ambiguous"] is True and info["n"] == 3
     assert info["other"] == str(object)
-    assert "runDirectory" not in resultAttributes(output, "ransac", "LPS", "/runs/a")
+    assert "run" not in resultAttributes(output, "ransac", "/runs/a")
 
 
 def test_the_result_line():
