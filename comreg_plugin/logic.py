@@ -32,13 +32,16 @@ from comreg_plugin.registration import (COMPLETED_BONE_NODE_NAME, COMPLETION_COL
                                         TRANSFORM_NODE_NAME, RegistrationMethods,
                                         RegistrationSummary, resultAttributes,
                                         runRegistration)
-from comreg_plugin.scene_io import (addModelNode, arrayFromModelPoints, readScene,
+from comreg_plugin.scene_io import (addModelNode, readScene,
                                     readSlicerSegmentation, requireNode,
                                     segmentationNodeFromArrays, surfaceMeshFromModel, uniqueName,
                                     vtkMatrixFromArray, writeScene, writeTransform)
+from comreg_plugin.scene_inputs import (POINTS_NODE_CLASSES, addSweepBrowser,
+                                        arrayFromPointsNode, segmentationFromNode,
+                                        trackedSweepFromBrowser)
 from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModuleLogic,
                                          _StandInLogic, register_segmentation_converters,
-                                         require_slicer)
+                                         require_slicer, sequences_logic)
 
 slicer = require_slicer()
 
@@ -65,6 +68,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             scene = slicer.mrmlScene if IN_SLICER_APP else slicer.vtkMRMLScene()
         self.scene = scene
         register_segmentation_converters()
+        self.sequencesLogic = sequences_logic(scene)
         self.pretrainingJob: Optional[PretrainingJob] = None
         self._methods = RegistrationMethods()
 
@@ -119,7 +123,6 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             LabelNotFoundError, EmptyMaskError (from comreg_core).
         """
         from comreg_core.io import SEGMENTATION_READ_EXTENSIONS, read_segmentation
-        from comreg_core.surfaces.ct import extract_bone_surface
 
         path = require_input_file(path, "CT segmentation")
         ext = file_extension(path)
@@ -136,6 +139,30 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         else:
             segNode = segmentationNodeFromArrays(self.scene, seg, base, BONE_COLOR)
         segNode.CreateDefaultDisplayNodes()
+        models = self._boneModels(seg, segments, options, Path(path).name, report)
+        self._useCT(segNode, models)
+        log.info("Loaded '%s': %d segment(s), %d bone model(s)", path, len(seg.segments),
+                 len(models))
+        return segNode, models
+
+    def boneModelsFromSegmentation(self, segmentationNode=None, segmentNames=None, options=None,
+                                   progress: Optional[Progress] = None) -> list:
+        """Closed-surface bone models (one per segment, or per name in ``segmentNames``) of a
+        segmentation node already in the scene (default: the parameter node's
+        ``segmentation``), by the same extraction as :meth:`loadSegmentation`."""
+        segmentationNode = segmentationNode if segmentationNode is not None \
+            else self.getParameterNode().segmentation
+        seg = segmentationFromNode(segmentationNode)
+        segments = seg.segments if segmentNames is None else [
+            seg.find_segment(name=name) for name in segmentNames]
+        models = self._boneModels(seg, segments, options, segmentationNode.GetName(),
+                                  progress or silent)
+        self._useCT(segmentationNode, models)
+        return models
+
+    def _boneModels(self, seg, segments, options, source: str, report) -> list:
+        from comreg_core.surfaces.ct import extract_bone_surface
+
         models = []
         report(0, len(segments) + 1, "reading")
         for i, segment in enumerate(segments):
@@ -144,16 +171,16 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             model = self.addBoneModel(mesh, f"{segment.name} bone",
                                       segment.color or BONE_COLOR)
             model.SetAttribute(ATTRIBUTE_PREFIX + "segment", segment.name)
-            model.SetAttribute(ATTRIBUTE_PREFIX + "source", str(path))
+            model.SetAttribute(ATTRIBUTE_PREFIX + "source", source)
             models.append(model)
         report(len(segments) + 1, len(segments) + 1, "done")
+        return models
+
+    def _useCT(self, segNode, models) -> None:
         p = self.getParameterNode()
         p.segmentation = segNode
         if models:
             p.ctModel = models[0]
-        log.info("Loaded '%s': %d segment(s), %d bone model(s)", path, len(seg.segments),
-                 len(models))
-        return segNode, models
 
     def loadBoneMesh(self, path, name: Optional[str] = None):
         """Load a bone mesh file (``.stl``, ``.ply``, ``.obj``, ``.vtk``, ``.vtp``; LPS unless
@@ -162,7 +189,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
 
         mesh = read_mesh(path)
         model = self.addBoneModel(mesh, name or Path(path).stem)
-        model.SetAttribute(ATTRIBUTE_PREFIX + "source", str(path))
+        model.SetAttribute(ATTRIBUTE_PREFIX + "source", Path(path).name)
         self.getParameterNode().ctModel = model
         return model
 
@@ -184,19 +211,51 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             ``usPoints``.
         """
         from comreg_core.io import read_tracked_sweep
-        from comreg_core.surfaces.us import extract_us_surface
         from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
 
         if not isinstance(config, USExtractionConfig):
             config = load_us_extraction_config(config)
         sweep = read_tracked_sweep(path, calibration=calibration, reference=config.reference)
+        return self._usPointsOfSweep(sweep, config, name, Path(path).name, progress)
+
+    def usPointsFromSequence(self, browserNode=None, imageSequence=None, transformSequence=None,
+                             config=None, name=US_POINTS_NODE_NAME,
+                             progress: Optional[Progress] = None) -> tuple:
+        """Extract the bone surface points of a tracked sweep held in the scene as a Sequence
+        browser (default: the parameter node's ``sweep``): frames from its volume sequence,
+        poses from its ``ImageToReference`` transform sequence
+        (:func:`comreg_plugin.scene_inputs.trackedSweepFromBrowser`); the points are in the
+        tracking reference frame. Returns ``(pointsNode, USExtractionResult)``."""
+        from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
+
+        if not isinstance(config, USExtractionConfig):
+            config = load_us_extraction_config(config)
+        browserNode = browserNode if browserNode is not None else self.getParameterNode().sweep
+        sweep = trackedSweepFromBrowser(browserNode, imageSequence, transformSequence)
+        self.getParameterNode().sweep = browserNode
+        return self._usPointsOfSweep(sweep, config, name, browserNode.GetName(), progress)
+
+    def addSweepSequence(self, path, calibration=None, name: str = "Sweep"):
+        """Read a tracked sweep file or frame folder and show it as a Sequence browser (frames
+        + ``ImageToReference`` poses), as a PLUS recording appears in Slicer; it becomes the
+        parameter node's ``sweep``."""
+        from comreg_core.io import read_tracked_sweep
+
+        browser = addSweepBrowser(self.scene, self.sequencesLogic,
+                                  read_tracked_sweep(path, calibration=calibration), name)
+        self.getParameterNode().sweep = browser
+        return browser
+
+    def _usPointsOfSweep(self, sweep, config, name, source: str, progress) -> tuple:
+        from comreg_core.surfaces.us import extract_us_surface
+
         result = extract_us_surface(sweep, config, progress=progress)
         node = self.addPointsModel(result.points.points, "LPS", name)
         node.SetAttribute(ATTRIBUTE_PREFIX + "role", "us_points")
-        node.SetAttribute(ATTRIBUTE_PREFIX + "source", str(path))
+        node.SetAttribute(ATTRIBUTE_PREFIX + "source", source)
         node.SetAttribute(ATTRIBUTE_PREFIX + "extraction", result.summary())
         self.getParameterNode().usPoints = node
-        log.info("US sweep '%s': %s", path, result.summary())
+        log.info("US sweep '%s': %s", source, result.summary())
         return node, result
 
     def loadUSPoints(self, path, name=US_POINTS_NODE_NAME):
@@ -207,7 +266,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         cloud = read_points(path)
         node = self.addPointsModel(cloud.points, cloud.space, name)
         node.SetAttribute(ATTRIBUTE_PREFIX + "role", "us_points")
-        node.SetAttribute(ATTRIBUTE_PREFIX + "source", str(path))
+        node.SetAttribute(ATTRIBUTE_PREFIX + "source", Path(path).name)
         self.getParameterNode().usPoints = node
         return node
 
@@ -302,7 +361,8 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         return self._methods.ransacBaseline(ctModelNode, seed)
 
     def register(self, usPointsNode=None, method=None, *, runDirectory=None, ctModelNode=None,
-                 seed: int = 0, device: Optional[str] = None) -> RegistrationSummary:
+                 outputTransformNode=None, completedBoneNode=None, seed: int = 0,
+                 device: Optional[str] = None) -> RegistrationSummary:
         """Register the US points to the CT and show the result in the scene.
 
         Args:
@@ -315,10 +375,14 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
                 array). Default: the parameter node's ``method``.
             runDirectory: the pretrained run (default: the parameter node's).
             ctModelNode: the CT bone model (default: the parameter node's ``ctModel``).
+            outputTransformNode: the linear transform node to write the result into (default:
+                the parameter node's ``outputTransform``, else a new node "ReferenceToCT").
+            completedBoneNode: the model node for the completed bone (default: the parameter
+                node's ``completedBone``, else a new "ComReg completed bone").
             seed: registration seed. device: torch device for "comreg".
 
-        Creates or updates the ``vtkMRMLLinearTransformNode`` "ComReg US to CT" holding
-        ``T_ct_us`` as its to-parent matrix in RAS, places the US points under it and adds the
+        Sets ``T_ct_us`` (US points' frame = the tracking reference -> CT) as the output
+        transform's to-parent matrix in RAS, places the US points under it and adds the
         completed bone (when the method returns one) as a model in the CT frame. Values the
         method reports under ``info["ambiguous"]`` / ``info["confidence"]`` are stored on the
         transform node (attributes ``ComReg.ambiguous`` / ``ComReg.confidence``) and in the
@@ -329,8 +393,10 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         if usPointsNode is None:
             raise ComRegError("There are no US points to register.",
                               "Load a tracked sweep or a US point cloud first.")
-        requireNode(usPointsNode, "vtkMRMLModelNode", "US points",
-                    "Pick the US bone points model (from a sweep or a point cloud file).")
+        if not (hasattr(usPointsNode, "IsA")
+                and any(usPointsNode.IsA(c) for c in POINTS_NODE_CLASSES)):
+            requireNode(usPointsNode, "vtkMRMLModelNode", "US points",
+                        "Pick the US bone points: a model or markups node.")
         if ctModelNode is not None:
             requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
                         "Pick the CT bone model (loaded from a segmentation or mesh).")
@@ -341,10 +407,14 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             method, p, runDirectory=runDirectory, ctModelNode=ctModelNode, seed=seed,
             device=device)
         output, T, T_ras, completion_ct = runRegistration(
-            run, arrayFromModelPoints(usPointsNode), space)
+            run, arrayFromPointsNode(usPointsNode), space)
 
-        transformNode = p.outputTransform
-        if transformNode is None:
+        transformNode = outputTransformNode if outputTransformNode is not None \
+            else p.outputTransform
+        if transformNode is not None:
+            requireNode(transformNode, "vtkMRMLLinearTransformNode", "output transform",
+                        "Pick a linear transform node for the result, or none for a new one.")
+        else:
             transformNode = self.scene.AddNewNodeByClass(
                 "vtkMRMLLinearTransformNode", uniqueName(self.scene, TRANSFORM_NODE_NAME))
         transformNode.SetMatrixTransformToParent(vtkMatrixFromArray(T_ras))
@@ -353,11 +423,13 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         completedNode = None
         if completion_ct is not None and len(completion_ct):
             completedNode = self.addPointsModel(completion_ct, space, COMPLETED_BONE_NODE_NAME,
-                                                COMPLETION_COLOR, node=p.completedBone)
+                                                COMPLETION_COLOR,
+                                                node=completedBoneNode if completedBoneNode
+                                                is not None else p.completedBone)
             completedNode.SetAttribute(ATTRIBUTE_PREFIX + "role", "completed_bone")
 
         info = dict(output.info)
-        for key, value in resultAttributes(output, methodName, space, runDirectory).items():
+        for key, value in resultAttributes(output, methodName, runDirectory).items():
             transformNode.SetAttribute(ATTRIBUTE_PREFIX + key, value)
         p.outputTransform = transformNode
         p.usPoints = usPointsNode

@@ -77,6 +77,18 @@ def register_segmentation_converters() -> None:
             present.add(rule.GetName())
 
 
+def sequences_logic(scene):
+    """The Sequences module's logic for ``scene``: the application's own for
+    ``slicer.mrmlScene``, otherwise a ``vtkSlicerSequencesLogic`` set to ``scene`` (which
+    registers the sequence browser node class there, as the module does at start-up)."""
+    sl = require_slicer()
+    if IN_SLICER_APP and scene is sl.mrmlScene:  # pragma: no cover - application only
+        return sl.modules.sequences.logic()
+    logic = sl.vtkSlicerSequencesLogic()
+    logic.SetMRMLScene(scene)
+    return logic
+
+
 # --------------------------------------------------------------------------------------------
 # Headless stand-ins
 # --------------------------------------------------------------------------------------------
@@ -219,6 +231,40 @@ _NO_DEFAULT = object()
 _SCALARS = (bool, int, float, str)
 
 
+class Choice:
+    """Validator (Slicer's ``parameterNodeWrapper.Choice``): the value is one of ``choices``."""
+
+    def __init__(self, choices):
+        self.choices = tuple(choices)
+
+    def validate(self, value) -> None:
+        if value not in self.choices:
+            raise ValueError(f"{value!r} is not one of {list(self.choices)}")
+
+
+class WithinRange:
+    """Validator (Slicer's ``parameterNodeWrapper.WithinRange``): ``minimum <= value <=
+    maximum``."""
+
+    def __init__(self, minimum, maximum):
+        self.minimum, self.maximum = minimum, maximum
+
+    def validate(self, value) -> None:
+        if not self.minimum <= value <= self.maximum:
+            raise ValueError(f"{value!r} is not within [{self.minimum}, {self.maximum}]")
+
+
+class Minimum:
+    """Validator (Slicer's ``parameterNodeWrapper.Minimum``): ``value >= minimum``."""
+
+    def __init__(self, minimum):
+        self.minimum = minimum
+
+    def validate(self, value) -> None:
+        if value < self.minimum:
+            raise ValueError(f"{value!r} is less than {self.minimum}")
+
+
 def _format(value, kind) -> str:
     if kind is bool:
         return "true" if value else "false"
@@ -233,31 +279,50 @@ def _parse(text: str, kind):
     return kind(text)
 
 
+def parameterTypes(annotation) -> tuple:
+    """``(types, validators, isNode)`` of a parameter annotation: ``Annotated[T, v, ...]``
+    unwrapped, ``Union[NodeA, NodeB]`` as ``(NodeA, NodeB)``."""
+    validators = []
+    if typing.get_origin(annotation) is typing.Annotated:
+        annotation, *extras = typing.get_args(annotation)
+        validators = [v for v in extras if hasattr(v, "validate")]
+    kinds = typing.get_args(annotation) if typing.get_origin(annotation) is typing.Union \
+        else (annotation,)
+    isNode = all(isinstance(k, type) and slicer is not None and issubclass(k, slicer.vtkMRMLNode)
+                 for k in kinds)
+    return tuple(kinds), validators, isNode
+
+
 def _standin_parameter_node_wrapper(cls):
     """Typed access to a ``vtkMRMLScriptedModuleNode``: each annotated attribute is a parameter
-    (``str``/``int``/``float``/``bool``) or a node reference (a ``vtkMRMLNode`` subclass); a
-    class-level value is the default. ``cls(parameterNode)`` wraps the node; the node is
-    ``.parameterNode``."""
-    hints = typing.get_type_hints(cls)
+    (``str``/``int``/``float``/``bool``, optionally ``Annotated`` with validators such as
+    :class:`Choice` or :class:`WithinRange`) or a node reference (a ``vtkMRMLNode`` subclass or
+    a ``Union`` of them); a class-level value is the default. ``cls(parameterNode)`` wraps the
+    node; the node is ``.parameterNode``. A value a validator refuses raises ValueError."""
+    hints = typing.get_type_hints(cls, include_extras=True)
     fields = {}
-    for name, kind in hints.items():
+    for name, annotation in hints.items():
         if name.startswith("_"):
             continue
         default = cls.__dict__.get(name, _NO_DEFAULT)
-        is_node = isinstance(kind, type) and slicer is not None and issubclass(
-            kind, slicer.vtkMRMLNode)
-        if not is_node and kind not in _SCALARS:
-            raise TypeError(f"{cls.__name__}.{name}: unsupported parameter type {kind!r}")
-        fields[name] = (kind, default, is_node)
+        kinds, validators, is_node = parameterTypes(annotation)
+        if not is_node and (len(kinds) != 1 or kinds[0] not in _SCALARS):
+            raise TypeError(f"{cls.__name__}.{name}: unsupported parameter type {annotation!r}")
+        kind = kinds if is_node else kinds[0]
+        if default is not _NO_DEFAULT:
+            for validator in validators:
+                validator.validate(default)
+        fields[name] = (kind, default, is_node, validators)
 
-    def make_property(name, kind, default, is_node):
+    def make_property(name, kind, default, is_node, validators):
         if is_node:
             def getter(self):
                 return self.parameterNode.GetNodeReference(name)
 
             def setter(self, value):
                 if value is not None and not isinstance(value, kind):
-                    raise TypeError(f"{cls.__name__}.{name} must be a {kind.__name__}, "
+                    raise TypeError(f"{cls.__name__}.{name} must be a "
+                                    f"{' or '.join(k.__name__ for k in kind)}, "
                                     f"not {type(value).__name__}")
                 self.parameterNode.SetNodeReferenceID(name, value.GetID() if value else None)
         else:
@@ -268,20 +333,22 @@ def _standin_parameter_node_wrapper(cls):
                 return None if default is _NO_DEFAULT else default
 
             def setter(self, value):
+                for validator in validators:
+                    validator.validate(kind(value))
                 self.parameterNode.SetParameter(name, _format(value, kind))
         return property(getter, setter, doc=f"{name}: {getattr(kind, '__name__', kind)}")
 
     def __init__(self, parameterNode):
         self.parameterNode = parameterNode
-        for name, (kind, default, is_node) in fields.items():
+        for name, (kind, default, is_node, _) in fields.items():
             if not is_node and default is not _NO_DEFAULT and not parameterNode.HasParameter(name):
                 parameterNode.SetParameter(name, _format(default, kind))
 
-    for name, (kind, default, is_node) in fields.items():
-        setattr(cls, name, make_property(name, kind, default, is_node))
+    for name, (kind, default, is_node, validators) in fields.items():
+        setattr(cls, name, make_property(name, kind, default, is_node, validators))
     cls.__init__ = __init__
     # the same names as Slicer's wrapper (class-level parameter table, node pass-throughs)
-    cls.allParameters = {name: kind for name, (kind, _, _) in fields.items()}
+    cls.allParameters = {name: hints[name] for name in fields}
     cls.StartModify = lambda self: self.parameterNode.StartModify()
     cls.EndModify = lambda self, wasModified: self.parameterNode.EndModify(wasModified)
     cls.AddObserver = lambda self, event, callback, priority=0.0: \
@@ -299,7 +366,8 @@ if IN_SLICER_APP:  # pragma: no cover - only inside the 3D Slicer application
     from slicer.util import VTKObservationMixin
 
     try:
-        from slicer.parameterNodeWrapper import parameterNodeWrapper
+        from slicer.parameterNodeWrapper import (Choice, Minimum, WithinRange,  # noqa: F811
+                                                 parameterNodeWrapper)
     except ImportError:  # Slicer before 5.2
         parameterNodeWrapper = _standin_parameter_node_wrapper
 else:
@@ -311,8 +379,8 @@ else:
     parameterNodeWrapper = _standin_parameter_node_wrapper
 
 __all__ = [
-    "IN_SLICER_APP", "SLICER_CORE_REQUIREMENT", "ScriptedLoadableModule",
+    "Choice", "IN_SLICER_APP", "Minimum", "WithinRange", "parameterTypes", "SLICER_CORE_REQUIREMENT", "ScriptedLoadableModule",
     "ScriptedLoadableModuleLogic", "ScriptedLoadableModuleTest", "ScriptedLoadableModuleWidget",
     "VTKObservationMixin", "parameterNodeWrapper", "register_segmentation_converters",
-    "require_slicer", "slicer",
+    "require_slicer", "sequences_logic", "slicer",
 ]

@@ -124,28 +124,31 @@ def checkRegistrationAccuracy(transformNode, case: SyntheticCase) -> dict:
     return errors
 
 
-def sceneSummary(scene) -> dict:
-    """``{node name: class name}`` of the nodes a user sees (not hidden), for comparisons."""
+def sceneSummary(scene, ignoreClasses=()) -> dict:
+    """``{node name: class name}`` of the nodes a user sees (not hidden, not of
+    ``ignoreClasses``), for comparisons."""
     summary = {}
     for i in range(scene.GetNumberOfNodes()):
         node = scene.GetNthNode(i)
-        if node.GetHideFromEditors() or node.IsA("vtkMRMLSubjectHierarchyNode"):
+        if node.GetHideFromEditors() or node.IsA("vtkMRMLSubjectHierarchyNode") or any(
+                node.IsA(c) for c in ignoreClasses):
             continue
         summary[node.GetName()] = node.GetClassName()
     return summary
 
 
-def checkScenesMatch(original, reloaded, atol: float = 1e-6) -> None:
-    """Assert two scenes hold the same visible nodes (names and classes), the same linear
-    transforms (to-parent matrices within ``atol``), the same point counts per model and the
-    same transform parents."""
+def checkScenesMatch(original, reloaded, atol: float = 1e-6, ignoreClasses=()) -> None:
+    """Assert two scenes hold the same visible nodes (names and classes; ``ignoreClasses``
+    left out), the same linear transforms (to-parent matrices within ``atol``), the same point
+    counts per model and the same transform parents."""
     from comreg_plugin.scene_io import transformToParentRAS
 
-    a, b = sceneSummary(original), sceneSummary(reloaded)
+    a, b = sceneSummary(original, ignoreClasses), sceneSummary(reloaded, ignoreClasses)
     if a != b:
         raise AssertionError(f"The reloaded scene differs: {a} != {b}")
     for name, cls in a.items():
-        n1, n2 = original.GetFirstNodeByName(name), reloaded.GetFirstNodeByName(name)
+        n1, n2 = (scene.GetNodesByClassByName(cls, name).GetItemAsObject(0)
+                  for scene in (original, reloaded))
         if cls == "vtkMRMLLinearTransformNode":
             diff = np.abs(transformToParentRAS(n1) - transformToParentRAS(n2)).max()
             if diff > atol:

@@ -238,7 +238,7 @@ def test_scene_saved_and_reloaded_with_the_same_nodes(registered, case, tmp_path
     logic, summary, us = registered
     path = logic.saveScene(tmp_path / "scene" / "comreg.mrml")
     files = sorted(p.name for p in path.parent.iterdir())
-    assert files == ["ComReg_US_to_CT.h5", "US_bone_points.vtk", "comreg.mrml", "fibula.seg.nrrd",
+    assert files == ["ReferenceToCT.h5", "US_bone_points.vtk", "comreg.mrml", "fibula.seg.nrrd",
                      "fibula_bone.vtk"]
     assert not list(path.parent.glob(".*"))  # no temporary files left
     with open(path.parent / "fibula_bone.vtk", "rb") as f:
@@ -255,7 +255,8 @@ def test_scene_saved_and_reloaded_with_the_same_nodes(registered, case, tmp_path
     node = fresh.scene.GetFirstNodeByName(TRANSFORM_NODE_NAME)
     assert_close(transformToParentRAS(node), transformToParentRAS(summary.transformNode),
                  atol=1e-6, what="reloaded transform")
-    for key in ("ComReg.method", "ComReg.info", "ComReg.space"):
+    assert node.GetAttribute("ComReg.space") is None  # the node is RAS; no stale LPS label
+    for key in ("ComReg.method", "ComReg.info", "ComReg.runtime_s"):
         assert node.GetAttribute(key) == summary.transformNode.GetAttribute(key)
     assert_close(arrayFromModelPoints(fresh.scene.GetFirstNodeByName("US bone points")),
                  arrayFromModelPoints(us), atol=1e-9)
@@ -337,7 +338,7 @@ def test_pretraining_runs_in_the_background_and_its_run_registers(logic, case, t
     assert completed.GetPolyData().GetNumberOfPoints() == \
         registrar.model.config.completion.dense_points
     assert completed.GetParentTransformNode() is None
-    assert summary.transformNode.GetAttribute("ComReg.runDirectory") == str(run.resolve())
+    assert summary.transformNode.GetAttribute("ComReg.run") == "run"  # a name, not a path
     assert "residuals_mm" in summary.info
 
 
