@@ -29,7 +29,8 @@ scripted-module base classes, and ``ComRegLogic(scene)`` does all the work. Only
 
 Coordinates: Slicer's scene is RAS; ComReg's files and library are LPS (the CT's patient space);
 the Logic converts at every boundary. The registration result is a ``vtkMRMLLinearTransformNode``
-"ComReg US to CT" whose to-parent matrix maps the US points (its child) onto the CT.
+"ReferenceToCT" (SlicerIGT naming: tracking reference -> CT; any linear transform node the user
+picks) whose to-parent matrix maps the US points (its child) onto the CT.
 """
 
 import importlib.util
@@ -44,10 +45,8 @@ if importlib.util.find_spec("comreg_core") is None:  # an uninstalled checkout
     if os.path.isdir(os.path.join(_REPO_ROOT, "comreg_core")):
         sys.path.insert(0, _REPO_ROOT)
 
-from comreg_core.choices import PRESETS  # noqa: E402
 from comreg_plugin.logic import ComRegLogic  # noqa: E402
 from comreg_plugin.parameter_node import ComRegParameterNode  # noqa: E402
-from comreg_plugin.registration import METHODS  # noqa: E402
 from comreg_plugin.slicer_compat import (ScriptedLoadableModule,  # noqa: E402
                                          ScriptedLoadableModuleTest,
                                          ScriptedLoadableModuleWidget, VTKObservationMixin,
@@ -75,7 +74,7 @@ class ComReg(ScriptedLoadableModule):
 Registers a tracked ultrasound (US) bone surface to the patient's CT bone with ComReg: extract the
 CT bone from a segmentation, pretrain the network on US sweeps simulated from it (in the
 background), extract the bone points from a tracked US sweep, and register them in one forward
-pass. The result is the linear transform "ComReg US to CT" with the US points under it, and the
+pass. The result is the linear transform "ReferenceToCT" with the US points under it, and the
 completed bone shape. Transforms are saved as ITK .tfm/.h5 (LPS), like Slicer does.
 """
         self.parent.acknowledgementText = """
@@ -96,7 +95,9 @@ The bundled sample CT is from the UltraBones100k dataset (Wu et al. 2025, CC BY 
 #
 
 class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
-    """The module's panel: the only class that uses Qt (imported in :meth:`setup`).
+    """The module's panel: ``Resources/UI/ComReg.ui`` (Qt Designer), its widgets bound to the
+    parameter node through their ``SlicerParameterName`` properties (``connectGui``). The only
+    class that uses Qt (imported in :meth:`setup`).
 
     Headless, constructing it raises :class:`~comreg_core.errors.ComRegError` (no Qt).
     """
@@ -106,6 +107,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         VTKObservationMixin.__init__(self)
         self.logic = None
         self._parameterNode = None
+        self._parameterNodeGuiTag = None
         self._timer = None
 
     def setup(self):
@@ -113,122 +115,30 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         import qt
 
         ScriptedLoadableModuleWidget.setup(self)
+        uiWidget = slicer.util.loadUI(self.resourcePath("UI/ComReg.ui"))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        uiWidget.setMRMLScene(slicer.mrmlScene)
         self.logic = ComRegLogic()
 
-        def section(title):
-            button = ctk.ctkCollapsibleButton()
-            button.text = title
-            self.layout.addWidget(button)
-            return qt.QFormLayout(button)
-
-        def pathEdit(filters, tooltip):
-            edit = ctk.ctkPathLineEdit()
-            edit.filters = filters
-            edit.toolTip = tooltip
-            return edit
-
-        def nodeSelector(classes, tooltip):
-            selector = slicer.qMRMLNodeComboBox()
-            selector.nodeTypes = classes
-            selector.addEnabled = False
-            selector.removeEnabled = False
-            selector.noneEnabled = True
-            selector.setMRMLScene(slicer.mrmlScene)
-            selector.toolTip = tooltip
-            return selector
-
-        files = ctk.ctkPathLineEdit.Files | ctk.ctkPathLineEdit.Readable
-        dirs = ctk.ctkPathLineEdit.Dirs
-
-        # Inputs
-        form = section("Inputs")
-        self.segmentationPath = pathEdit(files, "CT label map (.nrrd, .mha) or .seg.nrrd")
-        self.loadSegmentationButton = qt.QPushButton("Load CT segmentation")
-        form.addRow("CT segmentation:", self.segmentationPath)
-        form.addRow(self.loadSegmentationButton)
-        self.meshPath = pathEdit(files, "CT bone mesh (.stl, .ply, .obj, .vtk, .vtp)")
-        self.loadMeshButton = qt.QPushButton("Load bone mesh")
-        form.addRow("or bone mesh:", self.meshPath)
-        form.addRow(self.loadMeshButton)
-        self.sweepPath = pathEdit(files | dirs, "Tracked US sweep: PLUS sequence or frame folder")
-        self.calibrationPath = pathEdit(files, "Calibration (PLUS XML or calibration.json), "
-                                        "if not beside the sweep")
-        self.loadSweepButton = qt.QPushButton("Extract US bone points")
-        form.addRow("US sweep:", self.sweepPath)
-        form.addRow("Calibration:", self.calibrationPath)
-        form.addRow(self.loadSweepButton)
-        self.usPointsPath = pathEdit(files, "US bone points (.ply, .pcd, .xyz, .npy)")
-        self.loadUSPointsButton = qt.QPushButton("Load US points")
-        form.addRow("or US points:", self.usPointsPath)
-        form.addRow(self.loadUSPointsButton)
-        self.ctModelSelector = nodeSelector(["vtkMRMLModelNode"], "CT bone model")
-        self.usPointsSelector = nodeSelector(["vtkMRMLModelNode"], "US bone points")
-        form.addRow("CT bone model:", self.ctModelSelector)
-        form.addRow("US points:", self.usPointsSelector)
-
-        # Pretraining
-        form = section("Pretraining (per patient)")
-        self.runDirectory = pathEdit(dirs, "Run folder (checkpoint, logs)")
-        self.presetCombo = qt.QComboBox()
-        self.presetCombo.addItems(list(PRESETS))
-        self.maxMinutesSpin = qt.QDoubleSpinBox()
-        self.maxMinutesSpin.setRange(0.0, 100000.0)
-        self.maxMinutesSpin.suffix = " min"
-        self.startButton = qt.QPushButton("Start pretraining")
-        self.cancelButton = qt.QPushButton("Cancel")
-        self.progressBar = qt.QProgressBar()
-        self.progressBar.setRange(0, 1000)
-        self.pretrainingLabel = qt.QLabel("idle")
-        form.addRow("Run folder:", self.runDirectory)
-        form.addRow("Preset:", self.presetCombo)
-        form.addRow("Time budget:", self.maxMinutesSpin)
-        buttons = qt.QHBoxLayout()
-        buttons.addWidget(self.startButton)
-        buttons.addWidget(self.cancelButton)
-        form.addRow(buttons)
-        form.addRow(self.progressBar)
-        form.addRow(self.pretrainingLabel)
-
-        # Registration
-        form = section("Registration")
-        self.methodCombo = qt.QComboBox()
-        self.methodCombo.addItems(list(METHODS))
-        self.registerButton = qt.QPushButton("Register")
-        self.resultLabel = qt.QLabel("")
-        self.resultLabel.wordWrap = True
-        form.addRow("Method:", self.methodCombo)
-        form.addRow(self.registerButton)
-        form.addRow(self.resultLabel)
-
-        # Saving
-        form = section("Save")
-        self.transformPath = pathEdit(ctk.ctkPathLineEdit.Files, "Transform file (.tfm, .h5)")
-        self.saveTransformButton = qt.QPushButton("Save transform")
-        self.scenePath = pathEdit(ctk.ctkPathLineEdit.Files, "Scene file (.mrml)")
-        self.saveSceneButton = qt.QPushButton("Save scene")
-        form.addRow("Transform file:", self.transformPath)
-        form.addRow(self.saveTransformButton)
-        form.addRow("Scene file:", self.scenePath)
-        form.addRow(self.saveSceneButton)
-        self.layout.addStretch(1)
-
-        self.loadSegmentationButton.connect("clicked(bool)", self.onLoadSegmentation)
-        self.loadMeshButton.connect("clicked(bool)", self.onLoadMesh)
-        self.loadSweepButton.connect("clicked(bool)", self.onLoadSweep)
-        self.loadUSPointsButton.connect("clicked(bool)", self.onLoadUSPoints)
-        self.startButton.connect("clicked(bool)", self.onStartPretraining)
-        self.cancelButton.connect("clicked(bool)", self.onCancelPretraining)
-        self.registerButton.connect("clicked(bool)", self.onRegister)
-        self.saveTransformButton.connect("clicked(bool)", self.onSaveTransform)
-        self.saveSceneButton.connect("clicked(bool)", self.onSaveScene)
-        self.ctModelSelector.connect("currentNodeChanged(vtkMRMLNode*)",
-                                     self.updateParameterNodeFromGUI)
-        self.usPointsSelector.connect("currentNodeChanged(vtkMRMLNode*)",
-                                      self.updateParameterNodeFromGUI)
-        self.methodCombo.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
-        self.presetCombo.connect("currentIndexChanged(int)", self.updateParameterNodeFromGUI)
-        self.maxMinutesSpin.connect("valueChanged(double)", self.updateParameterNodeFromGUI)
-
+        ui = self.ui
+        for button, action in ((ui.extractPointsButton, self.onExtractPoints),
+                               (ui.boneModelButton, self.onBoneModel),
+                               (ui.loadSegmentationButton, self.onLoadSegmentation),
+                               (ui.loadMeshButton, self.onLoadMesh),
+                               (ui.loadSweepButton, self.onLoadSweep),
+                               (ui.loadUSPointsButton, self.onLoadUSPoints),
+                               (ui.startButton, self.onStartPretraining),
+                               (ui.cancelButton, self.onCancelPretraining),
+                               (ui.registerButton, self.onRegister),
+                               (ui.saveTransformButton, self.onSaveTransform),
+                               (ui.saveSceneButton, self.onSaveScene)):
+            button.connect("clicked(bool)", action)
+        readable = ctk.ctkPathLineEdit.Files | ctk.ctkPathLineEdit.Readable
+        for edit in (ui.segmentationPath, ui.meshPath, ui.calibrationPath, ui.usPointsPath):
+            edit.filters = readable
+        ui.sweepPath.filters = readable | ctk.ctkPathLineEdit.Dirs
+        ui.transformPath.filters = ui.scenePath.filters = ctk.ctkPathLineEdit.Files
         self._timer = qt.QTimer()
         self._timer.setInterval(1000)
         self._timer.connect("timeout()", self.onPollPretraining)
@@ -237,7 +147,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
         self.initializeParameterNode()
 
-    # -- parameter node <-> GUI ---------------------------------------------------------------
+    # -- parameter node <-> GUI (connectGui) ----------------------------------------------------
 
     def cleanup(self):
         if self._timer is not None:
@@ -248,9 +158,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.initializeParameterNode()
 
     def exit(self):
-        if self._parameterNode is not None:
-            self.removeObserver(self._parameterNode.parameterNode, vtk.vtkCommand.ModifiedEvent,
-                                self.updateGUIFromParameterNode)
+        self.setParameterNode(None)
 
     def onSceneStartClose(self, caller, event):
         self.setParameterNode(None)
@@ -264,44 +172,26 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def setParameterNode(self, parameterNode):
         if self._parameterNode is not None:
-            self.removeObserver(self._parameterNode.parameterNode, vtk.vtkCommand.ModifiedEvent,
-                                self.updateGUIFromParameterNode)
+            if self._parameterNodeGuiTag is not None:
+                self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+                self._parameterNodeGuiTag = None
+            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent,
+                                self.updateButtons)
         self._parameterNode = parameterNode
         if parameterNode is not None:
-            self.addObserver(parameterNode.parameterNode, vtk.vtkCommand.ModifiedEvent,
-                             self.updateGUIFromParameterNode)
-        self.updateGUIFromParameterNode()
+            self._parameterNodeGuiTag = parameterNode.connectGui(self.ui)
+            self.addObserver(parameterNode, vtk.vtkCommand.ModifiedEvent, self.updateButtons)
+            self.updateButtons()
 
-    def updateGUIFromParameterNode(self, caller=None, event=None):
-        p = self._parameterNode
-        if p is None:
-            return
-        self._updating = True
-        try:
-            self.ctModelSelector.setCurrentNode(p.ctModel)
-            self.usPointsSelector.setCurrentNode(p.usPoints)
-            self.methodCombo.currentText = p.method
-            self.presetCombo.currentText = p.preset
-            self.maxMinutesSpin.value = p.maxMinutes
-            if p.runDirectory and not self.runDirectory.currentPath:
-                self.runDirectory.currentPath = p.runDirectory
-            self.progressBar.value = int(1000 * p.pretrainingProgress)
-            running = p.pretrainingState == "running"
-            self.startButton.enabled = not running
-            self.cancelButton.enabled = running
-            self.registerButton.enabled = p.usPoints is not None and not running
-        finally:
-            self._updating = False
-
-    def updateParameterNodeFromGUI(self, *args):
-        p = self._parameterNode
-        if p is None or getattr(self, "_updating", False):
-            return
-        p.ctModel = self.ctModelSelector.currentNode()
-        p.usPoints = self.usPointsSelector.currentNode()
-        p.method = self.methodCombo.currentText
-        p.preset = self.presetCombo.currentText
-        p.maxMinutes = float(self.maxMinutesSpin.value)
+    def updateButtons(self, caller=None, event=None):
+        p, ui = self._parameterNode, self.ui
+        running = p.pretrainingState == "running"
+        ui.extractPointsButton.enabled = p.sweep is not None
+        ui.boneModelButton.enabled = p.segmentation is not None
+        ui.startButton.enabled = p.ctModel is not None and not running
+        ui.cancelButton.enabled = running
+        ui.registerButton.enabled = p.usPoints is not None and not running and (
+            p.method == "comreg" or p.ctModel is not None)
 
     # -- actions ------------------------------------------------------------------------------
 
@@ -309,27 +199,32 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         with slicer.util.tryWithErrorDisplay(message, waitCursor=True):
             action()
 
+    def onExtractPoints(self):
+        self._run("Could not extract the US bone points.", self.logic.usPointsFromSequence)
+
+    def onBoneModel(self):
+        self._run("Could not make the bone model.", self.logic.boneModelsFromSegmentation)
+
     def onLoadSegmentation(self):
         self._run("Could not load the CT segmentation.",
-                  lambda: self.logic.loadSegmentation(self.segmentationPath.currentPath))
+                  lambda: self.logic.loadSegmentation(self.ui.segmentationPath.currentPath))
 
     def onLoadMesh(self):
         self._run("Could not load the bone mesh.",
-                  lambda: self.logic.loadBoneMesh(self.meshPath.currentPath))
+                  lambda: self.logic.loadBoneMesh(self.ui.meshPath.currentPath))
 
     def onLoadSweep(self):
-        calibration = self.calibrationPath.currentPath or None
-        self._run("Could not extract the US bone points.",
-                  lambda: self.logic.loadTrackedSweep(self.sweepPath.currentPath,
-                                                      calibration=calibration))
+        calibration = self.ui.calibrationPath.currentPath or None
+        self._run("Could not load the US sweep.", lambda: self.logic.addSweepSequence(
+            self.ui.sweepPath.currentPath, calibration=calibration))
 
     def onLoadUSPoints(self):
         self._run("Could not load the US points.",
-                  lambda: self.logic.loadUSPoints(self.usPointsPath.currentPath))
+                  lambda: self.logic.loadUSPoints(self.ui.usPointsPath.currentPath))
 
     def onStartPretraining(self):
         def start():
-            self.logic.startPretraining(runDirectory=self.runDirectory.currentPath or None)
+            self.logic.startPretraining()
             self._timer.start()
         self._run("Could not start the pretraining.", start)
 
@@ -342,7 +237,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._timer.stop()
             return
         status = self.logic.pollPretraining()
-        self.pretrainingLabel.text = status.describe()
+        self.ui.resultLabel.text = status.describe()
         if status.state != "running":
             self._timer.stop()
 
@@ -350,16 +245,16 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         def register():
             summary = self.logic.register()
             p = self._parameterNode
-            self.resultLabel.text = summary.describe(p.ambiguous, p.confidence)
+            self.ui.resultLabel.text = summary.describe(p.ambiguous, p.confidence)
         self._run("Registration failed.", register)
 
     def onSaveTransform(self):
         self._run("Could not save the transform.", lambda: self.logic.saveTransform(
-            self._parameterNode.outputTransform, self.transformPath.currentPath))
+            self._parameterNode.outputTransform, self.ui.transformPath.currentPath))
 
     def onSaveScene(self):
         self._run("Could not save the scene.",
-                  lambda: self.logic.saveScene(self.scenePath.currentPath))
+                  lambda: self.logic.saveScene(self.ui.scenePath.currentPath))
 
 
 #
@@ -378,8 +273,9 @@ class ComRegTest(ScriptedLoadableModuleTest):
     and degrees, the saved transform files and a scene save/reload. Runs inside 3D Slicer
     (Reload & Test) and headless under pytest (``tests/plugin``).
 
-    The registration uses the RANSAC + ICP baseline (no pretrained network needed; requires
-    Open3D in Slicer's Python).
+    The registration is ComReg's pose search on the CT bone model (``method="search"``: the
+    registration ComReg runs, without a pretrained network, so the test needs no training),
+    into an output transform node the test creates.
     """
 
     def setUp(self):
@@ -431,9 +327,13 @@ class ComRegTest(ScriptedLoadableModuleTest):
         usNode = logic.loadUSPoints(case.usPointsPath)
         self.assertEqual(usNode.GetPolyData().GetNumberOfPoints(), len(case.usPoints))
 
-        self.delayDisplay("Registration (RANSAC + ICP)")
-        summary = logic.register(usNode, "ransac", ctModelNode=models[0])
-        self.assertIs(usNode.GetParentTransformNode(), summary.transformNode)
+        self.delayDisplay("Registration (ComReg pose search, no network)")
+        output = logic.scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "ReferenceToCT")
+        summary = logic.register(usNode, "search", ctModelNode=models[0],
+                                 outputTransformNode=output)
+        self.assertIs(summary.transformNode, output)
+        self.assertIs(usNode.GetParentTransformNode(), output)
+        self.assertEqual(summary.method, "search")
         errors = testing.checkRegistrationAccuracy(summary.transformNode, case)
         self.delayDisplay(f"Registration error: {errors['translation_mm']:.3f} mm, "
                           f"{errors['rotation_deg']:.3f} deg (mean point "
@@ -474,5 +374,5 @@ class ComRegTest(ScriptedLoadableModuleTest):
         with self.assertRaisesRegex(ComRegError, "nothing to cancel"):
             logic.cancelPretraining()
         with self.assertRaisesRegex(ComRegError, "no US points"):
-            logic.register(method="ransac")
+            logic.register(method="search")
         self.delayDisplay("Bad inputs give clear errors")

@@ -5,39 +5,51 @@ module file; ``ComReg.py`` re-exports it in the template's place. Decorated with
 ``@parameterNodeWrapper`` inside the application, with the headless stand-in otherwise.
 """
 
-from comreg_plugin.slicer_compat import parameterNodeWrapper, require_slicer
+from typing import Annotated, Union
+
+from comreg_core.choices import DEVICES, PRESETS
+from comreg_plugin.registration import METHODS
+from comreg_plugin.slicer_compat import (Choice, Minimum, WithinRange, parameterNodeWrapper,
+                                         require_slicer)
 
 slicer = require_slicer()
+
+#: Pretraining states (set by the Logic, shown read-only).
+PRETRAINING_STATES = ("idle", "running", "finished", "failed", "cancelled")
 
 
 @parameterNodeWrapper
 class ComRegParameterNode:
     """The module's state, saved with the scene.
 
+    sweep: the tracked US sweep (Sequence browser: frames + ImageToReference poses).
     segmentation: the CT segmentation. ctModel: the CT bone model registered to.
-    usPoints: the US bone points (a model of vertices). outputTransform: US->CT (to parent, RAS).
+    usPoints: the US bone points (model vertices or markups control points).
+    outputTransform: the result, tracking reference -> CT (to parent, RAS; "ReferenceToCT").
     completedBone: the network's completed bone in the CT frame.
-    method: "comreg" (pretrained run) or "ransac" (RANSAC + ICP baseline).
+    method: "comreg" (pretrained run), "search" (pose search on the CT alone, no network) or
+    "ransac" (RANSAC + ICP baseline).
     runDirectory: the pretraining run folder. preset, maxMinutes, epochs (0 = preset's), seed,
     device: pretraining settings. pretrainingState: idle/running/finished/failed/cancelled;
     pretrainingProgress: 0..1. ambiguous, confidence (-1 = not reported), runtimeSeconds: of
     the last registration.
     """
 
+    sweep: slicer.vtkMRMLSequenceBrowserNode
     segmentation: slicer.vtkMRMLSegmentationNode
     ctModel: slicer.vtkMRMLModelNode
-    usPoints: slicer.vtkMRMLModelNode
+    usPoints: Union[slicer.vtkMRMLModelNode, slicer.vtkMRMLMarkupsFiducialNode]
     outputTransform: slicer.vtkMRMLLinearTransformNode
     completedBone: slicer.vtkMRMLModelNode
-    method: str = "comreg"
+    method: Annotated[str, Choice(METHODS)] = "comreg"
     runDirectory: str = ""
-    preset: str = "cpu"
-    maxMinutes: float = 30.0
-    epochs: int = 0
-    seed: int = 0
-    device: str = "auto"
-    pretrainingState: str = "idle"
-    pretrainingProgress: float = 0.0
+    preset: Annotated[str, Choice(PRESETS)] = "cpu"
+    maxMinutes: Annotated[float, WithinRange(0.0, 100000.0)] = 30.0
+    epochs: Annotated[int, WithinRange(0, 100000)] = 0
+    seed: Annotated[int, Minimum(0)] = 0
+    device: Annotated[str, Choice(DEVICES)] = "auto"
+    pretrainingState: Annotated[str, Choice(PRETRAINING_STATES)] = "idle"
+    pretrainingProgress: Annotated[float, WithinRange(0.0, 1.0)] = 0.0
     ambiguous: bool = False
-    confidence: float = -1.0
-    runtimeSeconds: float = 0.0
+    confidence: Annotated[float, Minimum(-1.0)] = -1.0
+    runtimeSeconds: Annotated[float, Minimum(0.0)] = 0.0
