@@ -14,7 +14,8 @@ Using it in 3D Slicer
        slicer.util.pip_install("open3d")   # only for the RANSAC baseline
 
 2. Add the module folder ``/path/to/comreg/comreg_plugin`` in Edit > Application Settings >
-   Modules > Additional module paths, and restart. The module appears under "Registration".
+   Modules > Additional module paths, and restart. The module appears under "Registration";
+   its panel is ``Resources/UI/ComReg.ui``, its icon ``Resources/Icons/ComReg.png``.
 
 Slicer imports this file as the top-level module ``ComReg`` with only ``comreg_plugin/`` on
 ``sys.path``; the block below also puts the repository root on ``sys.path`` when ``comreg_core``
@@ -71,11 +72,13 @@ class ComReg(ScriptedLoadableModule):
         self.parent.dependencies = []
         self.parent.contributors = ["ComReg contributors"]
         self.parent.helpText = """
-Registers a tracked ultrasound (US) bone surface to the patient's CT bone with ComReg: extract the
-CT bone from a segmentation, pretrain the network on US sweeps simulated from it (in the
-background), extract the bone points from a tracked US sweep, and register them in one forward
-pass. The result is the linear transform "ReferenceToCT" with the US points under it, and the
-completed bone shape. Transforms are saved as ITK .tfm/.h5 (LPS), like Slicer does.
+Registers a tracked ultrasound (US) bone surface to the patient's CT bone with ComReg: pick the
+tracked sweep (a Sequence browser: frames + ImageToReference transforms) and extract its bone
+points, pick the CT segmentation (or bone model), and register, either with ComReg's pose search
+on the CT alone (method "search", no pretraining) or with a network pretrained on sweeps
+simulated from this CT (method "comreg", pretraining runs in the background). The result goes
+into the chosen linear transform (default "ReferenceToCT") with the US points under it.
+Transforms are saved as ITK .tfm/.h5 (LPS), like Slicer does.
 """
         self.parent.acknowledgementText = """
 Based on the method of the ComReg paper (shape completion + coarse pose + differentiable ICP).
