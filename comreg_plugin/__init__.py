@@ -17,6 +17,6 @@
 - ``testing.py``: the self test's small data with a known transform and its checks.
 
 Imports only go down: ``ComReg`` -> ``logic`` -> ``parameter_node`` -> ``registration`` /
-``scene_inputs`` -> ``pretraining_job`` / ``scene_io`` -> ``slicer_compat`` -> ``comreg_core``. Like the CLI it only
-calls ``comreg_core`` functions.
+``scene_inputs`` -> ``pretraining_job`` / ``scene_io`` -> ``slicer_compat`` -> ``comreg_core``.
+Like the CLI it only calls ``comreg_core`` functions.
 """

@@ -87,26 +87,23 @@ def trackedSweepFromBrowser(browserNode, imageSequence=None, transformSequence=N
     if n == 0:
         raise ComRegError(f"The image sequence '{imageSequence.GetName()}' has no frames.",
                           "Record or load the sweep again.")
-    frames, poses, stamps, names = [], np.full((n, 4, 4), np.nan), np.full(n, np.nan), []
+    frames, poses, stamps = [], np.full((n, 4, 4), np.nan), np.full(n, np.nan)
     for i in range(n):
         value = imageSequence.GetNthIndexValue(i)
         volume = imageSequence.GetNthDataNode(i)
         frames.append(_frameArray(volume, imageSequence.GetName(), i))
-        ijk_to_ras = vtk.vtkMatrix4x4()
-        volume.GetIJKToRASMatrix(ijk_to_ras)
-        T_image = np.eye(4)
-        if transformSequence is not None:
-            item = transformSequence.GetDataNodeAtValue(value, True)
-            if item is None:
-                names.append(f"Frame{i:04d}")
-                continue
-            T_image = _toParent(item)
-        poses[i] = T_RAS_LPS @ T_image @ arrayFromVtkMatrix(ijk_to_ras)
         try:
             stamps[i] = float(value)
         except ValueError:
             pass
-        names.append(f"Frame{i:04d}")
+        item = transformSequence.GetDataNodeAtValue(value, True) \
+            if transformSequence is not None else None
+        if transformSequence is not None and item is None:
+            continue  # no pose recorded for this frame
+        ijk_to_ras = vtk.vtkMatrix4x4()
+        volume.GetIJKToRASMatrix(ijk_to_ras)
+        T_image = _toParent(item) if item is not None else np.eye(4)
+        poses[i] = T_RAS_LPS @ T_image @ arrayFromVtkMatrix(ijk_to_ras)
     shapes = {f.shape[:2] for f in frames}
     if len(shapes) != 1:
         raise ComRegError(f"The frames of '{imageSequence.GetName()}' differ in size "
@@ -118,7 +115,8 @@ def trackedSweepFromBrowser(browserNode, imageSequence=None, transformSequence=N
     T_ref_image[:, :3, 2] = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     reference = _referenceName(transformSequence)
     return TrackedSweep(frames_to_grey(np.stack(frames)), spacing, T_ref_image, stamps,
-                        np.isfinite(poses).all(axis=(1, 2)), reference, names, None)
+                        np.isfinite(poses).all(axis=(1, 2)), reference,
+                        [f"Frame{i:04d}" for i in range(n)], None)
 
 
 def addSweepBrowser(scene, sequencesLogic, sweep: TrackedSweep, name: str = "Sweep"):

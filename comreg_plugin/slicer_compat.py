@@ -2,7 +2,8 @@
 
 Inside the 3D Slicer application (``slicer.app`` exists) this module re-exports Slicer's own
 ``ScriptedLoadableModule``, ``ScriptedLoadableModuleWidget``, ``ScriptedLoadableModuleLogic``,
-``ScriptedLoadableModuleTest``, ``VTKObservationMixin`` and ``parameterNodeWrapper``.
+``ScriptedLoadableModuleTest``, ``VTKObservationMixin``, ``parameterNodeWrapper`` and its
+validators ``Choice``, ``WithinRange``, ``Minimum``.
 
 Outside the application (pytest, batch scripts) it provides stand-ins with the same method names
 on top of the real MRML classes of the ``slicer-core`` wheel (``import slicer`` gives
@@ -17,9 +18,13 @@ on top of the real MRML classes of the ``slicer-core`` wheel (``import slicer`` 
 - ``ScriptedLoadableModuleTest``: a ``unittest.TestCase``; ``delayDisplay`` logs,
   ``takeScreenshot`` does nothing, ``runTest()`` runs the ``test_*`` methods.
 - ``ScriptedLoadableModuleWidget``: refuses to be built (a widget needs the application's Qt).
-- ``parameterNodeWrapper``: typed attributes (``str``, ``int``, ``float``, ``bool`` and MRML node
-  classes, with class-level defaults) stored in a ``vtkMRMLScriptedModuleNode`` as parameters
-  and node references, like Slicer's decorator (a subset of what it supports: no GUI binding).
+- ``parameterNodeWrapper``: typed attributes (``str``, ``int``, ``float``, ``bool``, optionally
+  ``Annotated`` with the validators ``Choice`` / ``WithinRange`` / ``Minimum``, and MRML node
+  classes or a ``Union`` of them, with class-level defaults) stored in a
+  ``vtkMRMLScriptedModuleNode`` as parameters and node references, like Slicer's decorator (a
+  subset of what it supports: no GUI binding, which needs Qt).
+- ``sequences_logic(scene)``: the Sequences module's logic (registers the sequence browser node
+  class in a headless scene).
 
 Nothing here imports or fakes Qt.
 """
@@ -379,8 +384,8 @@ else:
     parameterNodeWrapper = _standin_parameter_node_wrapper
 
 __all__ = [
-    "Choice", "IN_SLICER_APP", "Minimum", "WithinRange", "parameterTypes", "SLICER_CORE_REQUIREMENT", "ScriptedLoadableModule",
+    "Choice", "IN_SLICER_APP", "Minimum", "SLICER_CORE_REQUIREMENT", "ScriptedLoadableModule",
     "ScriptedLoadableModuleLogic", "ScriptedLoadableModuleTest", "ScriptedLoadableModuleWidget",
-    "VTKObservationMixin", "parameterNodeWrapper", "register_segmentation_converters",
-    "require_slicer", "sequences_logic", "slicer",
+    "VTKObservationMixin", "WithinRange", "parameterNodeWrapper", "parameterTypes",
+    "register_segmentation_converters", "require_slicer", "sequences_logic", "slicer",
 ]

@@ -20,6 +20,8 @@ from comreg_core.transforms import T_RAS_LPS, apply_transform, invert_rigid
 #: The bundled sample CT segmentation (CC BY 4.0 fibula, see resources/).
 SAMPLE_SEGMENTATION = Path(__file__).resolve().parents[1] / "resources" / "sample" / \
     "fibula.seg.nrrd"
+#: The bundled sample's tracked sweep (frame folder, its tracking in the CT frame).
+SAMPLE_SWEEP = SAMPLE_SEGMENTATION.parent / "sweep"
 #: Rotation (xyz Euler angles, degrees) and translation (mm) of the ground truth ``T_ct_us``.
 KNOWN_EULER_DEG = (20.0, -35.0, 50.0)
 KNOWN_TRANSLATION_MM = (30.0, -20.0, 15.0)

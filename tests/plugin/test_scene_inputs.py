@@ -78,6 +78,22 @@ def test_a_sweep_becomes_a_sequence_browser_and_comes_back_unchanged(sweep):
     assert_close(back.timestamps, moved.timestamps, atol=1e-6, what="timestamps (s)")
 
 
+def test_a_frame_without_a_recorded_pose_is_invalid(sweep):
+    _, moved, _ = sweep
+    part = moved.select(np.arange(4))
+    part.valid[1] = False  # tracking lost: no ImageToReference item at this time
+    logic = ComRegLogic()
+    browser = addSweepBrowser(logic.scene, logic.sequencesLogic, part)
+    images, poses = (browser.GetMasterSequenceNode(),
+                     logic.scene.GetFirstNodeByName("ImageToReference"))
+    assert (images.GetNumberOfDataNodes(), poses.GetNumberOfDataNodes()) == (4, 3)
+    back = trackedSweepFromBrowser(browser)
+    assert back.valid.tolist() == [True, False, True, True]
+    assert np.isnan(back.T_ref_image[1]).all() and np.isfinite(back.timestamps).all()
+    assert_close(back.T_ref_image[back.valid], part.T_ref_image[part.valid], atol=1e-9,
+                 what="the other poses")
+
+
 def test_sequence_sweep_to_points_to_registration_into_a_chosen_node_saved_and_reloaded(
         sweep, tmp_path):
     original, moved, T_ct_ref = sweep
