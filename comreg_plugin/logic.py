@@ -36,8 +36,8 @@ from comreg_plugin.scene_io import (addModelNode, readScene,
                                     readSlicerSegmentation, requireNode,
                                     segmentationNodeFromArrays, surfaceMeshFromModel, uniqueName,
                                     vtkMatrixFromArray, writeScene, writeTransform)
-from comreg_plugin.scene_inputs import (POINTS_NODE_CLASSES, addSweepBrowser,
-                                        arrayFromPointsNode, segmentationFromNode,
+from comreg_plugin.scene_inputs import (addSweepBrowser, arrayFromPointsNode,
+                                        requirePointsNode, segmentationFromNode,
                                         trackedSweepFromBrowser)
 from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModuleLogic,
                                          _StandInLogic, register_segmentation_converters,
@@ -393,13 +393,20 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         if usPointsNode is None:
             raise ComRegError("There are no US points to register.",
                               "Load a tracked sweep or a US point cloud first.")
-        if not (hasattr(usPointsNode, "IsA")
-                and any(usPointsNode.IsA(c) for c in POINTS_NODE_CLASSES)):
-            requireNode(usPointsNode, "vtkMRMLModelNode", "US points",
-                        "Pick the US bone points: a model or markups node.")
+        requirePointsNode(usPointsNode)
         if ctModelNode is not None:
             requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
                         "Pick the CT bone model (loaded from a segmentation or mesh).")
+        transformNode = outputTransformNode if outputTransformNode is not None \
+            else p.outputTransform
+        if transformNode is not None:  # checked before the work, not after
+            requireNode(transformNode, "vtkMRMLLinearTransformNode", "output transform",
+                        "Pick a linear transform node for the result, or none for a new one.")
+        completedBoneNode = completedBoneNode if completedBoneNode is not None \
+            else p.completedBone
+        if completedBoneNode is not None:
+            requireNode(completedBoneNode, "vtkMRMLModelNode", "completed bone output",
+                        "Pick a model node for the completed bone, or none for a new one.")
         method = method if method is not None else p.method
         seed = int(seed)
         device = device or p.device
@@ -409,12 +416,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         output, T, T_ras, completion_ct = runRegistration(
             run, arrayFromPointsNode(usPointsNode), space)
 
-        transformNode = outputTransformNode if outputTransformNode is not None \
-            else p.outputTransform
-        if transformNode is not None:
-            requireNode(transformNode, "vtkMRMLLinearTransformNode", "output transform",
-                        "Pick a linear transform node for the result, or none for a new one.")
-        else:
+        if transformNode is None:
             transformNode = self.scene.AddNewNodeByClass(
                 "vtkMRMLLinearTransformNode", uniqueName(self.scene, TRANSFORM_NODE_NAME))
         transformNode.SetMatrixTransformToParent(vtkMatrixFromArray(T_ras))
@@ -423,9 +425,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         completedNode = None
         if completion_ct is not None and len(completion_ct):
             completedNode = self.addPointsModel(completion_ct, space, COMPLETED_BONE_NODE_NAME,
-                                                COMPLETION_COLOR,
-                                                node=completedBoneNode if completedBoneNode
-                                                is not None else p.completedBone)
+                                                COMPLETION_COLOR, node=completedBoneNode)
             completedNode.SetAttribute(ATTRIBUTE_PREFIX + "role", "completed_bone")
 
         info = dict(output.info)

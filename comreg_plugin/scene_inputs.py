@@ -201,10 +201,19 @@ def _referenceName(transformSequence) -> str:
 # Points and segmentations
 # --------------------------------------------------------------------------------------------
 
+def requirePointsNode(node):
+    """``node`` if it is a model or markups node, else a :class:`ComRegError` naming it."""
+    if hasattr(node, "IsA") and any(node.IsA(c) for c in POINTS_NODE_CLASSES):
+        return node
+    return requireNode(node, "vtkMRMLModelNode", "US points",
+                       "Pick the US bone points: a model or markups node.")
+
+
 def arrayFromPointsNode(node) -> np.ndarray:
     """``(N, 3)`` float64 RAS points of a model (its vertices) or markups node (its control
     points), in the node's own frame (without its parent transform)."""
-    if node is not None and hasattr(node, "IsA") and node.IsA("vtkMRMLMarkupsNode"):
+    requirePointsNode(node)
+    if node.IsA("vtkMRMLMarkupsNode"):
         n = node.GetNumberOfControlPoints()
         if n == 0:
             raise ComRegError(f"The markups '{node.GetName()}' has no control points.",
@@ -213,8 +222,6 @@ def arrayFromPointsNode(node) -> np.ndarray:
         for i in range(n):
             node.GetNthControlPointPosition(i, points[i])
         return points
-    requireNode(node, "vtkMRMLModelNode", "US points",
-                "Pick a model or markups node holding the bone points.")
     return arrayFromModelPoints(node)
 
 

@@ -209,3 +209,7 @@ def test_bad_scene_inputs_give_clear_errors(logic, sweep):
         logic.boneModelsFromSegmentation(segNode)
     with pytest.raises(ComRegError, match="output transform must be a linear transform"):
         logic.register(model, lambda points: np.eye(4), outputTransformNode=model)
+    with pytest.raises(ComRegError, match="completed bone output must be a model"):
+        logic.register(model, lambda points: np.eye(4), completedBoneNode=segNode)
+    assert model.GetParentTransformNode() is None  # refused before anything was made
+    assert logic.scene.GetFirstNodeByName("ReferenceToCT") is None
