@@ -78,6 +78,27 @@ def test_a_sweep_becomes_a_sequence_browser_and_comes_back_unchanged(sweep):
     assert_close(back.timestamps, moved.timestamps, atol=1e-6, what="timestamps (s)")
 
 
+def test_a_plus_recording_with_its_calibration_shown_as_a_sequence_keeps_every_pixel(
+        shared_data):
+    """A real PLUS recording (21 frames, ProbeToTracker + ReferenceToTracker + the device set's
+    ImageToProbe) loaded through the panel's file route: the Sequence's frames and poses give
+    back what comreg_core reads from the files, pixel corners within 1e-5 mm."""
+    plus = shared_data / "plus"
+    recording = plus / "TestImages" / "SpinePhantomFreehand.igs.mha"
+    calibration = (plus / "ConfigFiles" / "Testing" /
+                   "PlusDeviceSet_SpinePhantomFreehandReconstructionOnly.xml")
+    reference = read_tracked_sweep(recording, calibration=calibration)
+    logic = ComRegLogic()
+    browser = logic.addSweepSequence(recording, calibration=calibration)
+    assert logic.getParameterNode().sweep is browser
+    back = trackedSweepFromBrowser(browser)
+    assert back.n_frames == reference.n_frames == 21 and back.valid.all()
+    assert np.array_equal(back.frames, reference.frames)
+    assert_close(back.frame_corners(), reference.frame_corners(), atol=1e-5,
+                 what="frame corners (LPS mm)")
+    assert_close(back.timestamps, reference.timestamps, atol=1e-6, what="timestamps (s)")
+
+
 def test_a_frame_without_a_recorded_pose_is_invalid(sweep):
     _, moved, _ = sweep
     part = moved.select(np.arange(4))
