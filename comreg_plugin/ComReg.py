@@ -69,7 +69,7 @@ class ComReg(ScriptedLoadableModule):
         ScriptedLoadableModule.__init__(self, parent)
         self.parent.title = "ComReg"
         self.parent.categories = ["Registration"]
-        self.parent.dependencies = []
+        self.parent.dependencies = ["Sequences"]  # the sweep is a Sequence browser
         self.parent.contributors = ["ComReg contributors"]
         self.parent.helpText = """
 Registers a tracked ultrasound (US) bone surface to the patient's CT bone with ComReg: pick the
