@@ -61,8 +61,8 @@ from comreg_core.io.transform_files import save_transform
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.normalization import Normalization
 from comreg_core.model.ops import subsample
-from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, ct_fingerprint,
-                                             load_checkpoint, mesh_fingerprint, network_warning)
+from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, check_same_bone,
+                                             ct_fingerprint, load_checkpoint, network_warning)
 from comreg_core.training.config import PretrainConfig, config_from_yaml
 from comreg_core.training.trainer import resolve_device
 from comreg_core.transforms import apply_transform, as_points, invert_rigid, orthonormalize
@@ -169,7 +169,10 @@ class Registrar:
             check_fingerprint(expected, json.loads(fp_file.read_text(encoding="utf-8")),
                               f" in '{run_dir}' (ct_fingerprint.json)")
         if ct_mesh is not None:
-            check_fingerprint(expected, mesh_fingerprint(ct_mesh), f" in '{run_dir}'")
+            gap = check_same_bone(state, ct_mesh, f" in '{run_dir}'")
+            if gap > 0:
+                log.info("The given CT mesh is the run's bone re-meshed (%.2f mm apart); the "
+                         "run's own mesh is used.", gap)
         cfg = config_from_yaml(state["config_yaml"], f"config stored in '{run_dir}'")
         model_cfg = cfg.model
         if icp_points is not None:
