@@ -40,6 +40,11 @@ def test_demo_uses_the_bundled_model_and_writes_every_file(demo):
     html = (out / "registration" / "report.html").read_text(encoding="utf-8")
     images = list((out / "registration").rglob("*.png"))
     assert len(images) >= 3 and all(p.name in html for p in images)
+    # the sample sweep's B-mode frames with the CT contour, and the CT cross-sections
+    assert len([p for p in images if p.name.startswith("frame_")]) == 4
+    assert len([p for p in images if p.name.startswith("section_")]) == 3
+    recorded = json.loads((out / "registration" / "result.json").read_text())["sweep"]
+    assert recorded["path"].endswith("sweep") and np.array(recorded["T_us_ref"]).shape == (4, 4)
     assert result.n_us_points > 2000  # 37 real frames -> 3,166 points here
 
 
