@@ -258,6 +258,10 @@ def register(
     config: Optional[Path] = typer.Option(None, "--config", help="YAML with a 'hypotheses:' "
                                           "section (the pose search's settings), e.g. the "
                                           "config.yaml of an earlier registration."),
+    sweep: Optional[Path] = typer.Option(None, "--sweep", help="The tracked sweep the points "
+                                         "came from: the report shows its frames with the "
+                                         "registered CT contour."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration", help="Its calibration."),
 ) -> None:
     """Register a US bone surface to the CT: with --ct alone by the pose search (principal axes,
     flips, turns and slides of the US cloud, refined by ICP and scored against the CT), with
@@ -270,26 +274,17 @@ def register(
     100,000 points is registered as a seeded uniform subset of 100,000 (said in a warning).
     --out must not be the run folder or inside it.
     """
-    from comreg_core.inference import register_to_directory
+    from comreg_core.register_output import register_to_directory, summary_lines
     from comreg_core.registration.config import load_register_config
 
     run_dir, us_points = _run_and_points(inputs, model)
     search = load_register_config(config, {"hypotheses": {"enabled": False}} if not hypotheses
                                   else None).hypotheses
     result = register_to_directory(run_dir, us_points, out, device=device.value, seed=seed,
-                                   ct_mesh=ct_mesh, hypotheses=search)
-    how = "by the pose search (no network)" if run_dir is None else f"on {result.device}"
-    typer.echo(f"wrote {out}: {result.n_points} points registered in {result.runtime_s:.2f} s "
-               f"{how}; median residual {result.residuals['median']:.2f} mm")
-    if result.hypotheses is not None:
-        h = result.hypotheses
-        gap = "no competing pose" if h.score_gap_mm is None else \
-            f"next different pose ('{h.runner_up}') {h.score_gap_mm:.3f} mm worse"
-        typer.echo(f"hypothesis '{h.chosen}' of {h.starts_tried} starts, {gap}; confidence "
-                   f"{h.confidence:.2f}"
-                   + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
-        if h.advice:
-            typer.echo(h.advice["advice"])
+                                   ct_mesh=ct_mesh, hypotheses=search, sweep=sweep,
+                                   sweep_calibration=calibration)
+    for line in summary_lines(result, out, with_network=run_dir is not None):
+        typer.echo(line)
 
 
 Method = Enum("Method", {name: name for name in choices.METHODS + ("all",)}, type=str)
@@ -428,6 +423,11 @@ def report(
     transform: Optional[Path] = typer.Option(
         None, "--transform", help="Judge and show this T_ct_us (ITK .tfm/.h5, e.g. edited or "
         "from another tool) on the folder's US points and CT instead of the registration's."),
+    sweep: Optional[Path] = typer.Option(None, "--sweep", help="The tracked sweep the points "
+                                         "came from (default: the one given to 'comreg "
+                                         "register'): B-mode frames with the CT contour."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration", help="The sweep's "
+                                               "calibration."),
 ) -> None:
     """Judge the registration (Verdict: OK or CHECK, from the US points, the transform and the
     CT alone), render off-screen screenshots (US points coloured by distance to the CT, before
@@ -435,7 +435,8 @@ def report(
     from comreg_core.report import write_report_for_registration
 
     path = write_report_for_registration(out_dir, ct_mesh=ct_mesh, transform=transform,
-                                         embed_images=embed_images)
+                                         embed_images=embed_images, sweep=sweep,
+                                         sweep_calibration=calibration)
     typer.echo(f"wrote {path}")
 
 

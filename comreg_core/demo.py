@@ -134,7 +134,8 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
     """
     from comreg_core.evaluation.evaluate import evaluate, write_metrics
     from comreg_core.registration.metrics import registration_metrics
-    from comreg_core.inference import Registrar, register_to_directory
+    from comreg_core.inference import Registrar
+    from comreg_core.register_output import register_to_directory
     from comreg_core.io import PointCloud, read_mesh, save_transform, write_points
     from comreg_core.report import write_report_for_registration
     from comreg_core.simulation import sample_initial_pose
@@ -166,7 +167,8 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
     step("registering the moved US points to the CT (completion, coarse pose, ICP)")
     registration_dir = out / "registration"
     result = register_to_directory(model, moved_path, registration_dir, device=device,
-                                   seed=seed, ct_mesh=ct_path)
+                                   seed=seed, ct_mesh=ct_path, sweep=SAMPLE_SWEEP,
+                                   T_us_ref=T_moved_ct)  # tracking and CT share one frame
     errors = registration_metrics(result.T_ct_us, T_ct_us_truth,
                                   apply_transform(T_moved_ct, us_points), ct)
     success_rate = flip_rate = None

@@ -1,4 +1,4 @@
-"""Registration of a US cloud to the CT: ``Registrar`` and ``register_to_directory``.
+"""Registration of a US cloud to the CT: ``Registrar`` (``register_output`` writes its folder).
 
 Two ways, one result type (:class:`~comreg_core.registration.result.RegistrationResult`):
 
@@ -35,6 +35,7 @@ cloud, closest-point grid and mesh matcher) happens once per Registrar, outside 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -46,26 +47,21 @@ import numpy as np
 import torch
 
 from comreg_core import runs
-from comreg_core.config import to_dict
-from comreg_core.errors import ComRegError, InvalidGeometryError
+from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
-                                      as_hypothesis_config, judge_registration,
-                                      search_hypotheses)
+                                      as_hypothesis_config, search_hypotheses)
 from comreg_core.registration.inputs import beam_origins_for, limit_us_points, subset_notice
 from comreg_core.registration.result import RegistrationResult, residual_statistics
 from comreg_core.registration.search import principal_axes_pose
 from comreg_core.registration.surface import mesh_arrays
-from comreg_core.io._files import atomic_output, check_output_folder
-from comreg_core.io.pointclouds import PointCloud, read_points, write_points
-from comreg_core.io.transform_files import save_transform
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.normalization import Normalization
 from comreg_core.model.ops import subsample
-from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, ct_fingerprint,
-                                             load_checkpoint, mesh_fingerprint, network_warning)
+from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, check_same_bone,
+                                             ct_fingerprint, load_checkpoint, network_warning)
 from comreg_core.training.config import PretrainConfig, config_from_yaml
 from comreg_core.training.trainer import resolve_device
-from comreg_core.transforms import apply_transform, as_points, invert_rigid, orthonormalize
+from comreg_core.transforms import apply_transform, as_points, orthonormalize
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +165,10 @@ class Registrar:
             check_fingerprint(expected, json.loads(fp_file.read_text(encoding="utf-8")),
                               f" in '{run_dir}' (ct_fingerprint.json)")
         if ct_mesh is not None:
-            check_fingerprint(expected, mesh_fingerprint(ct_mesh), f" in '{run_dir}'")
+            gap = check_same_bone(state, ct_mesh, f" in '{run_dir}'")
+            if gap > 0:
+                log.info("The given CT mesh is the run's bone re-meshed (%.2f mm apart); the "
+                         "run's own mesh is used.", gap)
         cfg = config_from_yaml(state["config_yaml"], f"config stored in '{run_dir}'")
         model_cfg = cfg.model
         if icp_points is not None:
@@ -192,6 +191,22 @@ class Registrar:
 
     # ------------------------------------------------------------------------------------------
 
+    @contextlib.contextmanager
+    def deterministic_forward(self):
+        """On the CPU, run the network on one thread: torch splits its sums across threads, so
+        the output would change in the last float32 digits with the thread count (measured: the
+        coarse pose by up to 5e-5 mm at 1 vs 2 threads). One thread makes it bit-identical at any
+        thread count and load; the forward pass of the ``cpu`` preset takes ~0.04 s either way."""
+        if self.device.type != "cpu":
+            yield
+            return
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(threads)
+
     def _sync(self) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
@@ -201,7 +216,7 @@ class Registrar:
         """The CT half of the network (computed once, cached)."""
         if self._encoding is None:
             ct = torch.from_numpy(self.normalization.points_to_model(self.ct_points)).float()
-            with torch.no_grad():
+            with torch.no_grad(), self.deterministic_forward():
                 self._encoding = self.model.encode_target(ct[None].to(self.device))
         return self._encoding
 
@@ -334,15 +349,16 @@ class Registrar:
         src = torch.from_numpy(norm.points_to_model(pts)).float()[None].to(self.device)  # 1 N 3
         self._sync()
         t["preprocess"] = time.perf_counter() - start
-        with torch.no_grad():
+        encoding = self.encoding
+        with torch.no_grad(), self.deterministic_forward():
             mark = time.perf_counter()
-            completion, pose = model.coarse_pose(src, self.encoding)
+            completion, pose = model.coarse_pose(src, encoding)
             coarse = pose.transform
             self._sync()
             t["completion_and_coarse_pose"] = time.perf_counter() - mark
             _check_finite_output(completion.dense, coarse)  # before the ICP searches with them
             mark = time.perf_counter()
-            icp = model.refine(subsample(src, cfg.icp.num_points, 0), self.encoding, coarse)
+            icp = model.refine(subsample(src, cfg.icp.num_points, 0), encoding, coarse)
             self._sync()
             t["icp"] = time.perf_counter() - mark
         _check_finite_output(icp.transform)
@@ -373,112 +389,9 @@ class Registrar:
         return residual_statistics(d)
 
 
-def registration_verdict(result: RegistrationResult, registrar: Registrar):
-    """The :class:`~comreg_core.registration.verdict.Verdict` of ``result`` on the registrar's CT
-    mesh (:attr:`Registrar.surface`); the points judged are the US points the registration
-    used (``registered_points`` moved back by ``T_ct_us``)."""
-    if registrar.surface is None:
-        raise InvalidGeometryError("No CT mesh is known for this model, so the registration "
-                                   "cannot be judged.", "Load the run folder with its CT mesh.")
-    points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
-    return judge_registration(points, result.T_ct_us, registrar.surface,
-                              confidence=result.confidence, ambiguous=result.ambiguous)
-
-
 def _check_finite_output(*tensors: torch.Tensor) -> None:
     """Raise :class:`CheckpointError` if the network's output holds NaN or inf."""
     if not all(bool(torch.isfinite(t).all()) for t in tensors):
         raise CheckpointError("The network gave NaN or infinite output for these points.",
                               "Its weights are unusable (a diverged or damaged training): "
                               "train again with 'comreg pretrain'.")
-
-
-def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path,
-                          out_dir: str | Path, *, device: str = "auto", seed: int = 0,
-                          ct_mesh: str | Path | None = None, icp_points: int | None = None,
-                          hypotheses: HypothesisConfig | bool | None = None
-                          ) -> RegistrationResult:
-    """Register the US cloud in ``us_points_path`` with the run in ``run_dir`` (or, with
-    ``run_dir`` None, by the pose search alone on the CT mesh ``ct_mesh``); write ``out_dir``.
-
-    Files (each written atomically; ``result.json`` last):
-
-    - ``transform.tfm``: ``T_ct_us`` as an ITK transform (LPS, ITK's resampling direction, as
-      3D Slicer writes it: :func:`comreg_core.io.save_transform`).
-    - ``registered_us.ply``: the US points mapped into the CT frame (CT space tag).
-    - ``completion_ct.ply``: the completed bone in the CT frame (not without a network).
-    - ``config.yaml``: inputs and settings (run folder, US file, device, seed, ICP points, the
-      hypotheses settings).
-    - ``result.json``: ``T_ct_us``, ``T_ct_us_coarse`` (4x4 mm), ``timings_s`` (per stage),
-      ``runtime_s``, ``device``, ``seed``, ``n_points``, ``residuals_mm``, ``icp_rmse_mm``,
-      ``confidence``, ``ambiguous`` and ``hypotheses`` (:meth:`RegistrationResult.to_json`;
-      null with ``hypotheses=False``), ``verdict`` ("ok"/"check"), ``verdict_reasons`` and
-      ``verdict_figures`` (:mod:`comreg_core.registration.verdict`), ``space``,
-      ``ct_fingerprint``, ``run_dir``, ``us_points`` and ``ct_mesh`` (absolute paths, so
-      ``comreg report`` works from any directory), ``files``.
-
-    The US cloud is converted into the CT's patient space first (PLY/PCD ``SPACE=`` tag).
-    ``out_dir`` is checked before any work (:func:`~comreg_core.io._files.check_output_folder`:
-    never a run folder or inside one, never an input, writable).
-    """
-    import yaml
-
-    if run_dir is None and ct_mesh is None:
-        raise ComRegError("Nothing to register to: no CT mesh and no pretrained run.",
-                          "Give the CT bone mesh (--ct CT_MESH), and a run (--model RUN_DIR) "
-                          "to use the network too.")
-    out = check_output_folder(out_dir, inputs=[run_dir, us_points_path, ct_mesh])
-    cloud = read_points(us_points_path)  # the cheap input first
-    if run_dir is None:
-        if hypotheses is False or getattr(hypotheses, "enabled", True) is False:
-            raise ComRegError("Without a pretrained run the pose search is the registration; "
-                              "it cannot be turned off.",
-                              "Drop --no-hypotheses, or give --model RUN_DIR.")
-        registrar = Registrar.from_ct(ct_mesh, hypotheses=hypotheses)
-    else:
-        registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
-                                       hypotheses=hypotheses)
-    cloud = cloud.in_space(registrar.space)
-    result = registrar.register(cloud.points, seed=seed, beam_origins=cloud.beam_origins)
-    out.mkdir(parents=True, exist_ok=True)
-    files = {"transform": runs.TRANSFORM, "registered_us": runs.REGISTERED_US,
-             "completion_ct": runs.COMPLETION_CT, "config": runs.CONFIG}
-    if registrar.model is None:
-        del files["completion_ct"]
-    save_transform(result.T_ct_us, out / files["transform"], space=registrar.space)
-    write_points(PointCloud(result.registered_points, registrar.space),
-                 out / files["registered_us"])
-    if "completion_ct" in files:
-        write_points(PointCloud(result.completion_ct, registrar.space),
-                     out / files["completion_ct"])
-    inputs = {"run_dir": None if run_dir is None else str(run_dir),
-              "us_points": str(us_points_path), "device": device, "seed": int(seed),
-              "icp_points": None if registrar.model is None
-              else registrar.model.config.icp.num_points,
-              "ct_mesh": None if ct_mesh is None else str(ct_mesh),
-              "beam_origins": cloud.beam_origins is not None}
-    settings = {"hypotheses": to_dict(registrar.hypothesis_config), "inputs": inputs}
-    with atomic_output(out / files["config"]) as tmp:  # comreg register --config reads it
-        tmp.write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
-    verdict = registration_verdict(result, registrar)
-    payload = {**result.to_json(), **verdict.to_json(), "space": registrar.space,
-               "beam_origins_used": cloud.beam_origins is not None,
-               "ct_fingerprint": registrar.fingerprint,
-               "run_dir": None if run_dir is None else str(Path(run_dir).absolute()),
-               "us_points": str(Path(us_points_path).absolute()),
-               "ct_mesh": None if ct_mesh is None else str(Path(ct_mesh).absolute()),
-               "files": files}
-    with atomic_output(out / runs.RESULT) as tmp:
-        tmp.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
-    log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
-             result.runtime_s, result.device, out)
-    for warning in registrar.warnings:
-        log.warning("%s", warning)
-    if not verdict.ok:
-        log.warning("%s: %s", verdict.headline, " ".join(verdict.reasons))
-    if result.ambiguous:
-        log.warning("Ambiguous registration: hypothesis '%s' fits the US points within %.2f mm "
-                    "of '%s' (confidence %.2f); check the result visually.",
-                    result.hypotheses.runner_up, result.hypotheses.score_gap_mm,
-                    result.hypotheses.chosen, result.confidence)
-    return result

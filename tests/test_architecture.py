@@ -18,7 +18,7 @@ LAYERS = (
     ("simulation",),
     ("model",),
     ("training",),
-    ("inference",),
+    ("inference", "register_output"),
     ("evaluation",),
     ("report",),
     ("demo", "cli_errors", "cli"),

@@ -15,9 +15,17 @@ from comreg_core.io import load_transform, read_mesh, read_points
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
+    import torch
+
     out = tmp_path_factory.mktemp("demo") / "demo"
     steps: list[str] = []
-    result = run_demo(out, device="cpu", trials=2, seed=0, train_minutes=0.1, step=steps.append)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        result = run_demo(out, device="cpu", trials=2, seed=0, train_minutes=0.1,
+                          step=steps.append)
+    finally:
+        torch.set_num_threads(threads)
     return result, out, steps
 
 
@@ -32,6 +40,11 @@ def test_demo_uses_the_bundled_model_and_writes_every_file(demo):
     html = (out / "registration" / "report.html").read_text(encoding="utf-8")
     images = list((out / "registration").rglob("*.png"))
     assert len(images) >= 3 and all(p.name in html for p in images)
+    # the sample sweep's B-mode frames with the CT contour, and the CT cross-sections
+    assert len([p for p in images if p.name.startswith("frame_")]) == 4
+    assert len([p for p in images if p.name.startswith("section_")]) == 3
+    recorded = json.loads((out / "registration" / "result.json").read_text())["sweep"]
+    assert recorded["path"].endswith("sweep") and np.array(recorded["T_us_ref"]).shape == (4, 4)
     assert result.n_us_points > 2000  # 37 real frames -> 3,166 points here
 
 
@@ -70,3 +83,37 @@ def test_demo_into_a_file_is_a_clear_error(tmp_path):
     out = CliRunner().invoke(app, ["demo", "--out", str(target)])
     assert out.exit_code == 2 and "is not a folder" in out.output
     assert target.read_text() == "x"
+
+
+def test_demo_gives_the_same_figures_at_one_thread_on_a_busy_machine(demo, tmp_path):
+    """The fixture ran at 2 torch threads on a quiet process; the same demo at 1 thread (torch,
+    BLAS, OpenMP) while another process keeps a core busy gives the identical transform and
+    figures (README quotes them)."""
+    import os
+    import subprocess
+    import sys
+
+    result, out, _ = demo
+    code = ("import sys, torch\n"
+            "torch.set_num_threads(1)\n"
+            "from comreg_core.demo import run_demo\n"
+            "run_demo(sys.argv[1], device='cpu', trials=2, seed=0, train_minutes=0.1)\n")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+           "MKL_NUM_THREADS": "1"}
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        subprocess.run([sys.executable, "-c", code, str(tmp_path / "demo")], env=env,
+                       check=True, capture_output=True)
+    finally:
+        busy.kill()
+        busy.wait()
+    again = json.loads((tmp_path / "demo" / "demo.json").read_text())
+    first = json.loads((out / "demo.json").read_text())
+    for key in ("RTE_mm", "RRE_deg", "success_rate", "flip_rate", "n_us_points"):
+        assert again[key] == first[key], key
+    T_first = json.loads((out / "registration" / "result.json").read_text())["T_ct_us"]
+    T_again = json.loads((tmp_path / "demo" / "registration" / "result.json").read_text())
+    assert np.array_equal(np.array(T_again["T_ct_us"]), np.array(T_first))
+    trials = [json.loads((folder / "registration" / "metrics.json").read_text())["trials"]
+              for folder in (out, tmp_path / "demo")]
+    assert [t["RTE_mm"] for t in trials[0]] == [t["RTE_mm"] for t in trials[1]]

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.inference import Registrar, register_to_directory
+from comreg_core.inference import Registrar
+from comreg_core.register_output import register_to_directory
 from comreg_core.io import load_transform, read_points
 from comreg_core.io.meshes import SurfaceMesh, write_mesh
 from comreg_core.io.pointclouds import PointCloud, write_points
@@ -68,7 +69,7 @@ def test_staged_forward_equals_the_network_forward(registrar, us_cloud):
     res = registrar.register(us_cloud, hypotheses=False)  # the paper's plain pipeline
     norm = registrar.normalization
     src = torch.from_numpy(norm.points_to_model(us_cloud)).float()[None]
-    with torch.no_grad():
+    with torch.no_grad(), registrar.deterministic_forward():  # the registrar's one thread
         out = registrar.model(src, registrar.encoding)
     assert_close(norm.transform_to_mm(out.fine_transform[0].double().numpy()), res.T_ct_us,
                  atol=1e-3)
@@ -201,3 +202,34 @@ def test_device_cuda_without_cuda_is_a_clear_error(run):
 
     with pytest.raises(ConfigError, match="CUDA"):
         Registrar.from_run(run, device="cuda")
+
+
+def test_the_ct_fingerprint_is_the_bone_not_the_file(tmp_path):
+    """The bundled model was trained on the sample's CT extracted from its segmentation; the
+    shared STL is the same bone meshed by another tool, a decimated RAS copy is the same bone
+    again; the same bone moved 3 mm, and another bone, are refused."""
+    import pyvista as pv
+
+    from comreg_core.demo import SAMPLE_MODEL
+    from comreg_core.io.meshes import read_mesh
+    from comreg_core.training.checkpoint import check_same_bone, load_checkpoint
+    from tests.helpers import tibia_like_mesh
+
+    state = load_checkpoint(SAMPLE_MODEL)
+    shared = read_mesh(FIBULA_STL)
+    assert 0.1 < check_same_bone(state, shared) < 0.5  # measured 0.23 mm
+    decimated = pv.PolyData.from_regular_faces(shared.vertices, shared.faces).decimate(0.5)
+    copy = SurfaceMesh(np.asarray(decimated.points, float),
+                       np.asarray(decimated.regular_faces), "LPS").in_space("RAS")
+    write_mesh(copy, tmp_path / "fibula_ras.vtp")
+    assert read_mesh(tmp_path / "fibula_ras.vtp").space == "RAS"
+    assert check_same_bone(state, tmp_path / "fibula_ras.vtp") < 0.5
+    moved = SurfaceMesh(shared.vertices + [3.0, 0.0, 0.0], shared.faces)
+    with pytest.raises(CheckpointError, match=r"lies [23]\.\d mm from the run's CT bone"):
+        check_same_bone(state, moved)
+    with pytest.raises(CheckpointError, match="trained for another CT"):
+        check_same_bone(state, SurfaceMesh(*tibia_like_mesh()))
+    exact = SurfaceMesh(state["ct_vertices"].numpy(), state["ct_faces"].numpy())
+    assert check_same_bone(state, exact) == 0.0
+    registrar = Registrar.from_run(SAMPLE_MODEL, device="cpu", ct_mesh=tmp_path / "fibula_ras.vtp")
+    assert registrar.fingerprint == state["ct_fingerprint"]

@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.errors import ComRegError
-from comreg_core.inference import Registrar, register_to_directory
+from comreg_core.inference import Registrar
+from comreg_core.register_output import register_to_directory
 from comreg_core.io import PointCloud, read_mesh, write_points
 from comreg_core.registration.metrics import registration_metrics
 from comreg_core.simulation import sample_initial_pose
@@ -85,11 +86,13 @@ def test_register_and_report_without_a_run(tmp_path, real_sweep):
     for args in (["register", str(us), "--out", str(tmp_path / "x")],
                  ["register", str(us), "--ct", str(FIBULA_STL), "--no-hypotheses", "--out",
                   str(tmp_path / "y")],
-                 ["register", str(us), str(us), str(us), "--out", str(tmp_path / "z")]):
+                 ["register", str(us), str(us), str(us), "--out", str(tmp_path / "z")],
+                 ["register", str(us), "--ct", str(FIBULA_STL), "--sweep",
+                  str(tmp_path / "no_sweep"), "--out", str(tmp_path / "w")]):
         result = runner.invoke(app, args)
         assert result.exit_code == 2 and len(result.output.strip().splitlines()) <= 2, \
             result.output
-        assert not any((tmp_path / n).exists() for n in "xyz")
+        assert not any((tmp_path / n).exists() for n in "xyzw")
 
 
 def test_evaluate_search_without_a_run(tmp_path, real_sweep):
@@ -146,10 +149,16 @@ def test_extract_us_keeps_beam_origins_and_register_uses_them(tmp_path, shared_d
     np.testing.assert_allclose(ras.beam_origins[:, :2], -expected[:, :2], atol=1e-9)
     out = tmp_path / "reg"
     run = runner.invoke(app, ["register", str(tmp_path / "us.ply"), "--ct", str(FIBULA_STL),
-                              "--out", str(out)])
+                              "--out", str(out), "--sweep",
+                              str(shared_data / "ultrabones100k-fibula")])
     assert run.exit_code == 0, run.output
     saved = json.loads((out / "result.json").read_text())
     assert saved["beam_origins_used"] is True
+    assert saved["sweep"]["T_us_ref"] == np.eye(4).tolist()
+    # the report draws four of the sweep's frames with the registered CT contour
+    assert runner.invoke(app, ["report", str(out)]).exit_code == 0
+    frames = sorted(p.name for p in (out / "report_images").glob("frame_*.png"))
+    assert len(frames) == 4 and all(n in (out / "report.html").read_text() for n in frames)
     assert saved["hypotheses"]["polish"]["facing_away"] < 0.1
     errors = registration_metrics(np.asarray(saved["T_ct_us"]), np.eye(4), cloud.points,
                                   FIBULA_STL)

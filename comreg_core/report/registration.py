@@ -38,7 +38,9 @@ def read_registration_result(out_dir: Path) -> dict[str, Any]:
 def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | None = None,
                                   transform: str | Path | None = None,
                                   embed_images: bool = False,
-                                  progress: Progress | None = None) -> Path:
+                                  progress: Progress | None = None,
+                                  sweep: str | Path | None = None,
+                                  sweep_calibration: str | Path | None = None) -> Path:
     """``comreg report OUT_DIR``: the report of a folder written by ``comreg register``.
 
     Reads ``result.json`` (``T_ct_us``, timings, residuals, the run folder and US file it names),
@@ -48,7 +50,10 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     ``ct_mesh``, else the one ``result.json`` names, else the run's own. The verdict
     (:mod:`comreg_core.registration.verdict`) is computed again from these files. ``transform``
     (an ITK transform file of ``T_ct_us``) judges and shows that transform instead of the
-    folder's (its completion is then left out). Returns the path of ``report.html``.
+    folder's (its completion is then left out). The tracked sweep the points came from is
+    ``sweep`` (with ``sweep_calibration``), else the one ``result.json`` names: the page then
+    shows some of its frames with the registered CT contour. Returns the path of
+    ``report.html``.
     """
     from comreg_core.io import read_mesh, read_points
     from comreg_core.registration.verdict import judge_registration
@@ -75,6 +80,7 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
         from comreg_core.io.transform_files import load_transform
 
         T_ct_us, completion = load_transform(transform, space=ct.space), None
+    tracked, T_us_ref = _sweep_for(result, sweep, sweep_calibration)
     hypotheses = result.get("hypotheses") or {}
     verdict = judge_registration(us_points, T_ct_us, (ct.vertices, ct.faces),
                                  confidence=hypotheses.get("confidence"),
@@ -91,7 +97,23 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
                 "CT mesh": str(ct_path or f"stored in {run_dir}"),
                 "transform": str(transform or "result.json (the registration's)")},
         seed=result.get("seed"), device=result.get("device"), embed_images=embed_images,
-        progress=progress)
+        progress=progress, sweep=tracked,
+        T_ct_ref=None if tracked is None else T_ct_us @ T_us_ref)
+
+
+def _sweep_for(result: dict[str, Any], sweep, calibration):
+    """``(TrackedSweep or None, T_us_ref (4, 4))``: the sweep given, else the one recorded in
+    ``result.json`` (with its map into the US points' frame), read in full."""
+    from comreg_core.io.tracked_us import read_tracked_sweep
+
+    recorded = result.get("sweep") or {}
+    T_us_ref = np.eye(4)
+    if sweep is None and recorded.get("path"):
+        sweep, calibration = recorded["path"], recorded.get("calibration")
+        T_us_ref = np.asarray(recorded.get("T_us_ref", T_us_ref), dtype=np.float64).reshape(4, 4)
+    if sweep is None:
+        return None, T_us_ref
+    return read_tracked_sweep(sweep, calibration=calibration), T_us_ref
 
 
 def _metrics_for(path: Path, T_ct_us: np.ndarray) -> dict[str, Any] | None:

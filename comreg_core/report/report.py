@@ -71,7 +71,8 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
                  views: Sequence[str] = VIEW_NAMES, scenes: Sequence[str] | None = None,
                  window_size: tuple[int, int] = (800, 800), embed_images: bool = False,
                  lateral_side: str = "left", style: Style = DEFAULT_STYLE,
-                 progress: Progress | None = None, verdict=None) -> Path:
+                 progress: Progress | None = None, verdict=None, sweep=None,
+                 T_ct_ref: np.ndarray | None = None, n_frames: int = 4) -> Path:
     """Render the overlay screenshots and write ``report.html`` into ``out_dir``.
 
     Args:
@@ -100,6 +101,13 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
         progress: ``progress(done, total, view)`` after each screenshot.
         verdict: a :class:`~comreg_core.registration.verdict.Verdict`: the page then starts with
             ``Verdict: OK`` or ``Verdict: CHECK`` and its reasons.
+        sweep: the :class:`~comreg_core.io.TrackedSweep` the US points came from, with
+            ``T_ct_ref`` (``(4, 4)``: its reference frame -> CT under the registration): the
+            page then shows ``n_frames`` of its B-mode frames, evenly spread over the valid
+            ones, with the registered CT contour drawn in
+            (:func:`~comreg_core.report.sections.frame_overlays`). With ``us_after`` the page
+            always shows CT cuts with the registered points near them
+            (:func:`~comreg_core.report.sections.ct_sections`).
 
     Returns:
         The path of ``report.html``.
@@ -135,9 +143,15 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
             if progress is not None:
                 progress(len(shots), total, name)
         render_s = time.perf_counter() - started
+        cuts = _cross_sections(data, style, sweep, T_ct_ref, n_frames)
+        for picture in cuts:
+            name = f"{picture.name}.png"
+            write_png(picture.image, images_dir / name)
+            sources[("cuts", picture.name)] = (_data_uri(images_dir / name) if embed_images
+                                               else f"{IMAGES_DIR}/{name}")
         page = build_html(
             title=title or "ComReg registration report",
-            sections=_sections(shots, sources, lateral_side, data),
+            sections=_sections(shots, sources, lateral_side, data) + _cut_sections(cuts, sources),
             metrics=metrics,
             inputs=_inputs(inputs, data),
             run=[("Seed", seed), ("Device", device)],
@@ -227,6 +241,46 @@ def _sections(shots: list[Screenshot], sources: dict, lateral_side: str,
                                   f"{heading}, {shot.view.replace('_', ' ')} view",
                                   _caption(shot.view, lateral_side, scene, data), width, height))
         sections.append(Section(heading, text, figures))
+    return sections
+
+
+def _cross_sections(data: SceneData, style: Style, sweep, T_ct_ref, n_frames: int) -> list:
+    """The 2D pictures (:mod:`comreg_core.report.sections`): CT cuts when there are registered
+    points, B-mode frames with the CT contour when the sweep is known."""
+    from comreg_core.report.sections import ct_sections, frame_overlays
+
+    pictures = []
+    if data.us_after is not None:
+        pictures += ct_sections(data.ct, data.frame, data.us_after, data.us_after_distance_mm,
+                                style=style)
+    if sweep is not None and T_ct_ref is not None and n_frames > 0:
+        valid = np.flatnonzero(sweep.valid)
+        chosen = valid[np.unique(np.linspace(0, len(valid) - 1, n_frames + 2)[1:-1].round()
+                                 .astype(int))]
+        pictures += frame_overlays(sweep.frames[chosen],
+                                   np.asarray(T_ct_ref, float) @ sweep.T_ref_pixel[chosen],
+                                   sweep.spacing, data.ct,
+                                   [sweep.frame_names[i] for i in chosen])
+    return pictures
+
+
+def _cut_sections(pictures: list, sources: dict) -> list[Section]:
+    groups = {"frame": ("US frames with the CT contour",
+                        "A few frames of the tracked sweep as recorded, with the contour where "
+                        "the registered CT bone cuts each frame's plane: the usual visual check "
+                        "of a US-CT registration. If it is right, the contour runs along the "
+                        "bright bone echo, with the acoustic shadow below it."),
+              "section": ("CT cross-sections",
+                          "The CT bone cut across its long axis, with the registered US points "
+                          "near each cut. If the registration is right, the points lie on the "
+                          "contour and are dark purple (near 0 mm).")}
+    sections = []
+    for prefix, (heading, text) in groups.items():
+        chosen = [p for p in pictures if p.name.startswith(prefix)]
+        if chosen:
+            sections.append(Section(heading, text, [
+                Figure(sources[("cuts", p.name)], p.title, p.caption, p.image.shape[1],
+                       p.image.shape[0]) for p in chosen]))
     return sections
 
 

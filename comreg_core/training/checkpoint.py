@@ -164,6 +164,39 @@ def check_fingerprint(expected: str, actual: dict[str, Any] | str, where: str = 
             "CT with 'comreg pretrain'.")
 
 
+#: A given CT mesh is the run's bone when its surface and the run's stored one lie within this
+#: distance (mm) of each other at the 95th percentile, both ways
+#: (:func:`~comreg_core.registration.metrics.surface_disagreement_mm`). Measured: the shared
+#: fibula STL against the bundled model's CT (the same bone extracted again from its
+#: segmentation) 0.23 mm; the same bone moved 2 mm: ~2 mm; another bone: tens of mm. Well below
+#: the 4 mm of a failed registration, so a mesh that passes cannot move a result noticeably.
+SAME_BONE_TOLERANCE_MM = 1.0
+
+
+def check_same_bone(state: dict[str, Any], ct_mesh, where: str = "") -> float:
+    """Raise :class:`CheckpointError` unless ``ct_mesh`` (path or SurfaceMesh) is the bone the
+    checkpoint ``state`` was trained for: the identical mesh (sha256 fingerprint) or the same
+    surface re-meshed or written by another tool (in either patient space), within
+    :data:`SAME_BONE_TOLERANCE_MM`. Returns the surfaces' disagreement (mm; 0.0 when identical)."""
+    from comreg_core.io.meshes import SurfaceMesh, read_mesh
+    from comreg_core.registration.metrics import surface_disagreement_mm
+
+    mesh = ct_mesh if isinstance(ct_mesh, SurfaceMesh) else read_mesh(ct_mesh)
+    if ct_fingerprint(mesh.vertices, mesh.faces)["sha256"] == state["ct_fingerprint"]:
+        return 0.0
+    space = str(state.get("ct_space", "LPS"))
+    stored = (state["ct_vertices"].numpy(), state["ct_faces"].numpy())
+    gap = surface_disagreement_mm(stored, mesh.in_space(space))
+    if not gap <= SAME_BONE_TOLERANCE_MM:
+        raise CheckpointError(
+            f"The checkpoint{where} was trained for another CT: the given mesh lies {gap:.1f} mm "
+            f"from the run's CT bone (95th percentile; the same bone re-meshed is within "
+            f"{SAME_BONE_TOLERANCE_MM:g} mm).",
+            "Register against the CT the model was pretrained on (in the same place), or "
+            "pretrain a model for this CT with 'comreg pretrain'.")
+    return gap
+
+
 def run_ct_mesh(run_dir: str | Path):
     """The CT bone mesh a run was trained on, from its checkpoint (a :class:`SurfaceMesh` in the
     CT's patient space): the run stays usable even if the original mesh file moved."""

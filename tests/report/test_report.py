@@ -75,12 +75,14 @@ def test_report_files(report):
     out = path.parent
     assert path == out / runs.REPORT and path.is_file()
     names = sorted(p.name for p in (out / IMAGES_DIR).iterdir())
-    assert names == sorted(image_name(s, v) for s in SCENES for v in VIEW_NAMES)
+    cuts = ["section_25.png", "section_50.png", "section_75.png"]  # CT cross-sections
+    assert names == sorted([image_name(s, v) for s in SCENES for v in VIEW_NAMES] + cuts)
     from PIL import Image
 
     for name in names:
         with Image.open(out / IMAGES_DIR / name) as image:
-            assert image.size == TEST_WINDOW and image.mode == "RGB"
+            size = (480, 480) if name in cuts else TEST_WINDOW
+            assert image.size == size and image.mode == "RGB"
     assert (out / "config.yaml").read_text() == "seed: 7\n"
     assert sorted(p.name for p in out.iterdir()) == sorted(["config.yaml", IMAGES_DIR,
                                                            runs.REPORT])  # no staging left
@@ -90,7 +92,7 @@ def test_report_files(report):
 def test_page_references_every_image_relatively_and_nothing_external(report):
     path, _ = report
     _, page = _parse(path)
-    assert len(page.images) == 9
+    assert len(page.images) == 9 + 3  # screenshots + CT cross-sections
     for src in page.images:
         assert src.startswith(f"{IMAGES_DIR}/") and (path.parent / src).is_file()
     assert not page.links
@@ -159,7 +161,7 @@ def test_embedded_images_make_one_file(case, tmp_path):
                         window_size=(160, 120), embed_images=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == [runs.REPORT]
     _, page = _parse(path)
-    assert len(page.images) == 1
+    assert len(page.images) == 1 + 3  # the view and the three CT cross-sections
     prefix = "data:image/png;base64,"
     assert page.images[0].startswith(prefix)
     with Image.open(io.BytesIO(base64.b64decode(page.images[0][len(prefix):]))) as image:
@@ -197,7 +199,8 @@ def test_a_failed_report_leaves_the_previous_one_untouched(case, tmp_path, monke
     write_report(tmp_path, ct_mesh=case.ct, us_after=case.us_after, views=["lateral"],
                  window_size=(96, 96))
     assert sorted(p.name for p in (tmp_path / IMAGES_DIR).iterdir()) == [
-        image_name("registered", "lateral")]
+        image_name("registered", "lateral"), "section_25.png", "section_50.png",
+        "section_75.png"]
     assert "old report" not in (tmp_path / runs.REPORT).read_text()
     assert sorted(p.name for p in tmp_path.iterdir()) == [runs.REPORT, IMAGES_DIR]
 
