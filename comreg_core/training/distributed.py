@@ -14,7 +14,9 @@ process per device and this module supplies the parts:
   LayerNorm) use per-sample statistics and keep no running buffers, so nothing needs
   synchronising (no SyncBatchNorm; :func:`wrap_model` refuses batch-statistics layers). AdaPoinTr's
   query-ranking MLP only orders queries (argsort) and never receives a gradient, in every
-  step: DDP is told the graph is static instead of searching for unused parameters each step.
+  step, and the data-dependent part of a step (ICP runs only on the samples inside the fine-loss
+  gate) has no weights, so every process uses the same parameters in every step: DDP is told
+  the graph is static instead of searching for unused parameters each step.
 * :meth:`World.mean` and :meth:`World.main_decides`: the two collectives of a training step,
   the loss terms averaged over processes (logged, and the adaptive loss weight computed from
   the global batch), and rank 0's stop decision (time budget) broadcast, so every process takes
@@ -24,7 +26,10 @@ What the processes share (the trainer's rules): ``training.batch_size`` is the g
 one step, split evenly (it must be a multiple of the process count); an epoch is
 ``samples_per_epoch`` samples at any process count; DDP averages the gradients of the per-process
 batch means, which equals the gradient of the global batch mean. The learning rates are those
-of the global batch, so the world size changes the speed and never the optimisation.
+of the global batch, so the world size changes the speed and never the optimisation. Rank 0
+alone validates (on the unwrapped network, the same figures as one process; the others wait at
+the next step) and writes the run folder. A process restarted by torchrun (``--max-restarts``)
+resumes its run from the checkpoint.
 """
 
 from __future__ import annotations
@@ -54,7 +59,7 @@ class DistributedError(ComRegError):
 
 
 class JobStoppedError(DistributedError):
-    """torchrun stopped this process (``SIGTERM``), e.g. because another process failed."""
+    """The job stops: torchrun stopped this process (``SIGTERM``) or another process is lost."""
 
 
 @dataclass(frozen=True)
@@ -185,7 +190,8 @@ def peer_failures_reported():
         text = str(exc).strip().splitlines()
         first = re.sub(r"^\[[^\]]*\]\s*", "", text[0] if text else type(exc).__name__)
         first = first.split(". ")[0][:200]  # gloo: "[file:line] Connection closed by peer ..."
-        raise JobStoppedError(f"Another process of this torchrun job stopped ({first}).",
+        raise JobStoppedError(f"The processes of this torchrun job lost contact ({first}): "
+                              "another process stopped or cannot be reached.",
                               "The run folder keeps its last checkpoint: run the same command "
                               "with --resume.") from exc
 
@@ -218,8 +224,7 @@ def start(world: World, device: torch.device) -> None:
         torch.cuda.set_device(device)
     if threading.current_thread() is threading.main_thread():
         _previous_sigterm.append(signal.signal(signal.SIGTERM, _stopped_by_signal))
-    kwargs = {"device_id": device} if device.type == "cuda" else {}
-    dist.init_process_group(backend, rank=world.rank, world_size=world.size, **kwargs)
+    dist.init_process_group(backend, rank=world.rank, world_size=world.size)
     world.mean(torch.zeros(1, device=device))  # every process has joined
     log.info("Process %d of %d (local %d) on %s, backend %s", world.rank, world.size,
              world.local_rank, device, backend)

@@ -258,9 +258,9 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     tc = cfg.training
     world.check_batch(tc.batch_size)
     dev = world.device(resolve_device(tc.device))
-    start(world, dev)  # every process has passed the checks before rank 0 writes anything
     try:
         with peer_failures_reported():
+            start(world, dev)  # every process has passed the checks before rank 0 writes
             return _train(cfg, state, ct, mesh, fingerprint, run_dir, world, dev, command_start,
                           progress)
     finally:
