@@ -175,7 +175,7 @@ def test_two_processes_match_one_with_the_same_global_batch(tmp_path, monkeypatc
     """2 epochs on 2 gloo processes (batch 2 each) vs 1 process (batch 4): the same epoch losses
     within LOSS_RTOL, one checkpoint written by rank 0, loaded by a single-process register."""
     run, job, job_s = two_process_run
-    assert job.stdout.count("wrote ") == 1 and "and 1 more processes" in job.stdout  # rank 0
+    assert job.stdout.count("wrote ") == 1 and "x 2 processes" in job.stdout  # rank 0 alone
 
     fix_fps_starts(monkeypatch)
     started = time.monotonic()
@@ -316,3 +316,35 @@ def test_torchrun_user_errors_are_one_line_and_exit_2(tmp_path):
     assert {e.split(":")[0] for e in errors} <= {"error", "error (rank 1)"}
     assert "exitcode  : 2" in job.stderr  # torchrun's report of the failed process
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_torchrun_restarts_resume_the_run_and_the_budget_stops_every_rank_together(tmp_path,
+                                                                                   monkeypatch):
+    """``--max-restarts 1``: after rank 1 is killed, torchrun starts the job again and it
+    continues its own run from the checkpoint (same weights as an uninterrupted run). A
+    ``--max-minutes`` budget stops both processes at the same step (no hang, exit 0)."""
+    over = {**DDP_TINY, "training": {**DDP_TINY["training"], "checkpoint_minutes": 1e-6}}
+    config = tmp_path / "every_step.yaml"
+    config.write_text(yaml.safe_dump(over))
+    ref = torchrun(2, _pretrain_args(tmp_path / "ref", config, 2))
+    assert ref.returncode == 0, ref.stderr[-3000:]
+    run = tmp_path / "run"
+    # without it, a restarted process may read the previous round's gloo address from the store
+    # torchrun shares with the job (pytorch/pytorch#135712) and fail to connect
+    monkeypatch.setenv("TORCH_DISABLE_SHARE_RDZV_TCP_STORE", "1")
+    job = _kill_rank_mid_run(_torchrun_command(2, _pretrain_args(run, config, 2),
+                                               max_restarts=1), run, rank=1)
+    stdout, stderr = job.communicate(timeout=240)
+    assert job.returncode == 0, stderr[-3000:]
+    assert "wrote " in stdout and "x 2 processes" in stdout
+    assert [r["epoch"] for r in _rows(run / "training_log.csv")] == ["0", "1", "2"]
+    a, b = load_checkpoint(run)["model"], load_checkpoint(tmp_path / "ref")["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a), "the restarted run's weights differ"
+
+    budget = torchrun(2, _pretrain_args(tmp_path / "budget", config, 1000)
+                      + ["--max-minutes", "0.5"])
+    assert budget.returncode == 0, budget.stderr[-3000:]
+    assert "(stopped: time)" in budget.stdout
+    state = load_checkpoint(tmp_path / "budget")
+    assert 1 <= state["epoch"] < 1000 and state["world_size"] == 2
