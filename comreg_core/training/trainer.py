@@ -8,8 +8,8 @@
 * ``checkpoint.pt``: the latest checkpoint (:mod:`.checkpoint`), written atomically at the end
   of every ``training.checkpoint_epochs`` epochs, at least every ``training.checkpoint_minutes``
   minutes (also mid-epoch), and when the run stops. A killed run resumed with ``resume=True``
-  continues from it (same data stream, optimiser, scheduler and RNG state) and loses at most one
-  checkpoint interval.
+  continues from it (same data stream, optimiser and scheduler state; every step seeds its own
+  random numbers) and loses at most one checkpoint interval.
 * ``training_log.csv``: one row per epoch (:data:`LOG_COLUMNS`): losses (epoch means), learning
   rates, times, the number of processes, and validation errors on the fixed held-out set when
   validated. Row ``epoch 0`` is the untrained network's validation.
@@ -62,8 +62,8 @@ log = logging.getLogger(__name__)
 
 #: Columns of ``training_log.csv`` (losses are epoch means; ``val_*`` empty when not validated).
 LOG_COLUMNS = (
-    "epoch", "samples", "world_size", "time_s", "epoch_s", "lr_backbone", "lr_head", "loss", "completion",
-    "sparse", "dense", "registration", "reg_coarse", "reg_fine", "correspondence",
+    "epoch", "samples", "world_size", "time_s", "epoch_s", "lr_backbone", "lr_head", "loss",
+    "completion", "sparse", "dense", "registration", "reg_coarse", "reg_fine", "correspondence",
     "skipped_steps", "val_RTE_mm_median", "val_RRE_deg_median", "val_RTE_mm_mean", "val_RRE_deg_mean",
     "val_coarse_RTE_mm_median", "val_coarse_RRE_deg_median", "val_success_rate",
     "val_flip_rate", "val_loss", "val_completion", "val_completion_CD_mm_median", "val_s",
@@ -213,7 +213,8 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
             ``simulation``, ``data``, ``training``).
         max_minutes: time budget of this invocation (overrides ``training.max_minutes``).
         epochs: total epochs (overrides ``training.epochs``; when resuming, may extend the run).
-        resume: continue the run in ``run_dir`` from its checkpoint.
+        resume: continue the run in ``run_dir`` from its checkpoint (implied for a process that
+            torchrun restarted, when the folder holds a checkpoint).
         seed: run seed (default 0; when resuming it must match the run's).
         device: ``"auto"``, ``"cpu"`` or ``"cuda"`` (overrides ``training.device``).
         progress: ``progress(done_steps, total_steps, note)`` callback.
@@ -221,6 +222,8 @@ def pretrain(ct_mesh_path: str | Path, run_dir: str | Path, *, preset: str = "pa
     Raises:
         InputFileNotFoundError, CorruptFileError, InvalidGeometryError: unusable CT mesh.
         ConfigError: invalid settings. CheckpointError: resume problems, CT mismatch on resume.
+        DistributedError: under torchrun, a batch that does not split over the processes, too
+            few GPUs, or a process of the job lost (:class:`~.distributed.JobStoppedError`).
     """
     command_start = time.monotonic()  # the budget covers the whole call, set-up included
     world = World.from_environment()
