@@ -9,7 +9,6 @@ ComRegError`, and what the operating system refuses) are printed as one line and
 from __future__ import annotations
 
 import contextlib
-import logging
 import sys
 from enum import Enum
 from pathlib import Path
@@ -46,8 +45,6 @@ def _main(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details."),
 ) -> None:
     set_verbose(verbose)
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
 
 
 class SurfaceMethod(str, Enum):
@@ -210,7 +207,8 @@ def pretrain(
 
     Each sample is a simulated sweep moved by a random rigid transform; the network learns shape
     completion and the inverse transform end to end (paper, section 2). Checkpoints are written
-    atomically; a killed run continues with --resume.
+    atomically; a killed run continues with --resume. On several GPUs or machines: start it with
+    torchrun (README, "Training on several GPUs or machines").
     """
     from comreg_core.training import pretrain as run_pretraining
 
@@ -219,11 +217,15 @@ def pretrain(
             ct_mesh, out, preset=preset.value, config=config, max_minutes=max_minutes,
             epochs=epochs, resume=resume, seed=seed, device=device.value,
             progress=lambda done, total, note="": advance(int(1000 * done / max(total, 1))))
+    if result.rank:
+        return  # rank 0 reports for the job
     validation = result.validation or {}
     summary = ", ".join(f"{key} {value:.3g}" for key, value in validation.items()
                         if key in ("val_RTE_mm_median", "val_RRE_deg_median", "val_success_rate"))
     typer.echo(f"wrote {result.run_dir}: {result.epochs} epochs, {result.samples_seen} samples in "
-               f"{result.elapsed_s / 60:.1f} min on {result.device} (stopped: {result.stopped})"
+               f"{result.elapsed_s / 60:.1f} min on {result.device}"
+               + (f" x {result.world_size} processes" if result.world_size > 1 else "")
+               + f" (stopped: {result.stopped})"
                + (f"; validation {summary}" if summary else ""))
     from comreg_core.training.checkpoint import network_warning
 

@@ -1,4 +1,5 @@
-"""The one place where the ``comreg`` command turns exceptions into a one-line message.
+"""The one place where the ``comreg`` command turns exceptions into a one-line message (and
+sets up its logging, :func:`set_verbose`).
 
 Every command of :data:`comreg_core.cli.app` is wrapped by :func:`user_errors` (the app's
 :class:`CommandApp` does it on registration, so a new command cannot forget it):
@@ -8,12 +9,17 @@ Every command of :data:`comreg_core.cli.app` is wrapped by :func:`user_errors` (
   ``MemoryError``: ``error: <message>`` on stderr, exit status 2;
 - any other exception is a bug in ComReg: ``error: internal error ...`` on stderr, exit status 1,
   and the traceback only with ``comreg --verbose``.
+
+Under ``torchrun`` every process prints its own line; those of ranks other than 0 say which
+(``error (rank 1): ...``). torchrun then stops the other processes and reports the failed one.
 """
 
 from __future__ import annotations
 
 import errno
 import functools
+import logging
+import os
 
 import typer
 
@@ -38,8 +44,14 @@ _state = {"verbose": False}
 
 
 def set_verbose(verbose: bool) -> None:
-    """With ``verbose``, bugs show their traceback (``comreg --verbose``)."""
+    """Set up the command's logging: with ``verbose`` (``comreg --verbose``) the library logs its
+    progress (INFO) and bugs show their traceback. Processes of a torchrun job other than rank 0
+    log warnings only, tagged with their rank."""
     _state["verbose"] = bool(verbose)
+    rank = process_rank()
+    logging.basicConfig(level=logging.INFO if verbose and not rank else logging.WARNING,
+                        format=f"%(levelname)s {f'[rank {rank}] ' if rank else ''}%(name)s: "
+                        "%(message)s")
 
 
 def os_error_message(exc: OSError) -> str:
@@ -49,6 +61,19 @@ def os_error_message(exc: OSError) -> str:
         what += f": '{exc.filename}'" + ("" if exc.filename2 is None else
                                          f" -> '{exc.filename2}'")
     return f"{what}. {_OS_HINTS.get(exc.errno, '')}".strip()
+
+
+def process_rank() -> int:
+    """This process's rank in a torchrun job (torchrun's ``RANK``), 0 otherwise."""
+    try:
+        return max(int(os.environ.get("RANK", "0")), 0)
+    except ValueError:
+        return 0
+
+
+def _error_prefix() -> str:
+    rank = process_rank()
+    return f"error (rank {rank})" if rank else "error"
 
 
 def _one_line(text: str) -> str:
@@ -76,11 +101,12 @@ def user_errors(command):
         except Exception as exc:
             if _state["verbose"]:  # --verbose: show the bug's traceback
                 raise
-            typer.echo(f"error: internal error ({type(exc).__name__}: {_one_line(exc)}). This "
+            typer.echo(f"{_error_prefix()}: internal error "
+                       f"({type(exc).__name__}: {_one_line(exc)}). This "
                        "is a bug in ComReg; run with --verbose for the traceback and report it.",
                        err=True)
             raise typer.Exit(INTERNAL_ERROR_EXIT) from None
-        typer.echo(f"error: {_one_line(message)}", err=True)
+        typer.echo(f"{_error_prefix()}: {_one_line(message)}", err=True)
         raise typer.Exit(USER_ERROR_EXIT) from None
 
     return wrapper

@@ -130,10 +130,18 @@ def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transf
     correspondence = correspondence_loss(correspondences, gt_transform)
     if correspondences is not None:
         registration = registration + config.lambda_correspondence * correspondence
-    lambda_reg = (config.rho * completion / registration.clamp_min(1e-12)).detach()
+    lambda_reg = balance_weight(completion, registration, config)
     total = completion + lambda_reg * registration
     return LossTerms(total, completion, sparse, dense_cd, registration, reg_coarse, reg_fine,
                      lambda_reg, correspondence)
+
+
+def balance_weight(completion: Tensor, registration: Tensor, config: LossConfig) -> Tensor:
+    """The adaptive weight ``lambda_reg = rho * L_completion / L_registration`` (detached) of
+    the registration term, from batch-mean losses (scalars). Training on several processes
+    passes the means over all processes, so every process weighs with the global batch's
+    ratio, as a single process would (:mod:`comreg_core.training.distributed`)."""
+    return (config.rho * completion / registration.clamp_min(1e-12)).detach()
 
 
 def correspondence_loss(correspondences: Correspondences | None, gt_transform: Tensor) -> Tensor:

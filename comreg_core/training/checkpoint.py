@@ -9,8 +9,10 @@ float64 mm), ``norm_center`` (``(3,)`` float64 mm),
 ``norm_scale`` (mm), ``model`` (state dict), ``optimizer_backbone``, ``optimizer_head``,
 ``scheduler_backbone``, ``scheduler_head`` (state dicts), ``epoch`` (completed epochs), ``step``
 (steps done in the current epoch), ``samples_seen``, ``elapsed_s`` (training time so far),
-``epoch_sums`` (running loss sums of the current epoch), ``torch_rng`` (and ``cuda_rng`` when
-CUDA is used).
+``epoch_sums`` (running loss sums of the current epoch, means over all processes),
+``world_size`` (processes that wrote it; older checkpoints: absent, 1). No random generator
+state: every step seeds its own (:func:`~comreg_core.training.data.step_torch_seed`), so a run
+resumes the same way at any number of processes. Rank 0 alone writes it.
 """
 
 from __future__ import annotations

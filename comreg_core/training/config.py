@@ -86,6 +86,12 @@ class TrainingConfig:
         max_minutes: time budget of one invocation of ``pretrain`` (0 = none); the run stops
             after the step that crosses it and writes a checkpoint.
         device: ``"auto"`` (CUDA if available), ``"cpu"`` or ``"cuda"``.
+        world_size: processes training together (1, or torchrun's ``WORLD_SIZE``). Recorded,
+            not chosen: every start of ``pretrain`` sets it from how it was launched (a value
+            in a ``--config`` file is replaced), so ``config.yaml`` says how the run was made.
+            ``batch_size`` is the global batch of a step, split evenly over the processes, and
+            the learning rates are those of the global batch (see
+            :mod:`comreg_core.training.distributed`).
     """
 
     epochs: int = 500
@@ -104,6 +110,7 @@ class TrainingConfig:
     checkpoint_epochs: int = 1
     max_minutes: float = 0.0
     device: Literal["auto", "cpu", "cuda"] = "auto"
+    world_size: int = 1
 
     def __post_init__(self) -> None:
         require(self.epochs >= 1, "training.epochs", "must be at least 1")
@@ -124,6 +131,7 @@ class TrainingConfig:
         require(self.checkpoint_minutes > 0, "training.checkpoint_minutes", "must be positive")
         require(self.checkpoint_epochs >= 1, "training.checkpoint_epochs", "must be at least 1")
         require(self.max_minutes >= 0, "training.max_minutes", "must be 0 (none) or more")
+        require(self.world_size >= 1, "training.world_size", "must be at least 1")
 
 
 @dataclass(frozen=True)

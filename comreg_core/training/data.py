@@ -18,6 +18,10 @@ Random streams (``numpy.random.SeedSequence(seed, spawn_key=...)``), pairwise di
   resumed run continues the exact stream (sample index = samples already seen);
 * validation sample ``j``: spawn key ``(VALIDATION_NAMESPACE, j)``;
 * the CT cloud: spawn key ``(CT_CLOUD_NAMESPACE,)``;
+* torch's global generator (the network's random farthest-point-sampling starts) is seeded
+  before every training step from spawn key ``(STEP_NAMESPACE, i)``, ``i`` the first sample of
+  the step's batch (of this process's part of it when training on several processes), so a
+  resumed run needs no saved generator state and processes draw from disjoint streams;
 * evaluation (``comreg_core.evaluation``) uses ``(EVALUATION_SEED_NAMESPACE, stream, index)``.
 
 Samples are made in background worker processes (a ``torch.utils.data.DataLoader`` over an
@@ -43,12 +47,21 @@ from comreg_core.transforms import apply_transform, invert_rigid
 VALIDATION_NAMESPACE = 0x56414C49
 #: Spawn-key word of the CT cloud's stream (ASCII "CTPT").
 CT_CLOUD_NAMESPACE = 0x43545054
+#: First spawn-key word of the per-step torch seeds (ASCII "STEP").
+STEP_NAMESPACE = 0x53544550
 
 
 def validation_rng(seed: int, index: int) -> np.random.Generator:
     """Generator of held-out validation sample ``index`` (disjoint from training streams)."""
     return np.random.default_rng(np.random.SeedSequence(int(seed),
                                                         spawn_key=(VALIDATION_NAMESPACE, index)))
+
+
+def step_torch_seed(seed: int, first_sample: int) -> int:
+    """Seed of torch's global generator for the training step whose (part of the) batch starts
+    at sample ``first_sample``: a 63-bit integer from spawn key ``(STEP_NAMESPACE, first_sample)``."""
+    state = np.random.SeedSequence(int(seed), spawn_key=(STEP_NAMESPACE, int(first_sample)))
+    return int(state.generate_state(1, np.uint64)[0] >> np.uint64(1))
 
 
 def ct_cloud_rng(seed: int) -> np.random.Generator:
@@ -123,28 +136,36 @@ def collate(samples: list[Sample], first_index: int) -> dict[str, torch.Tensor]:
 class SampleStream(IterableDataset):
     """Endless batches of training samples, starting at sample ``start``.
 
-    Batch ``b`` holds samples ``start + b * batch_size + j``, ``j < batch_size``; with ``W``
-    workers, worker ``w`` makes batches ``b = w, w + W, ...`` and the DataLoader returns them in
-    order, so the stream is identical for any worker count. Picklable (the ray-casting scene is
-    built inside each worker).
+    Global batch ``b`` holds samples ``start + b * batch_size + j``, ``j < batch_size``. Training
+    on ``processes`` processes, process ``rank`` takes the contiguous part ``j = rank * n ...
+    rank * n + n - 1`` of every global batch, ``n = batch_size // processes``: the processes
+    draw disjoint samples, and together the same samples at any process count. With ``W``
+    data workers, worker ``w`` makes batches ``b = w, w + W, ...`` and the DataLoader returns
+    them in order, so the stream is identical for any worker count. Picklable (the ray-casting
+    scene is built inside each worker).
     """
 
     def __init__(self, ct: TrainingCT, simulation: SimulationConfig, pose: str, seed: int,
-                 batch_size: int, start: int = 0):
+                 batch_size: int, start: int = 0, rank: int = 0, processes: int = 1):
         super().__init__()
+        if processes < 1 or not 0 <= rank < processes or batch_size % processes:
+            raise ValueError(f"cannot split batches of {batch_size} over {processes} processes "
+                             f"(rank {rank})")
         self.ct, self.simulation, self.pose = ct, simulation, pose
         self.seed, self.batch_size, self.start = int(seed), int(batch_size), int(start)
+        self.rank, self.processes = int(rank), int(processes)
 
     def __iter__(self):
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
         bone = BoneModel((self.ct.vertices, self.ct.faces))
+        part = self.batch_size // self.processes
         b = worker
         while True:
-            first = self.start + b * self.batch_size
+            first = self.start + b * self.batch_size + self.rank * part
             samples = [make_sample(bone, self.ct, self.simulation, self.pose,
                                    sweep_rng(self.seed, first + j))
-                       for j in range(self.batch_size)]
+                       for j in range(part)]
             yield collate(samples, first)
             b += workers
 

@@ -1,0 +1,60 @@
+"""One optimisation step of pretraining, the same in one process and in several (DDP).
+
+:func:`train_step` seeds torch's generator for the step (:func:`~comreg_core.training.data.
+step_torch_seed`), runs the network on this process's part of the global batch, averages the
+loss terms over the processes (:meth:`~comreg_core.training.distributed.World.mean`), and
+back-propagates the loss weighted as for the global batch.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from comreg_core.model.losses import balance_weight, in_fine_gate, output_loss
+from comreg_core.training.config import PretrainConfig
+from comreg_core.training.data import step_torch_seed
+from comreg_core.training.distributed import World
+
+#: The logged loss terms (batch means): ``total`` and the terms of
+#: :class:`~comreg_core.model.losses.LossTerms` it is made of.
+LOSS_TERMS = ("total", "completion", "sparse", "dense", "registration", "reg_coarse",
+              "reg_fine", "correspondence")
+
+
+def train_step(model: torch.nn.Module, batch: dict[str, torch.Tensor], ct_points_n: torch.Tensor,
+                cfg: PretrainConfig, optimizers: list, world: World, dev: torch.device
+                ) -> tuple[dict[str, float], bool]:
+    """One optimisation step on this process's part of the global batch.
+
+    The loss terms are averaged over the processes before the backward pass: the adaptive
+    weight of the registration term comes from the global batch's means (as in one process),
+    and every process sees the same total, so all of them apply or all skip a non-finite step.
+    Every process runs the backward pass (DDP averages the gradients in it).
+
+    Returns:
+        The loss terms of :data:`LOSS_TERMS`, means over the global batch, and whether the
+        step was applied (False: a non-finite loss, weights left unchanged).
+    """
+    torch.manual_seed(step_torch_seed(cfg.seed, int(batch["index"][0])))
+    source = batch["source"].to(dev, non_blocking=True)  # b N 3
+    gt_points = batch["gt_points"].to(dev, non_blocking=True)  # b M 3
+    gt_transform = batch["gt_transform"].to(dev, non_blocking=True)  # b 4 4
+    for opt in optimizers:
+        opt.zero_grad(set_to_none=True)
+    loss_cfg = cfg.model.loss
+    out = model(source, ct_points_n[None], refine_only=lambda coarse: in_fine_gate(
+        coarse, gt_transform, loss_cfg))
+    terms = output_loss(out, gt_points, gt_transform, loss_cfg)
+    means = world.mean(torch.stack([getattr(terms, name) for name in LOSS_TERMS[1:]]))
+    completion, registration = means[0], means[3]
+    weight = balance_weight(completion, registration, loss_cfg)
+    total = completion + weight * registration
+    (terms.completion + weight * terms.registration).backward()
+    applied = bool(torch.isfinite(means).all()) and bool(torch.isfinite(total))
+    if applied:
+        if cfg.training.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.training.grad_clip)
+        for opt in optimizers:
+            opt.step()
+    values = dict(zip(LOSS_TERMS[1:], means.tolist()))
+    return {"total": float(total), **values}, applied
