@@ -425,11 +425,9 @@ def report(
     transform: Optional[Path] = typer.Option(
         None, "--transform", help="Judge and show this T_ct_us (ITK .tfm/.h5, e.g. edited or "
         "from another tool) on the folder's US points and CT instead of the registration's."),
-    sweep: Optional[Path] = typer.Option(None, "--sweep", help="The tracked sweep the points "
-                                         "came from (default: the one given to 'comreg "
-                                         "register'): B-mode frames with the CT contour."),
-    calibration: Optional[Path] = typer.Option(None, "--calibration", help="The sweep's "
-                                               "calibration."),
+    sweep: Optional[Path] = typer.Option(None, "--sweep", help="The points' tracked sweep "
+                                         "(default: register's): frames with the CT contour."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration", help="Its calibration."),
 ) -> None:
     """Judge the registration (Verdict: OK or CHECK, from the US points, the transform and the
     CT alone), render off-screen screenshots (US points coloured by distance to the CT, before
