@@ -133,8 +133,8 @@ class CompoundMode(str, Enum):
 def extract_us(
     sweep: Path = typer.Argument(
         ..., help="Tracked US sweep: PLUS sequence (.igs.mha, .seq.mha, .igs.nrrd, .seq.nrrd), a "
-        "frame folder (PNG frames + tracking.csv + calibration.json) or a 3D Slicer volume "
-        "sequence (.seq.nrrd)."),
+        "frame folder (PNG frames + tracking.csv + calibration.json), a 3D Slicer volume "
+        "sequence (.seq.nrrd), or a reconstructed 3D US volume (.nrrd, .mha)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output point cloud (.ply, .pcd, .xyz, "
                              ".npy, ...), bone surface points in the tracking reference frame."),
     calibration: Optional[Path] = typer.Option(
@@ -152,6 +152,8 @@ def extract_us(
     compound_spacing: float = typer.Option(0.5, min=0.01, help="Voxel size of --compound (mm)."),
     compound_mode: CompoundMode = typer.Option(CompoundMode.mean, help="Voxel value of "
                                                "--compound where frames overlap."),
+    beam_direction: str = typer.Option("auto", "--beam-direction", help="A reconstructed "
+                                       "volume's beam: auto, or a voxel axis x, -x, y, -y, z, -z."),
 ) -> None:
     """Extract the bone surface seen by a tracked US sweep as a point cloud.
 
@@ -166,7 +168,15 @@ def extract_us(
     from comreg_core.surfaces.us_compounding import compound_sweep
     from comreg_core.surfaces.us_config import load_us_extraction_config
 
+    from comreg_core.surfaces.us_volume import extract_volume_to_file, is_volume_file
+
     check_us_outputs(out, compound, inputs=[sweep, calibration, masks, config])
+    if is_volume_file(sweep):
+        typer.echo("wrote " + extract_volume_to_file(
+            sweep, out, beam_direction=beam_direction, config=config,
+            frame_options={"--calibration": calibration, "--masks": masks,
+                           "--compound": compound}).summary())
+        return
     settings = load_us_extraction_config(config)
     tracked = read_tracked_sweep(sweep, calibration=calibration, reference=settings.reference)
     with _progress_bar(len(tracked.frames), "detecting bone") as advance:
@@ -332,7 +342,7 @@ def evaluate(
     with and without its hypotheses stage and the baselines (Open3D RANSAC+FPFH+ICP; ICP from
     the ground truth), written to metrics.json."""
     from comreg_core.evaluation.evaluate import evaluate as run_evaluation
-    from comreg_core.evaluation.evaluate import write_metrics
+    from comreg_core.evaluation.evaluate import summary_line, write_metrics
     from comreg_core.evaluation.methods import (load_evaluate_config, method_names,
                                                 registration_methods)
     from comreg_core.registration.inputs import limit_us_points
@@ -372,7 +382,7 @@ def evaluate(
     path = write_metrics(result, Path(out) / runs.METRICS)
     typer.echo(f"wrote {path}")
     for name, summary in result["summary"].items():
-        typer.echo(f"  {name}: {_summary_line(summary)}")
+        typer.echo(f"  {name}: {summary_line(summary)}")
 
 
 def _run_and_points(inputs: list, model: Path | None) -> tuple[Path | None, Any]:
@@ -398,22 +408,6 @@ def _check_us_cloud(methods: dict, points) -> None:
         if isinstance(owner, Registrar):
             owner.check_points(points)
             return
-
-
-def _summary_line(summary: dict) -> str:
-    """One line of an evaluation summary; "n/a" where no trial gave a value."""
-    def number(value, fmt: str) -> str:
-        return "n/a" if value is None else format(value, fmt)
-
-    flagged = "" if summary["ambiguous_rate"] is None else (
-        f", flagged ambiguous {number(summary['ambiguous_rate'], '.1%')} (unflagged flips "
-        f"{number(summary['unflagged_flip_rate'], '.1%')})")
-    failures = f", {summary['failures']} failed" if summary.get("failures") else ""
-    return (f"success {number(summary['success_rate'], '.1%')}, flips "
-            f"{number(summary['flip_rate'], '.1%')}, median RTE "
-            f"{number(summary['RTE_mm']['median'], '.2f')} mm, median RRE "
-            f"{number(summary['RRE_deg']['median'], '.2f')} deg, mean runtime "
-            f"{number(summary['runtime_s']['mean'], '.2f')} s{flagged}{failures}")
 
 
 @app.command("report")

@@ -322,3 +322,19 @@ def write_metrics(result: dict[str, Any], path: str | Path) -> Path:
     with atomic_output(path) as tmp:
         tmp.write_text(text + "\n", encoding="utf-8")
     return path
+
+
+def summary_line(summary: dict) -> str:
+    """One line of a method's evaluation summary (``comreg evaluate`` prints it); "n/a" where no trial gave a value."""
+    def number(value, fmt: str) -> str:
+        return "n/a" if value is None else format(value, fmt)
+
+    flagged = "" if summary["ambiguous_rate"] is None else (
+        f", flagged ambiguous {number(summary['ambiguous_rate'], '.1%')} (unflagged flips "
+        f"{number(summary['unflagged_flip_rate'], '.1%')})")
+    failures = f", {summary['failures']} failed" if summary.get("failures") else ""
+    return (f"success {number(summary['success_rate'], '.1%')}, flips "
+            f"{number(summary['flip_rate'], '.1%')}, median RTE "
+            f"{number(summary['RTE_mm']['median'], '.2f')} mm, median RRE "
+            f"{number(summary['RRE_deg']['median'], '.2f')} deg, mean runtime "
+            f"{number(summary['runtime_s']['mean'], '.2f')} s{flagged}{failures}")

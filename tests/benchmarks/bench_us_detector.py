@@ -8,7 +8,9 @@ Run from the repository root::
 Frames per second of :func:`detect_bone_surface` (evidence maps + dynamic programme + subpixel
 refinement) on the fibula frames (950 x 811 px at 0.054 mm, worked at 0.108 mm) and on PLUS's
 SpinePhantomFreehand frames (820 x 616 px at 0.085 mm, worked at full resolution), in this
-process with BLAS/OpenMP threads set to 1. Timings on a shared 2-core machine are pessimistic.
+process with BLAS/OpenMP threads set to 1, and seconds per reconstructed volume (bone points
+from a compounded fibula volume and PLUS's spine-phantom reconstruction). Timings on a shared
+2-core machine are pessimistic.
 """
 
 from __future__ import annotations
@@ -99,9 +101,26 @@ def main(argv: list[str] | None = None) -> None:
         maps = _rate(bone_evidence, sweep.frames, sweep.spacing, args.repeats)
         print(f"{name}: {sweep.n_frames} frames {W} x {H} px at {sweep.spacing[0]:.3f} mm: "
               f"detector {full:.1f} frames/s (evidence maps alone {maps:.1f} frames/s)")
+    _volumes(fibula, plus / "TestImages" / "SpinePhantomFreehandReconstructed.mha")
     if not args.no_accuracy:
         print("fibula accuracy (default config):")
         print(_accuracy(fibula))
+
+
+def _volumes(fibula, spine_volume) -> None:
+    """Seconds to get bone points from a reconstructed volume (beam direction auto): the fibula
+    sweep compounded at 0.5 mm and PLUS's reconstructed spine-phantom volume."""
+    from comreg_core.io.volumes import read_volume
+    from comreg_core.surfaces.us_compounding import compound_sweep
+    from comreg_core.surfaces.us_volume import extract_volume_surface
+
+    for name, volume in (("fibula compounded at 0.5 mm", compound_sweep(fibula, 0.5)),
+                         ("PLUS spine phantom reconstruction", read_volume(spine_volume))):
+        start = time.perf_counter()
+        result, slices = extract_volume_surface(volume)
+        print(f"volume, {name} ({' x '.join(map(str, volume.array.shape))} voxels): "
+              f"{time.perf_counter() - start:.1f} s, {slices.n_frames} slices, "
+              f"{len(result.points.points)} points")
 
 
 if __name__ == "__main__":

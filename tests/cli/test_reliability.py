@@ -260,7 +260,7 @@ def test_evaluate_where_every_trial_fails_is_an_error_and_writes_nothing(sample,
 
 
 def test_evaluate_summary_line_with_no_values():
-    from comreg_core.cli import _summary_line
+    from comreg_core.evaluation.evaluate import summary_line as _summary_line
 
     empty = {"mean": None, "std": None, "median": None}
     summary = {"RTE_mm": empty, "RRE_deg": empty, "runtime_s": empty, "success_rate": 0.0,

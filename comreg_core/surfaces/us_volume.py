@@ -1,0 +1,343 @@
+"""Bone points from a reconstructed (compounded) 3D ultrasound volume.
+
+3D Slicer's volume reconstruction (SlicerIGT), PLUS's ``VolumeReconstructor``, ``comreg
+extract-us --compound`` and 3D probes give one scalar volume instead of tracked frames: the beam
+direction of each voxel is lost. This module gives the volume back the shape the frame detector
+(:mod:`comreg_core.surfaces.us_detector`) knows, then runs the frame path:
+
+1. **Coverage**: voxels above 0 were imaged; the rest were not (a sparse freehand sweep leaves
+   most of its box empty between the frames).
+2. **Slice normal**: a freehand sweep's frames are nearly parallel; the coverage then consists of
+   thin slabs, and the dominant direction of its gradient (the structure tensor of the coverage
+   at 1 mm) is their normal (measured on the shared fibula sweep compounded at 0.5 mm: 4 deg from
+   the frames' mean normal). A densely (hole-filled) reconstructed volume is smooth across its
+   frames: the direction of least intensity change is taken instead (PLUS's spine phantom:
+   15 deg).
+3. **Beam direction** (``auto``): echo layers lie across the beam, so in the frame plane the
+   intensity changes most along it (the structure tensor of the coverage-normalised intensity),
+   and echoes fade with depth, which gives its sign (fibula: 2 deg from the frames' mean beam;
+   PLUS spine phantom: 15 deg). Or a volume axis given by the user (``x``, ``-y``, ...: the voxel
+   index axes ``i j k`` in the volume's space).
+4. **Slices**: the volume resampled (trilinear) on a grid aligned with the slice normal, the beam
+   and the third direction, every :data:`SLICE_MM` along the normal; holes between frames filled
+   by linear interpolation along the normal (gaps up to :data:`MAX_GAP_MM`); pixels never imaged
+   set to their slice's median imaged intensity, so the edge of the imaged region is neither a
+   bright ridge nor a shadow. Each slice is a frame, rows along the beam, with its pose.
+5. The frame path: the shadow-aware detector and the denoising of
+   :func:`~comreg_core.surfaces.us.extract_us_surface`. A label volume (a few integer values,
+   bone segmented in the US volume) gives the first labelled voxel along the beam instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from comreg_core.errors import ComRegError
+from comreg_core.io.sweeps import TrackedSweep
+from comreg_core.io.volumes import Volume
+
+#: ``--beam-direction`` choices: ``auto`` or a voxel index axis of the volume, either way.
+BEAM_DIRECTIONS = ("auto", "x", "-x", "y", "-y", "z", "-z")
+#: Distance between the slices cut from the volume, along the slice normal (mm).
+SLICE_MM = 1.0
+#: Holes between imaged slabs up to this long (mm, along the slice normal) are interpolated.
+MAX_GAP_MM = 20.0
+#: Coverage whose structure tensor has this share of its energy in one direction is a stack of
+#: frame slabs (fibula sweep: 0.93; a dense reconstruction: about 1/3 each).
+SLAB_ANISOTROPY = 0.6
+#: Detections from a volume's slices below this bone probability are dropped: the weakest
+#: echoes of interpolated slices are the least accurate (fibula: keeping score >= 0.15, about
+#: three quarters of them, takes p90 from 3.2 to 2.9 mm).
+VOLUME_MIN_SCORE = 0.15
+#: A volume with at most this many distinct integer values is a label volume.
+MAX_LABELS = 16
+
+
+class NotAUsVolumeError(ComRegError):
+    """The volume cannot be a reconstructed ultrasound volume (2D, empty, no geometry)."""
+
+
+def check_us_volume(volume: Volume) -> None:
+    """Refuse what cannot be a reconstructed ultrasound volume: not 3D, fewer than 3 voxels
+    along an axis, no usable geometry, or all one value (e.g. all zero)."""
+    shape = volume.array.shape
+    where = f" '{volume.path}'" if volume.path else ""
+    if volume.array.ndim != 3 or min(shape) < 3:
+        raise NotAUsVolumeError(f"The volume{where} is {'x'.join(map(str, shape))} voxels: a 3D "
+                                "ultrasound volume needs at least 3 voxels along every axis.",
+                                "Pass a reconstructed 3D volume (a 2D image is a frame: use a "
+                                "tracked sweep).")
+    M = volume.ijk_to_space
+    spacing = np.linalg.norm(M[:3, :3], axis=0)
+    if not np.isfinite(M).all() or (spacing <= 0).any() or abs(np.linalg.det(M[:3, :3])) < 1e-12:
+        raise NotAUsVolumeError(f"The volume{where} has no usable spatial geometry (spacing "
+                                f"{spacing.tolist()}).", "Export it with its spacing, origin and "
+                                "directions (NRRD or MetaImage).")
+    if not np.isfinite(volume.array).all() if volume.array.dtype.kind == "f" else False:
+        raise NotAUsVolumeError(f"The volume{where} holds NaN or infinite voxels.",
+                                "Export the reconstructed B-mode volume again.")
+    if float(np.ptp(volume.array)) == 0.0:
+        raise NotAUsVolumeError(f"Every voxel of the volume{where} has the same value "
+                                f"({volume.array.flat[0]}).",
+                                "Pass the reconstructed B-mode volume (or a bone label volume).")
+
+
+def is_label_volume(volume: Volume) -> bool:
+    """Integer voxels with at most :data:`MAX_LABELS` distinct values (0 = background)."""
+    array = volume.array
+    if array.dtype.kind not in "biu":
+        return False
+    return len(np.unique(array[:: max(1, array.size // 2_000_000)])) <= MAX_LABELS \
+        and len(np.unique(array)) <= MAX_LABELS
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _coarse(volume: Volume, step_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(voxels (I', J', K') float32, ijk' -> space (4, 4))`` subsampled to about ``step_mm``."""
+    spacing = np.linalg.norm(volume.ijk_to_space[:3, :3], axis=0)
+    steps = np.maximum(1, np.rint(step_mm / spacing).astype(int))
+    array = volume.array[::steps[0], ::steps[1], ::steps[2]].astype(np.float32)
+    return array, volume.ijk_to_space @ np.diag([*steps, 1.0])
+
+
+def sweep_normal(volume: Volume) -> np.ndarray:
+    """The unit normal (space) of the frames the volume was compounded from: the normal of the
+    imaged slabs of a sparse freehand reconstruction (the dominant direction of the coverage's
+    gradient), else the direction along which the intensity changes least (a hole-filled
+    reconstruction is smooth across its frames and sharp within them; PLUS's spine phantom:
+    15 deg from the frames' mean normal)."""
+    array, M = _coarse(volume)
+    R = M[:3, :3] / np.linalg.norm(M[:3, :3], axis=0)  # index axes -> space directions
+    covered = ndimage.gaussian_filter((array > 0).astype(np.float32), 1.0)
+    w, V = np.linalg.eigh(R @ _structure_tensor(covered, covered > 0.02) @ R.T)
+    if w.sum() > 0 and w[-1] / w.sum() >= SLAB_ANISOTROPY:
+        return _unit(V[:, -1])
+    inside = ndimage.binary_erosion(array > 0, iterations=2)
+    if not inside.any():
+        inside = array > 0
+    w, V = np.linalg.eigh(R @ _structure_tensor(ndimage.gaussian_filter(array, 1.0), inside)
+                          @ R.T)
+    return _unit(V[:, 0])
+
+
+def _structure_tensor(image: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` sum of the outer products of the gradient of ``image`` over ``where``."""
+    grad = np.gradient(image)
+    return np.array([[float(np.sum(grad[a][where] * grad[b][where])) for b in range(3)]
+                     for a in range(3)])
+
+
+def estimate_beam(volume: Volume, normal: np.ndarray | None) -> np.ndarray:
+    """The unit beam direction (space), in the plane normal to ``normal`` when given: the axis
+    along which the intensity changes most (echo layers lie across the beam: the largest
+    eigenvector of the structure tensor of the coverage-normalised intensity, 1 mm smoothed,
+    inside the imaged region), pointing down the mean intensity gradient (echoes fade with
+    depth). Fibula sweep compounded at 0.5 mm: 2 deg from the frames' mean beam."""
+    array, M = _coarse(volume)
+    spacing = np.linalg.norm(M[:3, :3], axis=0)
+    R = M[:3, :3] / spacing  # index axes -> space directions
+    covered = (array > 0).astype(np.float32)
+    weight = ndimage.gaussian_filter(covered, 1.0 / spacing)
+    level = np.where(weight > 0.05, ndimage.gaussian_filter(array, 1.0 / spacing)
+                     / np.maximum(weight, 1e-6), 0.0)
+    inside = (covered > 0) & (ndimage.minimum_filter(weight, size=3) > 0.2)
+    if inside.sum() < 100:
+        inside = covered > 0
+    grad = [R @ g for g in [np.stack([d[inside] for d in np.gradient(level, *spacing)])]][0]
+    plane = np.eye(3) if normal is None else np.eye(3) - np.outer(normal, normal)
+    w, V = np.linalg.eigh(plane @ (grad @ grad.T) @ plane)
+    falloff = -(plane @ grad.mean(axis=1))
+    if not w[-1] > 0:
+        raise NotAUsVolumeError("The volume shows no depth direction (no intensity structure).",
+                                "Give --beam-direction (x, -x, y, -y, z or -z).")
+    beam = _unit(V[:, -1])
+    return beam if beam @ falloff >= 0 else -beam
+
+
+def check_beam_direction(name: str) -> None:
+    """Raise a one-line error unless ``name`` is one of :data:`BEAM_DIRECTIONS`."""
+    if name not in BEAM_DIRECTIONS:
+        raise ComRegError(f"Unknown beam direction '{name}'.",
+                          f"Use one of: {', '.join(BEAM_DIRECTIONS)}.")
+
+
+def beam_from_name(volume: Volume, name: str) -> np.ndarray:
+    """The unit space direction of a voxel index axis (``"x"`` = ``i``, ``"-z"`` = ``-k``)."""
+    check_beam_direction(name)
+    if name == "auto":
+        raise ComRegError("'auto' is not a volume axis.", "Use x, -x, y, -y, z or -z.")
+    axis = "xyz".index(name[-1])
+    return (-1.0 if name.startswith("-") else 1.0) * _unit(volume.ijk_to_space[:3, axis])
+
+
+def slicing_normal(volume: Volume, beam: np.ndarray, normal: np.ndarray | None,
+                   points: np.ndarray | None = None) -> np.ndarray:
+    """The unit normal of the slices: ``normal`` made perpendicular to ``beam``, or without one
+    the direction, perpendicular to the beam, of the imaged region's longest extent."""
+    if normal is None:
+        if points is None:
+            covered = volume.array > 0
+            points = np.argwhere(covered)[:: max(1, int(covered.sum()) // 200_000)] \
+                @ volume.ijk_to_space[:3, :3].T + volume.ijk_to_space[:3, 3]
+        flat = points - points.mean(axis=0)
+        flat -= np.outer(flat @ beam, beam)
+        normal = np.linalg.svd(flat, full_matrices=False)[2][0]
+    return _unit(np.asarray(normal, float) - (np.asarray(normal, float) @ beam) * beam)
+
+
+def volume_as_sweep(volume: Volume, beam: np.ndarray, normal: np.ndarray | None = None, *,
+                    slice_mm: float = SLICE_MM, labels: bool = False) -> TrackedSweep:
+    """The volume as a sweep of 2D slices (module docstring, step 4): rows along ``beam``
+    (row 0 where the beam comes from), slices normal to ``normal`` (default: across the
+    coverage's longest extent), pixels of the volume's finest spacing, uint8. With ``labels``
+    the slices are the label volume's (nearest voxel, 255 = labelled), nothing filled."""
+    array = volume.array.astype(np.float32)
+    if labels:
+        array = (volume.array > 0).astype(np.float32) * 255.0
+    elif volume.array.dtype != np.uint8:
+        lo, hi = float(array.min()), float(array.max())
+        array = (array - lo) * (255.0 / max(hi - lo, 1e-12))
+    covered = volume.array > 0
+    M = volume.ijk_to_space
+    beam = _unit(np.asarray(beam, float))
+    points = np.argwhere(covered)[:: max(1, int(covered.sum()) // 200_000)] @ M[:3, :3].T \
+        + M[:3, 3]
+    normal = slicing_normal(volume, beam, normal, points)
+    across = np.cross(beam, normal)  # columns; (across, beam, normal) is right-handed
+    basis = np.stack([normal, beam, across])
+    pixel = float(np.linalg.norm(M[:3, :3], axis=0).min())
+    proj = points @ basis.T
+    lo = proj.min(axis=0) - pixel
+    span = proj.max(axis=0) + pixel - lo
+    # resampled and filled every pixel (the volume's finest spacing) along the normal, so thin
+    # imaged slabs are not missed; every slice_mm-th slice becomes a frame
+    fine = int(span[0] // pixel) + 1
+    every = max(1, int(round(slice_mm / pixel)))
+    rows, cols = (int(v) for v in np.ceil(span[1:] / pixel) + 1)
+    Minv = np.linalg.inv(M)
+    rr, cc = np.meshgrid(np.arange(rows) * pixel, np.arange(cols) * pixel, indexing="ij")
+    plane = lo[1] * beam + lo[2] * across + rr[..., None] * beam + cc[..., None] * across
+    values = np.zeros((fine, rows, cols), np.float32)
+    imaged = np.zeros((fine, rows, cols), bool)
+    coverage = covered.astype(np.float32)
+    for k in range(fine):
+        ijk = ((plane + (lo[0] + k * pixel) * normal).reshape(-1, 3) @ Minv[:3, :3].T
+               + Minv[:3, 3]).T
+        values[k] = ndimage.map_coordinates(array, ijk, order=0 if labels else 1,
+                                            cval=0.0).reshape(rows, cols)
+        imaged[k] = ndimage.map_coordinates(coverage, ijk, order=1,
+                                            cval=0.0).reshape(rows, cols) > 0.5
+    frames = values.astype(np.uint8) if labels else _fill_slices(values, imaged, pixel)
+    frames = frames[::every]
+    n_slices = len(frames)
+    T = np.tile(np.eye(4), (n_slices, 1, 1))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2] = across, beam, normal
+    T[:, :3, 3] = (lo[1] * beam + lo[2] * across)[None] \
+        + (lo[0] + np.arange(n_slices) * every * pixel)[:, None] * normal
+    return TrackedSweep(frames, np.array([pixel, pixel]), T, np.full(n_slices, np.nan),
+                        np.ones(n_slices, dtype=bool), reference=volume.space,
+                        frame_names=[f"slice{k:04d}" for k in range(n_slices)], path=volume.path)
+
+
+def _fill_slices(values: np.ndarray, imaged: np.ndarray, slice_mm: float) -> np.ndarray:
+    """uint8 slices ``(K, H, W)``: pixels not imaged interpolated along the slice axis between
+    the nearest imaged ones (gaps up to :data:`MAX_GAP_MM`), the rest set to their slice's
+    median imaged value."""
+    k = np.arange(len(values))[:, None, None]
+    before = np.maximum.accumulate(np.where(imaged, k, -1), axis=0)
+    after = np.minimum.accumulate(np.where(imaged, k, len(values))[::-1], axis=0)[::-1]
+    bridged = (before >= 0) & (after < len(values)) & ((after - before) * slice_mm <= MAX_GAP_MM)
+    v0 = np.take_along_axis(values, np.clip(before, 0, len(values) - 1), axis=0)
+    v1 = np.take_along_axis(values, np.clip(after, 0, len(values) - 1), axis=0)
+    w = np.where(after > before, (k - before) / np.maximum(after - before, 1), 0.0)
+    filled = np.where(imaged, values, np.where(bridged, (1 - w) * v0 + w * v1, np.nan))
+    for s in filled:
+        known = np.isfinite(s)
+        s[~known] = float(np.median(s[known])) if known.any() else 0.0
+    return np.clip(np.rint(filled), 0, 255).astype(np.uint8)
+
+
+def extract_volume_surface(volume: Volume, beam_direction: str = "auto", config=None, *,
+                           progress=None):
+    """Bone surface points of a reconstructed US volume (module docstring): returns
+    ``(USExtractionResult, TrackedSweep of the slices)``; the points are in the volume's space
+    (mm), each slice's pose has the beam as its second column. ``config``: a
+    :class:`~comreg_core.surfaces.us_config.USExtractionConfig`."""
+    from comreg_core.surfaces.us import extract_us_surface
+
+    check_us_volume(volume)
+    labels = is_label_volume(volume)
+    if beam_direction != "auto":
+        beam = beam_from_name(volume, beam_direction)
+    elif labels:
+        raise NotAUsVolumeError("A label volume has no echoes to find the beam direction from.",
+                                "Give --beam-direction (x, -x, y, -y, z or -z): the volume axis "
+                                "the ultrasound beam ran along.")
+    normal = None if labels else sweep_normal(volume)
+    if beam_direction == "auto":
+        beam = estimate_beam(volume, normal)
+    sweep = volume_as_sweep(volume, beam, normal, labels=labels)
+    result = extract_us_surface(sweep, config, masks=sweep.frames if labels else None,
+                                progress=progress)
+    if not labels:
+        result.points = result.points.subset(result.points.score >= VOLUME_MIN_SCORE)
+    return result, sweep
+
+
+def is_volume_file(path) -> bool:
+    """Whether ``path`` is a NRRD or MetaImage file holding one image or volume, not a tracked
+    sequence (PLUS per-frame fields) or a 3D Slicer volume sequence (a list axis)."""
+    from pathlib import Path
+
+    from comreg_core.io.metaimage_files import header_field, read_metaimage_header
+    from comreg_core.io.nrrd_files import read_nrrd_header
+    from comreg_core.io.plus_files import has_plus_frame_fields
+
+    path = Path(path)
+    name = path.name.lower()
+    if not path.is_file() or name.endswith((".igs.mha", ".seq.mha", ".igs.nrrd", ".seq.nrrd")):
+        return False
+    if name.endswith((".nrrd", ".nhdr")):
+        header = read_nrrd_header(path)
+        return not has_plus_frame_fields(header) and int(header.get("dimension", 3)) <= 3
+    if name.endswith((".mha", ".mhd")):
+        fields, _ = read_metaimage_header(path)
+        return not has_plus_frame_fields(fields) and \
+            int(header_field(fields, "NDims") or 3) <= 3
+    return False
+
+
+def extract_volume_to_file(volume_path, out, *, beam_direction: str = "auto", config=None,
+                           progress=None, frame_options: dict | None = None):
+    """``comreg extract-us VOLUME --out POINTS [--beam-direction D]``: bone points of a
+    reconstructed US volume written like the frame path's (the volume's space; a ``.ply`` also
+    keeps each point's beam origin on its slice's first row). ``frame_options``: options of the
+    frame path by name, refused when given. Returns the
+    :class:`~comreg_core.surfaces.us.USExtractionResult`."""
+    given = [name for name, value in (frame_options or {}).items() if value is not None]
+    if given:
+        raise ComRegError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for "
+                          f"tracked frames; '{volume_path}' is a reconstructed volume.",
+                          "Drop them.")
+    from comreg_core.io.pointclouds import PointCloud, write_points
+    from comreg_core.io.volumes import read_volume
+    from comreg_core.surfaces.us import check_us_outputs
+    from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
+    from comreg_core.surfaces.us_points import beam_origins
+
+    check_us_outputs(out, inputs=[volume_path, config])
+    check_beam_direction(beam_direction)
+    if not isinstance(config, USExtractionConfig):
+        config = load_us_extraction_config(config)
+    volume = read_volume(volume_path)
+    result, sweep = extract_volume_surface(volume, beam_direction, config, progress=progress)
+    found = result.points
+    origins = beam_origins(found.points, sweep.T_ref_image[found.frame_index]) \
+        if (found.frame_index >= 0).all() else None
+    result.output = write_points(PointCloud(found.points, volume.space, beam_origins=origins),
+                                 out)
+    return result
