@@ -38,7 +38,7 @@ from comreg_plugin.scene_io import (addModelNode, readScene,
                                     vtkMatrixFromArray, writeScene, writeTransform)
 from comreg_plugin.scene_inputs import (addSweepBrowser, arrayFromPointsNode,
                                         requirePointsNode, segmentationFromNode,
-                                        trackedSweepFromBrowser)
+                                        trackedSweepFromBrowser, volumeFromNode)
 from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModuleLogic,
                                          _StandInLogic, register_segmentation_converters,
                                          require_slicer, sequences_logic)
@@ -235,6 +235,22 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         self.getParameterNode().sweep = browserNode
         return self._usPointsOfSweep(sweep, config, name, browserNode.GetName(), progress)
 
+    def usPointsFromVolume(self, volumeNode, beamDirection: str = "auto", config=None,
+                           name=US_POINTS_NODE_NAME, progress: Optional[Progress] = None
+                           ) -> tuple:
+        """Bone surface points of a reconstructed 3D US volume (a scalar volume node, e.g.
+        from SlicerIGT's volume reconstruction;
+        :func:`comreg_core.surfaces.us_volume.extract_volume_surface`): the beam ``"auto"`` or a
+        voxel axis (``"-y"``, ...). Returns ``(pointsNode, USExtractionResult)``."""
+        from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
+        from comreg_core.surfaces.us_volume import extract_volume_surface
+
+        if not isinstance(config, USExtractionConfig):
+            config = load_us_extraction_config(config)
+        result, _ = extract_volume_surface(volumeFromNode(volumeNode), beamDirection, config,
+                                           progress=progress)
+        return self._addUSPoints(result, "RAS", name, volumeNode.GetName())
+
     def addSweepSequence(self, path, calibration=None, name: str = "Sweep"):
         """Read a tracked sweep file or frame folder and show it as a Sequence browser (frames
         + ``ImageToReference`` poses), as a PLUS recording appears in Slicer; it becomes the
@@ -249,8 +265,11 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
     def _usPointsOfSweep(self, sweep, config, name, source: str, progress) -> tuple:
         from comreg_core.surfaces.us import extract_us_surface
 
-        result = extract_us_surface(sweep, config, progress=progress)
-        node = self.addPointsModel(result.points.points, "LPS", name)
+        return self._addUSPoints(extract_us_surface(sweep, config, progress=progress), "LPS",
+                                 name, source)
+
+    def _addUSPoints(self, result, space: str, name, source: str) -> tuple:
+        node = self.addPointsModel(result.points.points, space, name)
         node.SetAttribute(ATTRIBUTE_PREFIX + "role", "us_points")
         node.SetAttribute(ATTRIBUTE_PREFIX + "source", source)
         node.SetAttribute(ATTRIBUTE_PREFIX + "extraction", result.summary())

@@ -9,6 +9,8 @@
   :func:`arrayFromPointsNode`.
 - A CT segmentation node -> :class:`comreg_core.io.Segmentation` through Slicer's own
   ``.seg.nrrd`` writer (:func:`segmentationFromNode`).
+- A reconstructed 3D US volume as a scalar volume node -> :class:`comreg_core.io.volumes.Volume`
+  (RAS, its IJKToRAS geometry; :func:`volumeFromNode`).
 
 Coordinates: frame geometry in the scene is ``T_ImageToReference (RAS) @ IJKToRAS``; a
 ``TrackedSweep`` is LPS, so ``T_ref_pixel (LPS) = T_RAS_LPS @ T_ImageToReference @ IJKToRAS``.
@@ -245,3 +247,25 @@ def segmentationFromNode(segmentationNode, workDir: Optional[str] = None):
                               f"'{segmentationNode.GetName()}' as a labelmap.",
                               "Make sure it has a binary labelmap representation.")
         return read_segmentation(path)
+
+
+def volumeFromNode(volumeNode):
+    """A scalar volume node (e.g. SlicerIGT's volume reconstruction) as a
+    :class:`comreg_core.io.volumes.Volume`: voxels ``(I, J, K)`` and ``IJKToRAS`` (space RAS)."""
+    from comreg_core.io.volumes import Volume
+
+    requireNode(volumeNode, "vtkMRMLScalarVolumeNode", "reconstructed US volume")
+    image = volumeNode.GetImageData()
+    if image is None or image.GetPointData().GetScalars() is None:
+        raise ComRegError(f"The volume node '{volumeNode.GetName()}' holds no image.",
+                          "Reconstruct or load the volume again.")
+    I, J, K = image.GetDimensions()
+    scalars = numpy_support.vtk_to_numpy(image.GetPointData().GetScalars())
+    if image.GetNumberOfScalarComponents() != 1:
+        raise ComRegError(f"The volume node '{volumeNode.GetName()}' has "
+                          f"{image.GetNumberOfScalarComponents()} components per voxel.",
+                          "Pass a scalar (grey) ultrasound volume.")
+    matrix = vtk.vtkMatrix4x4()
+    volumeNode.GetIJKToRASMatrix(matrix)
+    array = np.ascontiguousarray(scalars.reshape(K, J, I).transpose(2, 1, 0))
+    return Volume(array, arrayFromVtkMatrix(matrix), "RAS")

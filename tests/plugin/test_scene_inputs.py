@@ -234,3 +234,37 @@ def test_bad_scene_inputs_give_clear_errors(logic, sweep):
         logic.register(model, lambda points: np.eye(4), completedBoneNode=segNode)
     assert model.GetParentTransformNode() is None  # refused before anything was made
     assert logic.scene.GetFirstNodeByName("ReferenceToCT") is None
+
+
+def test_a_reconstructed_volume_node_gives_the_points_of_its_file(tmp_path):
+    """PLUS's reconstructed spine-phantom volume as a scalar volume node (RAS, as Slicer loads
+    an LPS file): the bone points equal those of the file path, mapped to RAS."""
+    from comreg_core.io.volumes import read_volume
+    from comreg_core.surfaces.us_volume import extract_volume_surface
+    from tests.helpers import SHARED_DATA
+
+    path = SHARED_DATA / "plus" / "TestImages" / "SpinePhantomFreehandReconstructed.mha"
+    volume = read_volume(path)
+    logic = ComRegLogic()
+    node = logic.scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "Reconstruction")
+    import vtk
+    from vtkmodules.util import numpy_support
+
+    image = vtk.vtkImageData()
+    image.SetDimensions(*volume.array.shape)
+    flat = np.ascontiguousarray(volume.array.transpose(2, 1, 0)).ravel()
+    image.GetPointData().SetScalars(numpy_support.numpy_to_vtk(flat, deep=True))
+    node.SetAndObserveImageData(image)
+    matrix = vtk.vtkMatrix4x4()
+    ras = np.diag([-1.0, -1.0, 1.0, 1.0]) @ volume.ijk_to_space  # LPS file -> RAS node
+    for r in range(4):
+        for c in range(4):
+            matrix.SetElement(r, c, ras[r, c])
+    node.SetIJKToRASMatrix(matrix)
+    points_node, result = logic.usPointsFromVolume(node)
+    expected, _ = extract_volume_surface(volume)
+    assert len(result.points.points) == len(expected.points.points) >= 30
+    assert_close(arrayFromPointsNode(points_node), expected.points.points @ RAS.T, atol=1e-6)
+    assert logic.getParameterNode().usPoints is points_node
+    with pytest.raises(ComRegError):
+        logic.usPointsFromVolume(points_node)  # a model is not a volume
