@@ -126,6 +126,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
         ui = self.ui
         for button, action in ((ui.extractPointsButton, self.onExtractPoints),
+                               (ui.extractVolumeButton, self.onExtractFromVolume),
                                (ui.boneModelButton, self.onBoneModel),
                                (ui.loadSegmentationButton, self.onLoadSegmentation),
                                (ui.loadMeshButton, self.onLoadMesh),
@@ -190,6 +191,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         p, ui = self._parameterNode, self.ui
         running = p.pretrainingState == "running"
         ui.extractPointsButton.enabled = p.sweep is not None
+        ui.extractVolumeButton.enabled = p.usVolume is not None
         ui.boneModelButton.enabled = p.segmentation is not None
         ui.startButton.enabled = p.ctModel is not None and not running
         ui.cancelButton.enabled = running
@@ -204,6 +206,11 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onExtractPoints(self):
         self._run("Could not extract the US bone points.", self.logic.usPointsFromSequence)
+
+    def onExtractFromVolume(self):
+        p = self._parameterNode
+        self._run("Could not extract the US bone points from the volume.",
+                  lambda: self.logic.usPointsFromVolume(p.usVolume, p.beamDirection))
 
     def onBoneModel(self):
         self._run("Could not make the bone model.", self.logic.boneModelsFromSegmentation)

@@ -249,6 +249,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             config = load_us_extraction_config(config)
         result, _ = extract_volume_surface(volumeFromNode(volumeNode), beamDirection, config,
                                            progress=progress)
+        self.getParameterNode().usVolume = volumeNode
         return self._addUSPoints(result, "RAS", name, volumeNode.GetName())
 
     def addSweepSequence(self, path, calibration=None, name: str = "Sweep"):

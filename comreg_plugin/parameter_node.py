@@ -8,6 +8,7 @@ module file; ``ComReg.py`` re-exports it in the template's place. Decorated with
 from typing import Annotated, Union
 
 from comreg_core.choices import DEVICES, PRESETS
+from comreg_core.surfaces.us_volume import BEAM_DIRECTIONS
 from comreg_plugin.registration import METHODS
 from comreg_plugin.slicer_compat import (Choice, Minimum, WithinRange, parameterNodeWrapper,
                                          require_slicer)
@@ -25,6 +26,8 @@ class ComRegParameterNode:
     sweep: the tracked US sweep (Sequence browser: frames + ImageToReference poses).
     segmentation: the CT segmentation. ctModel: the CT bone model registered to.
     usPoints: the US bone points (model vertices or markups control points).
+    usVolume: a reconstructed 3D US volume (instead of a sweep); beamDirection: its beam,
+    "auto" or a volume axis ("-y", ...).
     outputTransform: the result, tracking reference -> CT (to parent, RAS; "ReferenceToCT").
     completedBone: the network's completed bone in the CT frame.
     method: "comreg" (pretrained run), "search" (pose search on the CT alone, no network) or
@@ -39,6 +42,8 @@ class ComRegParameterNode:
     segmentation: slicer.vtkMRMLSegmentationNode
     ctModel: slicer.vtkMRMLModelNode
     usPoints: Union[slicer.vtkMRMLModelNode, slicer.vtkMRMLMarkupsFiducialNode]
+    usVolume: slicer.vtkMRMLScalarVolumeNode
+    beamDirection: Annotated[str, Choice(BEAM_DIRECTIONS)] = "auto"
     outputTransform: slicer.vtkMRMLLinearTransformNode
     completedBone: slicer.vtkMRMLModelNode
     method: Annotated[str, Choice(METHODS)] = "comreg"

@@ -266,5 +266,6 @@ def test_a_reconstructed_volume_node_gives_the_points_of_its_file(tmp_path):
     assert len(result.points.points) == len(expected.points.points) >= 30
     assert_close(arrayFromPointsNode(points_node), expected.points.points @ RAS.T, atol=1e-6)
     assert logic.getParameterNode().usPoints is points_node
+    assert logic.getParameterNode().usVolume is node
     with pytest.raises(ComRegError):
         logic.usPointsFromVolume(points_node)  # a model is not a volume
