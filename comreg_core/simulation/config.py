@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
 
-from comreg_core.config import ConfigError, from_dict, load_config, require
+from comreg_core.config import from_dict, load_config, require
 
 
 def _require_range(value: tuple, name: str, lo: float, hi: float, *, strict: bool = False):
