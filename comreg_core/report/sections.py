@@ -46,12 +46,13 @@ class SectionPicture:
     contour_points: np.ndarray
 
 
-def plane_contour(ct: SurfaceMesh, origin: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def plane_contour(ct, origin: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """``(S, 2, 3)`` line segments (mm) where the plane through ``origin`` with ``normal`` cuts
-    the CT surface (VTK's cutter through PyVista); ``(0, 2, 3)`` when it misses the bone."""
+    the CT surface (a SurfaceMesh, or its ``pyvista.PolyData`` to cut it several times; VTK's
+    cutter through PyVista); ``(0, 2, 3)`` when it misses the bone."""
     import pyvista as pv
 
-    mesh = pv.PolyData.from_regular_faces(ct.vertices, ct.faces)
+    mesh = ct if isinstance(ct, pv.PolyData) else _polydata(ct)
     cut = mesh.slice(normal=tuple(np.asarray(normal, float)), origin=tuple(np.asarray(origin, float)))
     if cut.n_points == 0 or cut.n_lines == 0:
         return np.zeros((0, 2, 3))
@@ -84,11 +85,12 @@ def ct_sections(ct: SurfaceMesh, frame: BoneFrame, points_ct: np.ndarray,
     points_ct = np.asarray(points_ct, float).reshape(-1, 3)
     distances_mm = np.asarray(distances_mm, float).reshape(-1)
     along = (points_ct - frame.center) @ frame.axis
+    mesh = _polydata(ct)
     pictures = []
     for q in SECTION_QUANTILES:
         level = float(np.quantile(along, q))
         origin = frame.center + level * frame.axis
-        segments = plane_contour(ct, origin, frame.axis)
+        segments = plane_contour(mesh, origin, frame.axis)
         near = np.abs(along - level) <= SECTION_HALF_WIDTH_MM
         # image x = patient left, image y (down) = posterior
         to_plane = np.stack([frame.left, -frame.anterior])
@@ -120,6 +122,7 @@ def frame_overlays(frames: np.ndarray, T_ct_pixel: np.ndarray, spacing: np.ndarr
     """
     from PIL import Image, ImageDraw
 
+    mesh = _polydata(ct)
     pictures = []
     for image, T, label in zip(frames, T_ct_pixel, frame_names):
         grey = np.asarray(image, np.float64)
@@ -127,7 +130,7 @@ def frame_overlays(frames: np.ndarray, T_ct_pixel: np.ndarray, spacing: np.ndarr
             grey = grey * (255.0 / grey.max())
         canvas = Image.fromarray(np.clip(grey, 0, 255).astype(np.uint8)).convert("RGB")
         normal = T[:3, 2] / np.linalg.norm(T[:3, 2])
-        segments = plane_contour(ct, T[:3, 3], normal)
+        segments = plane_contour(mesh, T[:3, 3], normal)
         pixel = apply_transform(invert_rigid_pixel(T), segments.reshape(-1, 3))[:, :2]
         draw = ImageDraw.Draw(canvas)
         width = max(2, round(canvas.width / 250))
@@ -149,6 +152,12 @@ def invert_rigid_pixel(T_ct_pixel: np.ndarray) -> np.ndarray:
     rigid = T_ct_pixel.copy()
     rigid[:3, :3] = T_ct_pixel[:3, :3] / scale
     return np.diag([1.0 / scale[0], 1.0 / scale[1], 1.0, 1.0]) @ invert_rigid(rigid)
+
+
+def _polydata(ct: SurfaceMesh):
+    import pyvista as pv
+
+    return pv.PolyData.from_regular_faces(ct.vertices, ct.faces)
 
 
 # --- drawing ------------------------------------------------------------------------------------

@@ -99,13 +99,19 @@ def extract_us_to_file(sweep: str | Path | TrackedSweep, out: str | Path, *,
         sweep = read_tracked_sweep(sweep, calibration=calibration, reference=config.reference)
     mask_frames = read_masks(masks, sweep) if masks is not None else None
     result = extract_us_surface(sweep, config, masks=mask_frames, progress=progress)
-    found = result.points
-    origins = None
-    if (found.frame_index >= 0).all():  # each point's beam origin (a PLY keeps them)
-        origins = beam_origins(found.points, sweep.T_ref_image[found.frame_index])
-    result.output = write_points(PointCloud(found.points, "LPS", beam_origins=origins), out)
+    result.output = write_surface_points(result.points, sweep, out, "LPS")
     log.info("%s", result.summary())
     return result
+
+
+def write_surface_points(found: USSurfacePoints, sweep: TrackedSweep, out: str | Path,
+                         space: str) -> Path:
+    """Write ``found`` (points of ``sweep``'s frames, in ``space``) to ``out`` with each point's
+    beam origin (:func:`~comreg_core.surfaces.us_points.beam_origins`; a ``.ply`` keeps them)."""
+    origins = None
+    if (found.frame_index >= 0).all():
+        origins = beam_origins(found.points, sweep.T_ref_image[found.frame_index])
+    return write_points(PointCloud(found.points, space, beam_origins=origins), out)
 
 
 def check_us_outputs(out: str | Path, compound: str | Path | None = None, *, inputs=()) -> None:

@@ -74,7 +74,7 @@ def check_us_volume(volume: Volume) -> None:
         raise NotAUsVolumeError(f"The volume{where} has no usable spatial geometry (spacing "
                                 f"{spacing.tolist()}).", "Export it with its spacing, origin and "
                                 "directions (NRRD or MetaImage).")
-    if not np.isfinite(volume.array).all() if volume.array.dtype.kind == "f" else False:
+    if volume.array.dtype.kind == "f" and not np.isfinite(volume.array).all():
         raise NotAUsVolumeError(f"The volume{where} holds NaN or infinite voxels.",
                                 "Export the reconstructed B-mode volume again.")
     if float(np.ptp(volume.array)) == 0.0:
@@ -88,8 +88,8 @@ def is_label_volume(volume: Volume) -> bool:
     array = volume.array
     if array.dtype.kind not in "biu":
         return False
-    return len(np.unique(array[:: max(1, array.size // 2_000_000)])) <= MAX_LABELS \
-        and len(np.unique(array)) <= MAX_LABELS
+    sample = array.ravel()[:: max(1, array.size // 2_000_000)]  # cheap refusal of B-mode first
+    return len(np.unique(sample)) <= MAX_LABELS and len(np.unique(array)) <= MAX_LABELS
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -147,7 +147,7 @@ def estimate_beam(volume: Volume, normal: np.ndarray | None) -> np.ndarray:
     inside = (covered > 0) & (ndimage.minimum_filter(weight, size=3) > 0.2)
     if inside.sum() < 100:
         inside = covered > 0
-    grad = [R @ g for g in [np.stack([d[inside] for d in np.gradient(level, *spacing)])]][0]
+    grad = R @ np.stack([d[inside] for d in np.gradient(level, *spacing)])  # 3 x voxels
     plane = np.eye(3) if normal is None else np.eye(3) - np.outer(normal, normal)
     w, V = np.linalg.eigh(plane @ (grad @ grad.T) @ plane)
     falloff = -(plane @ grad.mean(axis=1))
@@ -271,15 +271,13 @@ def extract_volume_surface(volume: Volume, beam_direction: str = "auto", config=
 
     check_us_volume(volume)
     labels = is_label_volume(volume)
-    if beam_direction != "auto":
-        beam = beam_from_name(volume, beam_direction)
-    elif labels:
+    if labels and beam_direction == "auto":
         raise NotAUsVolumeError("A label volume has no echoes to find the beam direction from.",
                                 "Give --beam-direction (x, -x, y, -y, z or -z): the volume axis "
                                 "the ultrasound beam ran along.")
     normal = None if labels else sweep_normal(volume)
-    if beam_direction == "auto":
-        beam = estimate_beam(volume, normal)
+    beam = estimate_beam(volume, normal) if beam_direction == "auto" \
+        else beam_from_name(volume, beam_direction)
     sweep = volume_as_sweep(volume, beam, normal, labels=labels)
     result = extract_us_surface(sweep, config, masks=sweep.frames if labels else None,
                                 progress=progress)
@@ -323,11 +321,9 @@ def extract_volume_to_file(volume_path, out, *, beam_direction: str = "auto", co
         raise ComRegError(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for "
                           f"tracked frames; '{volume_path}' is a reconstructed volume.",
                           "Drop them.")
-    from comreg_core.io.pointclouds import PointCloud, write_points
     from comreg_core.io.volumes import read_volume
-    from comreg_core.surfaces.us import check_us_outputs
+    from comreg_core.surfaces.us import check_us_outputs, write_surface_points
     from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
-    from comreg_core.surfaces.us_points import beam_origins
 
     check_us_outputs(out, inputs=[volume_path, config])
     check_beam_direction(beam_direction)
@@ -335,9 +331,5 @@ def extract_volume_to_file(volume_path, out, *, beam_direction: str = "auto", co
         config = load_us_extraction_config(config)
     volume = read_volume(volume_path)
     result, sweep = extract_volume_surface(volume, beam_direction, config, progress=progress)
-    found = result.points
-    origins = beam_origins(found.points, sweep.T_ref_image[found.frame_index]) \
-        if (found.frame_index >= 0).all() else None
-    result.output = write_points(PointCloud(found.points, volume.space, beam_origins=origins),
-                                 out)
+    result.output = write_surface_points(result.points, sweep, out, volume.space)
     return result
