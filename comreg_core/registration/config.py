@@ -71,6 +71,14 @@ class HypothesisConfig:
         patch_axes: without a network, how many of the US cloud's principal axes are tried
             as the bone's long axis (1-3; bases ``pca``, ``pca-axis1``, ``pca-axis2``): a
             short sweep's largest spread may run across the bone. Each adds a full grid.
+        patch_orientations: for a *patch* (a US cloud whose largest spread is under
+            ``patch_max_share`` of the CT's length), also this many orientations of it spread
+            evenly over all rotations (a finite rotation group from scipy: 12, 24 or 60; 0 =
+            off), each with the patch's centroid on the CT's centre and slid along the long
+            axis (no flips or turns: the group holds them). A short sweep's own axes say little
+            about the bone's, so starts built on them alone can miss the right basin entirely.
+            The retry round (``retry_ambiguous``) turns the whole set by half its spacing.
+        patch_max_share: see ``patch_orientations``.
         facing_penalty_mm: with beam origins (a tracked sweep knows where the probe was for
             every echo), each US point whose matched CT surface faces away from its probe adds
             this to its distance in every score (screening, refinement, polish): a pose the
@@ -110,6 +118,8 @@ class HypothesisConfig:
     min_confidence: float = 0.3
     facing_penalty_mm: float = 5.0
     patch_axes: int = 1
+    patch_orientations: int = 60
+    patch_max_share: float = 0.5
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "hypotheses.enabled", "must be true or false")
@@ -151,6 +161,10 @@ class HypothesisConfig:
         require(self.facing_penalty_mm >= 0, "hypotheses.facing_penalty_mm",
                 "must be 0 (off) or more (mm)")
         require(self.patch_axes in (1, 2, 3), "hypotheses.patch_axes", "must be 1, 2 or 3")
+        require(self.patch_orientations in (0, 12, 24, 60), "hypotheses.patch_orientations",
+                "must be 0 (off), 12, 24 or 60")
+        require(0.0 < self.patch_max_share <= 1.0, "hypotheses.patch_max_share",
+                "must be in (0, 1]")
 
 
 def as_hypothesis_config(value) -> HypothesisConfig:

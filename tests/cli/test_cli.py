@@ -222,7 +222,8 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     # registration's config.yaml reads back; unknown keys are refused before any work
     search = tmp_path / "search.yaml"
     search.write_text(yaml.safe_dump({"hypotheses": {"shaft_rotations": 2, "slide_step_mm": 0,
-                                                     "retry_ambiguous": False}}))
+                                                     "retry_ambiguous": False,
+                                                     "patch_orientations": 0}}))
     result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out",
                                  str(tmp_path / "narrow"), "--config", str(search)])
     assert result.exit_code == 0, result.output

@@ -99,7 +99,7 @@ def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_pa
     if with_completion:
         whole, _ = CTSurface(FIBULA_STL, sample_seed=5).samples(4000)
         completion = apply_transform(invert_rigid(truth), whole)  # the bone in the US frame
-    config = HypothesisConfig()
+    config = HypothesisConfig(patch_orientations=0)  # the flips alone (patch starts: below)
     result = search_hypotheses(us, start, fibula_target, completion, config)
     rte, rre = _errors(result.T_ct_us, truth, us)
     assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen, result.scores)
@@ -191,8 +191,9 @@ def test_cylinder_patch_is_flagged_ambiguous():
     one_round = search_hypotheses(us, truth, target,
                                   config=HypothesisConfig(retry_ambiguous=False))
     assert one_round.ambiguous and result.starts_tried == 2 * one_round.starts_tried
-    assert any("rot22.5" in h.name for h in result.hypotheses)
-    assert not any("rot22.5" in h.name for h in one_round.hypotheses)
+    second = ("rot22.5", "+turned")  # the half-step turns of the grid and of the patch starts
+    assert any(any(s in h.name for s in second) for h in result.hypotheses)
+    assert not any(any(s in h.name for s in second) for h in one_round.hypotheses)
     # an ambiguous result says where the runner-up puts the sweep and what to scan
     runner = next(h for h in result.hypotheses if h.name == result.runner_up)
     advice = result.advice
@@ -411,6 +412,7 @@ def test_target_from_points_estimates_normals():
     ("refine_top", -1), ("tie_break", "random"), ("polish", "yes"),
     ("polish_max_distance_mm", 0.0), ("polish_iterations", 0), ("polish_top", 0),
     ("score_floor_mm", 0.0), ("retry_ambiguous", "yes"), ("patch_axes", 0), ("patch_axes", 4),
+    ("patch_orientations", 30), ("patch_max_share", 0.0), ("patch_max_share", 1.5),
     ("facing_penalty_mm", -1.0),
 ])
 def test_config_validation(key, value):
@@ -450,3 +452,57 @@ def test_principal_axes_pose_puts_the_chosen_patch_axis_along_the_bone(fibula_ta
                      atol=0.02, what=f"patch axis {k} along the bone")
         assert_close(apply_transform(T, patch.mean(axis=0)[None])[0], fibula_target.centre,
                      atol=1e-9)
+
+
+# --- patches: starts over all rotations --------------------------------------------------------
+
+def test_patch_starts_cover_all_rotations(fibula_target, distal_patch):
+    """A patch (40 mm of a 404 mm bone) gets 60 orientations x the slides, spread over SO(3)
+    (every rotation within 45 deg of one of them, by scipy); the whole bone gets none."""
+    from comreg_core.registration.search import is_patch, patch_orientation_starts
+
+    us, _, _ = distal_patch
+    config = HypothesisConfig()
+    starts = patch_orientation_starts(us, fibula_target, config)
+    slides = len(slide_offsets_mm(fibula_target, config))
+    assert is_patch(us, fibula_target, config) and len(starts) == 60 * slides
+    turns = Rotation.from_matrix(np.stack([T[:3, :3] for n, T in starts.items()
+                                           if "slide" not in n]))
+    assert len(turns) == 60
+    probes = Rotation.random(2000, random_state=3)
+    gaps = [np.degrees((turns * probe.inv()).magnitude().min()) for probe in probes]
+    assert max(gaps) < 45.0, max(gaps)
+    # the retry round's set is turned by half the spacing: no start repeated
+    turned = patch_orientation_starts(us, fibula_target, config, grid_offset=0.5)
+    assert len(turned) == len(starts) and not set(turned) & set(starts)
+    whole = fibula_target.points[::4]
+    assert not is_patch(whole, fibula_target, config)
+    assert patch_orientation_starts(whole, fibula_target, config) == {}
+    assert patch_orientation_starts(us, fibula_target, HypothesisConfig(
+        patch_orientations=0)) == {}
+
+
+def test_short_sweep_whose_own_axes_mislead_registers(shared_data):
+    """A simulated 40-50 mm one-face sweep of the fibula (the partial-sweep benchmark's trial
+    19): from its principal axes alone the search lands 60-80 deg off, unflagged or not; with
+    the patch starts it lands on the truth, unambiguous."""
+    from comreg_core.config import from_dict
+    from comreg_core.evaluation.evaluate import (STREAM_CLOUDS, STREAM_POSES,
+                                                 evaluation_rng)
+    from comreg_core.inference import Registrar
+    from comreg_core.simulation import BoneModel, sample_initial_pose, simulate_sweep
+    from comreg_core.simulation.config import SimulationConfig
+    from tests.benchmarks.bench_partial import PARTIAL_SWEEPS
+
+    config = from_dict(SimulationConfig, PARTIAL_SWEEPS, "simulation")
+    sweep = simulate_sweep(BoneModel(FIBULA_STL), config, evaluation_rng(0, STREAM_CLOUDS, 19))
+    surface = CTSurface(FIBULA_STL)
+    T_p = sample_initial_pose(evaluation_rng(0, STREAM_POSES, 19), "paper",
+                              surface.bbox_centre)
+    us, truth = apply_transform(T_p, sweep.points), invert_rigid(T_p)
+    without = Registrar.from_ct(FIBULA_STL, hypotheses={"patch_orientations": 0}).register(us)
+    assert _errors(without.T_ct_us, truth, us)[1] > 30.0
+    result = Registrar.from_ct(FIBULA_STL).register(us)
+    rte, rre = _errors(result.T_ct_us, truth, us)
+    assert rte < 1.0 and rre < 1.0, (rte, rre, result.hypotheses.chosen)
+    assert result.hypotheses.chosen.startswith("patch") and not result.hypotheses.ambiguous
