@@ -37,12 +37,19 @@ def random_rigid(rng: np.random.Generator, max_translation: float = 100.0) -> np
     return T
 
 
-def tibia_like_mesh(length: float = 360.0, n_rings: int = 180, n_around: int = 96):
+def tibia_like_mesh(length: float = 360.0, n_rings: int = 180, n_around: int = 96, *,
+                    anatomical: bool = False):
     """A closed, tibia-like bone surface ``(vertices (V, 3) mm, faces (F, 3))`` made here, for
     learning benchmarks on a bone of another shape than the shared fibula: a 360 mm shaft with a
     rounded-triangular cross-section (anterior crest), a wide proximal plateau (two condyles and
     a tuberosity bump in front), a narrower distal end with a medial malleolus bulge. Long axis
-    z (0 = distal, ``length`` = proximal), anterior +y, medial +x. Star-shaped rings, capped."""
+    z (0 = distal, ``length`` = proximal), anterior +y, medial +x. Star-shaped rings, capped.
+
+    Its mid-shaft (about 30-80 % of the length) is an extrusion: one cross-section, unchanged
+    but for a 6 mm bow, so a short patch of it fits equally well anywhere along ~150 mm.
+    ``anatomical=True`` makes the shaft vary as a real tibia's does: narrowest at the distal
+    third (radius 10 mm there, widening to 12.5 mm at 70 %), triangular proximally and rounder distally,
+    and twisted by 30 deg from end to end (tibial torsion)."""
     z = np.linspace(0.0, length, n_rings)
     theta = np.linspace(0.0, 2 * np.pi, n_around, endpoint=False)
     u = z / length
@@ -52,6 +59,11 @@ def tibia_like_mesh(length: float = 360.0, n_rings: int = 180, n_around: int = 9
     for k in range(n_rings):
         t = theta
         r = base[k] * (1.0 + 0.18 * np.cos(3 * (t - np.pi / 2)))  # triangular, crest in front
+        if anatomical:
+            twist = np.radians(30.0) * (u[k] - 0.5)
+            shaft = min(10.0 + 16.0 * (u[k] - 0.3) ** 2, 12.5)  # narrowest at the distal third
+            corners = 0.06 + 0.16 * u[k]  # rounder distally, triangular proximally
+            r = (base[k] - 11.0 + shaft) * (1.0 + corners * np.cos(3 * (t - np.pi / 2 - twist)))
         prox = np.exp(-((1 - u[k]) / 0.06) ** 2)
         r = r * (1.0 + prox * (0.35 * np.cos(2 * t) ** 2 - 0.15 * np.sin(t)))  # condyles
         tub = np.exp(-((u[k] - 0.88) / 0.03) ** 2)

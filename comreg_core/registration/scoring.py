@@ -126,11 +126,13 @@ class HypothesisResult:
         score_gap_mm: ``score(runner_up) - score(chosen)`` (mm), None without a runner-up.
         confidence: ``max(score_gap_mm, 0) / max(score(runner_up), score_floor_mm)`` in
             [0, 1]; 1.0 without a runner-up.
-        ambiguous: ``confidence < min_confidence``.
+        ambiguous: ``confidence < min_confidence`` (``patch_min_confidence`` for a patch).
         hypotheses: every refined :class:`Hypothesis`, in generation order.
         starts_tried: start poses built and screened before the best ``refine_top`` were refined.
         advice: when ambiguous, where the runner-up puts the sweep and what to scan to tell the
             poses apart (:func:`comreg_core.registration.advice.ambiguity_advice`), else None.
+        patch: the US cloud was a patch (a short sweep,
+            :func:`~comreg_core.registration.search.is_patch`), searched over all rotations.
     """
 
     T_ct_us: np.ndarray
@@ -142,6 +144,7 @@ class HypothesisResult:
     hypotheses: tuple[Hypothesis, ...] = field(default=())
     starts_tried: int = 0
     advice: dict[str, Any] | None = None
+    patch: bool = False
 
     @property
     def polish(self) -> dict[str, Any] | None:
@@ -168,4 +171,5 @@ class HypothesisResult:
                 "score_mm": self.best.score_mm, "score_gap_mm": self.score_gap_mm,
                 "confidence": self.confidence, "ambiguous": self.ambiguous,
                 "starts_tried": self.starts_tried, "scores_mm": self.scores,
-                "polish": self.polish, "polished": self.polished, "advice": self.advice}
+                "polish": self.polish, "polished": self.polished, "advice": self.advice,
+                "patch": self.patch}

@@ -115,6 +115,7 @@ config ``data.pose: full``, the full-rotation sampler; evaluate with ``--perturb
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -383,6 +384,9 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                                        "Pass one beam origin per US point (or none).")
         origins = origins[keep]
     centroid = pts.mean(axis=0)  # the US centroid, placed by each pose
+    patch = is_patch(pts, target, cfg)
+    if patch:  # a short sweep needs a wider lead to be trusted
+        cfg = replace(cfg, min_confidence=max(cfg.min_confidence, cfg.patch_min_confidence))
     T_network = check_rigid(T_start)
     names: list[str] = []
     starts: list[np.ndarray] = []
@@ -423,7 +427,8 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
     return HypothesisResult(T_ct_us=poses[best], chosen=names[best],
                             runner_up=None if runner is None else names[runner],
                             score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,
-                            hypotheses=hypotheses, starts_tried=tried, advice=advice)
+                            hypotheses=hypotheses, starts_tried=tried, advice=advice,
+                            patch=patch)
 
 
 def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: SurfaceCloud,

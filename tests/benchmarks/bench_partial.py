@@ -10,7 +10,11 @@ Sets:
 - ``simulated-fibula`` / ``simulated-tibia``: fresh simulated sweeps (the project's simulator,
   seeds disjoint from training) of the shared fibula CT and of the tibia-like bone of
   ``tests.helpers.tibia_like_mesh``, transverse only, 40-50 mm long (``trajectory.length_mm``),
-  over one face (the probe's side drifts by at most 20 deg), never past the bone's ends;
+  over one face (the probe's side drifts by at most 20 deg), never past the bone's ends. The
+  tibia-like shaft is an extrusion from 30 to 80 % of its length, so a patch of it fits as well
+  anywhere along ~150 mm (no score can choose there: they must be flagged);
+  ``simulated-tibia-anatomical`` sweeps its anatomical variant (tapered, rounder distally,
+  twisted 30 deg), a shaft that changes along its length as a real tibia's does;
 - ``real-fibula``: the shared real fibula sweep (111 B-mode frames) cut into runs of
   consecutive frames whose probe path covers 30-60 mm (non-overlapping), bone points from the
   project's detector, truth = the recorded tracking (itself ~3 mm off: the data's floor).
@@ -32,7 +36,7 @@ import time
 
 import numpy as np
 
-SETS = ("simulated-fibula", "simulated-tibia", "real-fibula")
+SETS = ("simulated-fibula", "simulated-tibia", "simulated-tibia-anatomical", "real-fibula")
 #: The short one-face sweeps of the simulated sets.
 PARTIAL_SWEEPS = {"trajectory": {"length_mm": [40.0, 50.0], "side_drift_deg": 20.0,
                                  "longitudinal_probability": 0.0, "end_margin_mm": 0.0,
@@ -141,8 +145,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'method':>16} {'success':>8} {'flips':>6} {'ambig.':>7} {'unflagged':>9} "
           f"{'RTE med':>8} {'RRE med':>8} {'median s':>7} {'p90 s':>6}")
     for name in args.set.split(","):
-        bone = name.split("-")[1]
-        ct = FIBULA_STL if bone == "fibula" else tibia_like_mesh()
+        bone = name.split("-", 1)[1]
+        ct = (FIBULA_STL if bone == "fibula"
+              else tibia_like_mesh(anatomical=bone == "tibia-anatomical"))
         if name.startswith("simulated"):
             runs = simulated_runs(ct, args.trials, args.seed, config)
         else:

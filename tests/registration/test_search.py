@@ -81,7 +81,17 @@ def test_distal_patch_near_start_lands_and_is_not_ambiguous(fibula_target, dista
     result = search_hypotheses(us, start, fibula_target)
     rte, rre = _errors(result.T_ct_us, truth, us)
     assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen)
-    assert not result.ambiguous and result.confidence > 0.3, result.to_json()
+    assert not result.ambiguous and result.confidence > 0.5, result.to_json()
+    # a patch (40 mm of the bone) must lead by patch_min_confidence, not min_confidence
+    assert result.patch and result.to_json()["patch"]
+    assert result.confidence < 1.0  # it has a runner-up
+    stricter = (1.0 + result.confidence) / 2  # above this result's lead
+    strict = HypothesisConfig(patch_min_confidence=stricter, retry_ambiguous=False)
+    flagged = search_hypotheses(us, start, fibula_target, config=strict)
+    assert flagged.confidence < stricter and flagged.ambiguous
+    whole = search_hypotheses(fibula_target.points[::10], np.eye(4), fibula_target,
+                              config=strict)
+    assert not whole.patch and not whole.ambiguous
     assert result.runner_up is not None and result.score_gap_mm > 0.1
 
 
@@ -413,6 +423,7 @@ def test_target_from_points_estimates_normals():
     ("polish_max_distance_mm", 0.0), ("polish_iterations", 0), ("polish_top", 0),
     ("score_floor_mm", 0.0), ("retry_ambiguous", "yes"), ("patch_axes", 0), ("patch_axes", 4),
     ("patch_orientations", 30), ("patch_max_share", 0.0), ("patch_max_share", 1.5),
+    ("patch_min_confidence", 1.0),
     ("facing_penalty_mm", -1.0),
 ])
 def test_config_validation(key, value):
