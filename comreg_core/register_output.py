@@ -145,8 +145,9 @@ def summary_lines(result: RegistrationResult, out_dir, *, with_network: bool) ->
     if h is not None:
         gap = "no competing pose" if h.score_gap_mm is None else \
             f"next different pose ('{h.runner_up}') {h.score_gap_mm:.3f} mm worse"
-        lines.append(f"hypothesis '{h.chosen}' of {h.starts_tried} starts, {gap}; confidence "
-                     f"{h.confidence:.2f}"
+        lines.append(f"hypothesis '{h.chosen}' of {h.starts_tried} starts"
+                     + (" (a short sweep: all orientations tried)" if h.patch else "")
+                     + f", {gap}; confidence {h.confidence:.2f}"
                      + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
         if h.advice:
             lines.append(h.advice["advice"])

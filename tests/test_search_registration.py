@@ -73,7 +73,9 @@ def test_register_and_report_without_a_run(tmp_path, real_sweep):
     result = runner.invoke(app, ["register", str(us), "--ct", str(FIBULA_STL), "--out", str(out)])
     assert result.exit_code == 0, result.output
     assert "by the pose search (no network)" in result.output
+    assert "short sweep" not in result.output  # a whole cloud keeps the usual search
     saved = json.loads((out / "result.json").read_text())
+    assert saved["hypotheses"]["patch"] is False
     assert saved["run_dir"] is None and saved["verdict"] == "ok", saved["verdict_reasons"]
     assert not (out / "completion_ct.ply").exists() and "completion_ct" not in saved["files"]
     errors = registration_metrics(np.asarray(saved["T_ct_us"]), np.eye(4), real_sweep,
@@ -93,6 +95,25 @@ def test_register_and_report_without_a_run(tmp_path, real_sweep):
         assert result.exit_code == 2 and len(result.output.strip().splitlines()) <= 2, \
             result.output
         assert not any((tmp_path / n).exists() for n in "xyzw")
+
+
+def test_register_a_short_stretch_of_the_real_sweep(tmp_path, real_sweep):
+    """45 mm of the real sweep along the bone is a patch: the CLI says all orientations were
+    tried, result.json records it, and it is flagged unless it leads by 0.5."""
+    from comreg_core.registration.surface import principal_frame
+
+    centre, axes = principal_frame(real_sweep)
+    along = (real_sweep - centre) @ axes[:, 0]
+    stretch = real_sweep[np.abs(along - 60.0) < 22.5]
+    us = write_points(PointCloud(stretch), tmp_path / "short.ply")
+    out = tmp_path / "short"
+    result = runner.invoke(app, ["register", str(us), "--ct", str(FIBULA_STL), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "(a short sweep: all orientations tried)" in result.output
+    saved = json.loads((out / "result.json").read_text())
+    hypotheses = saved["hypotheses"]
+    assert hypotheses["patch"] is True and hypotheses["starts_tried"] > 3000
+    assert saved["ambiguous"] == (hypotheses["confidence"] < 0.5)
 
 
 def test_evaluate_search_without_a_run(tmp_path, real_sweep):
