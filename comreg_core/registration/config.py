@@ -11,6 +11,9 @@ from comreg_core.config import ConfigError, from_dict, load_config, require
 
 #: The polish stops once an update moves no US point by more than this (mm).
 POLISH_TOLERANCE_MM = 0.01
+#: ... or once its RMS has not fallen by 1e-4 mm for this many iterations (its gated pairs
+#: can make it jitter above the tolerance for good).
+POLISH_PATIENCE = 5
 #: US points and most iterations of the quick polish that compares poses tied with the best.
 QUICK_POLISH_POINTS = 512
 QUICK_POLISH_ITERATIONS = 30

@@ -26,6 +26,8 @@ from comreg_core.transforms import as_points
 
 #: Fewest matched pairs an update needs (six unknowns).
 MIN_PAIRS = 6
+#: With ``patience``: an RMS that falls by less than this (mm) has not improved.
+STALL_MM = 1e-4
 
 
 class ICPResult(NamedTuple):
@@ -61,7 +63,7 @@ def strided(points: np.ndarray, count: int) -> np.ndarray:
 
 def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *,
                        iterations: int = 20, trim_fraction: float = 0.0,
-                       tolerance_mm: float = 0.01) -> ICPResult:
+                       tolerance_mm: float = 0.01, patience: int = 0) -> ICPResult:
     """Rigid point-to-plane ICP (Gauss-Newton) of a source cloud from ``B`` start poses.
 
     Each iteration matches every moved source point ``p_i`` to ``q_i`` with normal ``n_i``
@@ -71,7 +73,10 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
     normal equations per start with a tiny damping, so that directions the surface does not
     constrain, e.g. sliding along a cylinder, get no update), then applies the exact rotation
     of the solved rotation vector. A start stops once an update moves no source point by more
-    than ``tolerance_mm``, or when fewer than :data:`MIN_PAIRS` pairs are left.
+    than ``tolerance_mm``, or when fewer than :data:`MIN_PAIRS` pairs are left; with
+    ``patience``, also once its RMS has not fallen by :data:`STALL_MM` for that many
+    iterations (a matcher that drops far pairs can make the pose jitter forever above the
+    tolerance: on the real fibula sweep the exact polish ran 100 iterations in 4 of 6 cases).
 
     Args:
         source: ``(n, 3)`` mm, the points to move (or ``(B, n, 3)``, one cloud per start).
@@ -81,6 +86,8 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
         trim_fraction: share of the matched pairs left out, in [0, 1); at least
             :data:`MIN_PAIRS` are always kept.
         tolerance_mm: convergence threshold (bound on the largest point displacement).
+        patience: stop a start whose RMS has not improved for this many iterations (0: off).
+            Such a start counts as converged.
 
     Returns:
         :class:`ICPResult`.
@@ -104,6 +111,7 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
     converged = np.zeros(B, dtype=bool)
     inliers = np.zeros(B)
     active = np.arange(B)  # starts still moving; converged ones are left alone
+    best_rmse, stalled_for = np.full(B, np.inf), np.zeros(B, dtype=np.int64)
     for _ in range(iterations):
         Ta = T[active]
         m = len(active)
@@ -130,6 +138,9 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
         q, nrm = np.where(w[..., None] > 0, q, 0.0), np.where(w[..., None] > 0, nrm, 0.0)
         r = np.einsum("bni,bni->bn", moved - q, nrm)  # m n, signed distance to the plane
         rmse[active] = np.sqrt((w * r * r).sum(1) / w.sum(1))
+        improved = rmse[active] < best_rmse[active] - STALL_MM
+        best_rmse[active] = np.minimum(best_rmse[active], rmse[active])
+        stalled_for[active] = np.where(improved, 0, stalled_for[active] + 1)
         c = (w[..., None] * moved).sum(1) / w.sum(1)[:, None]  # m 3
         A = np.concatenate([np.cross(moved - c[:, None], nrm), nrm], axis=2)  # m n 6
         Aw = A * w[..., None]
@@ -145,6 +156,8 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
         moving = np.linalg.norm(x[:, :3], axis=1) * extent[active] + np.linalg.norm(x[:, 3:],
                                                                                     axis=1)
         still = moving >= tolerance_mm
+        if patience:
+            still &= stalled_for[active] < patience
         converged[active[~still]] = True
         active = active[still]
         if len(active) == 0:

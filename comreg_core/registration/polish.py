@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from comreg_core.registration.config import (POLISH_TOLERANCE_MM, QUICK_POLISH_ITERATIONS,
+from comreg_core.registration.config import (POLISH_PATIENCE, POLISH_TOLERANCE_MM,
+                                              QUICK_POLISH_ITERATIONS,
                                              QUICK_POLISH_POINTS, HypothesisConfig)
 from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
 from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
@@ -70,7 +71,8 @@ def polish_pose(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,
                   else config.polish_iterations)
     surface = target.surface
     fit = point_to_plane_icp(source, T, surface.matcher(config.polish_max_distance_mm),
-                             iterations=iterations, tolerance_mm=POLISH_TOLERANCE_MM)
+                             iterations=iterations, tolerance_mm=POLISH_TOLERANCE_MM,
+                             patience=POLISH_PATIENCE)
     polished = fit.T
     info = {"iterations": int(fit.iterations), "inlier_fraction": float(fit.inlier_fraction),
             "rmse_mm": float(fit.rmse_mm), "converged": bool(fit.converged)}

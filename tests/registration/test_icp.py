@@ -96,3 +96,28 @@ def test_bad_sources_are_clear_errors(box_surface, bad):
 
     with pytest.raises(InvalidGeometryError):
         point_to_plane_icp(bad, np.eye(4), box_surface.matcher())
+
+
+def test_patience_stops_a_pose_that_jitters_forever():
+    """A matcher whose plane moves by +-0.05 mm on every call (as gated pairs coming and
+    going do) makes the pose jump 0.1 mm back and forth: the tolerance is never met. With
+    patience the start stops once its RMS stops falling, and counts as converged."""
+    rng = np.random.default_rng(0)
+    source = np.column_stack([rng.uniform(-20, 20, (500, 2)), np.zeros(500)])  # z = 0 plane
+    calls = {"n": 0}
+
+    def jittering_plane(points):
+        calls["n"] += 1
+        offset = 0.05 if calls["n"] % 2 else -0.05
+        q = points.copy()
+        q[..., 2] = offset
+        normals = np.zeros_like(points)
+        normals[..., 2] = 1.0
+        return q, normals, np.abs(points[..., 2] - offset)
+
+    plain = point_to_plane_icp(source, np.eye(4), jittering_plane, iterations=40)
+    assert plain.iterations == 40 and not plain.converged
+    calls["n"] = 0
+    patient = point_to_plane_icp(source, np.eye(4), jittering_plane, iterations=40, patience=5)
+    assert patient.converged and patient.iterations == 1 + 5  # the first RMS, then 5 no better
+    assert abs(patient.T[2, 3]) <= 0.05 + 1e-9  # it stopped on one of the two planes
