@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from comreg_core.registration.config import (POLISH_PATIENCE, POLISH_TOLERANCE_MM,
-                                              QUICK_POLISH_ITERATIONS,
-                                             QUICK_POLISH_POINTS, HypothesisConfig)
+                                             QUICK_POLISH_ITERATIONS, QUICK_POLISH_POINTS,
+                                             HypothesisConfig)
 from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
 from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
                                               trimmed_mean)
