@@ -242,7 +242,8 @@ def patch_orientation_starts(points_us: np.ndarray, target: SurfaceCloud,
         return {}
     group = Rotation.create_group(ROTATION_GROUPS[config.patch_orientations])
     if grid_offset:
-        spacing = np.min(group.magnitude()[group.magnitude() > 1e-9])
+        angles = group.magnitude()  # rad; the identity's is 0
+        spacing = angles[angles > 1e-9].min()
         axis = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
         group = group * Rotation.from_rotvec(axis * spacing * grid_offset)
     T_base = principal_axes_pose(points_us, target)
@@ -268,8 +269,7 @@ def slide_offsets_mm(target: SurfaceCloud, config: HypothesisConfig) -> np.ndarr
         return np.zeros(1)
     reach = config.slide_range_mm
     if reach is None:
-        along = (target.points - target.centre) @ target.axes[:, 0]
-        reach = 0.5 * float(along.max() - along.min())
+        reach = 0.5 * ct_length_mm(target)
     steps = np.arange(1, int(reach // config.slide_step_mm) + 1) * config.slide_step_mm
     return np.concatenate([[0.0], np.stack([steps, -steps], axis=1).ravel()])
 
