@@ -50,6 +50,7 @@ from comreg_core import runs
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
                                       as_hypothesis_config, search_hypotheses)
+from comreg_core.registration.icp import refine_on_mesh
 from comreg_core.registration.inputs import beam_origins_for, limit_us_points, subset_notice
 from comreg_core.registration.result import RegistrationResult, residual_statistics
 from comreg_core.registration.search import principal_axes_pose
@@ -289,7 +290,8 @@ class Registrar:
         target = self.hypothesis_target(hyp_cfg.target_points) if hyp_cfg.enabled else None
         if target is not None and hyp_cfg.refine_top:
             target.closest_point_grid  # built once per CT: not part of a registration's time
-        if target is not None and hyp_cfg.polish and self.surface is not None:
+        mesh_refine = self.model is not None and self.model.config.icp.mesh_refine
+        if (target is not None and hyp_cfg.polish or mesh_refine) and self.surface is not None:
             self.surface.closest(self.ct_points[:1])  # likewise (its KD-tree)
         start = time.perf_counter() - check_s  # the checks count as preprocessing
         warnings = list(self.warnings)
@@ -360,14 +362,17 @@ class Registrar:
             mark = time.perf_counter()
             icp = model.refine(subsample(src, cfg.icp.num_points, 0), encoding, coarse)
             self._sync()
-            t["icp"] = time.perf_counter() - mark
         _check_finite_output(icp.transform)
-        mark = time.perf_counter()
-        T = norm.transform_to_mm(orthonormalize(icp.transform[0].double().cpu().numpy()))
         T_coarse = norm.transform_to_mm(orthonormalize(coarse[0].double().cpu().numpy()))
+        T = norm.transform_to_mm(orthonormalize(icp.transform[0].double().cpu().numpy()))
+        rmse = float(icp.rmse[0]) * norm.scale
+        if cfg.icp.mesh_refine and self.surface is not None:  # then on the CT mesh
+            T, rmse = refine_on_mesh(pts, T, self.surface.matcher())
+        t["icp"] = time.perf_counter() - mark
+        mark = time.perf_counter()
         dense = norm.points_to_mm(completion.dense[0].double().cpu().numpy())  # US frame, mm
         t["postprocess"] = time.perf_counter() - mark
-        return T, T_coarse, dense, float(icp.rmse[0]) * norm.scale
+        return T, T_coarse, dense, rmse
 
     @property
     def surface(self):

@@ -11,12 +11,13 @@ import torch
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.inference import Registrar
 from comreg_core.register_output import register_to_directory
+from comreg_core.registration.icp import refine_on_mesh
 from comreg_core.io import load_transform, read_points
 from comreg_core.io.meshes import SurfaceMesh, write_mesh
 from comreg_core.io.pointclouds import PointCloud, write_points
 from comreg_core.training import CheckpointError
 from comreg_core.training.data import validation_samples
-from comreg_core.transforms import apply_transform, check_rigid
+from comreg_core.transforms import apply_transform, check_rigid, orthonormalize
 from tests.helpers import FIBULA_STL, assert_close
 from tests.training.tiny import tiny_run
 
@@ -71,7 +72,9 @@ def test_staged_forward_equals_the_network_forward(registrar, us_cloud):
     src = torch.from_numpy(norm.points_to_model(us_cloud)).float()[None]
     with torch.no_grad(), registrar.deterministic_forward():  # the registrar's one thread
         out = registrar.model(src, registrar.encoding)
-    assert_close(norm.transform_to_mm(out.fine_transform[0].double().numpy()), res.T_ct_us,
+    fine = norm.transform_to_mm(orthonormalize(out.fine_transform[0].double().numpy()))
+    assert registrar.model.config.icp.mesh_refine  # the cpu preset: then refined on the mesh
+    assert_close(refine_on_mesh(us_cloud, fine, registrar.surface.matcher())[0], res.T_ct_us,
                  atol=1e-3)
     assert_close(norm.transform_to_mm(out.coarse_transform[0].double().numpy()),
                  res.T_ct_us_coarse, atol=1e-3)

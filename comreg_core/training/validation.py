@@ -1,7 +1,7 @@
 """Validation of a network during pretraining: its errors on the run's fixed held-out samples.
 
 :func:`validate` registers the validation samples with the network in eval mode (CT half
-encoded once) and returns the ``val_*`` figures of ``training_log.csv``: RTE (mm, at the
+encoded once; the ICP's pose refined on the CT mesh with ``model.icp.mesh_refine``) and returns the ``val_*`` figures of ``training_log.csv``: RTE (mm, at the
 centroid of the moved US cloud) and RRE (deg) as in :mod:`comreg_core.registration.metrics`, of
 the fine (after ICP) and the coarse estimate; success = RTE < 2 mm and RRE < 2 deg, flip = RRE >
 90 deg; the training objective; and the evaluation's completion CD (mm) against the CT surface.
@@ -18,6 +18,7 @@ import torch
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.losses import output_loss
 from comreg_core.model.normalization import Normalization
+from comreg_core.registration.icp import refine_on_mesh
 from comreg_core.registration.metrics import (FLIP_RRE_DEG, completion_metrics, is_success,
                                               rotation_error_deg, translation_error_mm)
 from comreg_core.registration.surface import CTSurface
@@ -67,6 +68,13 @@ def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
                             n_ct_samples=4096)["completion_CD_mm"])
     finally:
         model.train(was_training)
+    if model.config.icp.mesh_refine:  # as outside training: the ICP's pose refined on the mesh
+        if surface is None:
+            raise ValueError("icp.mesh_refine needs the CT surface")
+        match = surface.matcher()
+        fine = [norm.transform_to_model(refine_on_mesh(
+            norm.points_to_mm(s.source), norm.transform_to_mm(orthonormalize(T)), match)[0])
+            for T, s in zip(fine, samples)]
     fe = np.array([_pose_errors(T, s, norm) for T, s in zip(fine, samples)])
     ce = np.array([_pose_errors(T, s, norm) for T, s in zip(coarse, samples)])
     return {

@@ -23,6 +23,7 @@ def test_paper_preset_holds_the_paper_numbers():
     assert (c.num_heads, c.graph_k, c.center_num, c.global_feature_dim) == (6, 8, (512, 256), 1024)
     assert (cfg.pose.hidden_dim, cfg.pose.num_blocks, cfg.pose.features) == (512, 5, "decoded")
     assert (cfg.icp.iterations, cfg.icp.num_points, cfg.icp.sigma) == (25, 4096, 5e-3)
+    assert not cfg.icp.mesh_refine  # the paper's pipeline ends with its differentiable ICP
     assert (cfg.loss.lambda_coarse, cfg.loss.lambda_fine, cfg.loss.rho) == (1.0, 0.5, 0.1)
 
 
@@ -31,6 +32,7 @@ def test_cpu_preset_is_smaller_and_keeps_the_method_constants():
     assert cpu.completion.input_points < paper.completion.input_points
     assert cpu.completion.encoder_dim < paper.completion.encoder_dim
     assert cpu.icp.sigma == paper.icp.sigma and cpu.icp.iterations == paper.icp.iterations
+    assert cpu.icp.mesh_refine
     assert cpu.pose.hidden_dim == 512 and cpu.pose.num_blocks == 5
     # the loss is the paper's but for rho, the share of the registration term
     assert cpu.loss.rho == 1.0 and replace(cpu.loss, rho=paper.loss.rho) == paper.loss
