@@ -116,8 +116,9 @@ class PoseHeadConfig:
             Procrustes fit of the centres to those points (see :mod:`.pose_head`). Not in the
             paper; the ``cpu`` preset uses it because it learns within a CPU budget.
         correspondence: how the correspondence head predicts CT points: ``"regress"`` (three
-            coordinates per token) or ``"match"`` (scores against the CT's tokens, see
-            :mod:`.pose_head`).
+            coordinates per token), ``"match"`` (scores against the CT's tokens) or
+            ``"rotated"`` (a global rotation applied to each token's position, plus an offset;
+            see :mod:`.pose_head`).
         rotation: the ``mlp`` head's rotation output: ``"quaternion"`` (the paper) or ``"6d"``
             (the continuous 6-D representation of Zhou et al. 2019).
         token_dim: width of the shared per-token layer applied before pooling.
@@ -127,7 +128,7 @@ class PoseHeadConfig:
 
     features: Literal["decoded", "encoded"] = "decoded"
     head: Literal["mlp", "correspondence"] = "mlp"
-    correspondence: Literal["regress", "match"] = "regress"
+    correspondence: Literal["regress", "match", "rotated"] = "regress"
     rotation: Literal["quaternion", "6d"] = "quaternion"
     token_dim: int = 512
     hidden_dim: int = 512

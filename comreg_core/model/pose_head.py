@@ -30,6 +30,12 @@ every target (CT) token (scaled dot product of a query from the source MLP and a
 target token), and ``y_i`` is the softmax-weighted mean of the CT tokens' positions; the scores
 are also trained by cross-entropy towards the CT token nearest the truth, so a token unsure
 between two places along a shaft keeps two peaks instead of regressing to their mean.
+With ``correspondence: rotated``, ``y_i = R c_i + t + d_i``: a global rotation (6-D
+representation) and translation from the pooled vectors (one more MLP), applied to the centre
+itself, plus a per-token offset ``d_i`` from the per-token MLP. A regressed ``y_i`` makes the
+MLP compute the product ``R c_i`` from features and position, which it learns slowly (its
+points were 40 mm off, docs/learning.md); here the product is computed, and every token's
+error still trains ``R``.
 Every token is supervised (``y_i`` against ``T^-1 c_i``), so each sample gives ``Q`` targets
 instead of one pose: a dense signal that learns within a CPU budget, where the pooled MLP's
 rotation had not moved from the initial poses' error after 30 minutes.
@@ -191,7 +197,13 @@ class CorrespondencePoseHead(nn.Module):
         if config.correspondence == "match":
             self.match_query = nn.Linear(config.hidden_dim, P)
             self.match_key = nn.Linear(P, P)
+        if config.correspondence == "rotated":
+            self.global_mlp = _mlp_blocks(4 * P, config)
+            self.global_out = nn.Linear(config.hidden_dim, 9)  # 6-D rotation + translation
         _init_linear(self)
+        if config.correspondence == "rotated":
+            with torch.no_grad():  # identity rotation at the start
+                self.global_out.bias[0] = self.global_out.bias[4] = 1.0
 
     def forward(self, source_tokens: Tensor, source_positions: Tensor, target_tokens: Tensor,
                 target_positions: Tensor) -> PoseOutput:
@@ -213,6 +225,11 @@ class CorrespondencePoseHead(nn.Module):
             logits = query @ key.transpose(1, 2) / key.shape[-1] ** 0.5  # B T T'
             anchors = target_positions.detach()  # Bt T' 3
             predicted = torch.softmax(logits, dim=-1) @ anchors  # B T 3
+        elif self.config.correspondence == "rotated":
+            pose = self.global_out(self.global_mlp(pooled))  # B 9
+            rotation = rotation_6d_to_matrix(pose[:, :6])  # B 3 3
+            predicted = (source_positions.detach() @ rotation.transpose(1, 2)
+                         + pose[:, None, 6:] + out[..., :3])  # B T 3
         else:
             predicted = out[..., :3]  # B T 3
         weights = torch.softmax(out[..., 3], dim=1)  # B T

@@ -209,3 +209,25 @@ def test_matched_correspondences_are_mixtures_of_ct_tokens_and_learn(tiny_batch)
         opt.step()
     print("share of tokens matched to the right CT token:", hits[0], "->", hits[-1])
     assert np.mean(hits[-3:]) > np.mean(hits[:3]) + 0.05
+
+
+def test_rotated_correspondences_apply_the_global_pose_to_each_token():
+    """``correspondence: rotated``: with the per-token offsets at 0 every predicted CT point
+    is one rigid pose applied to the token's position, so the Procrustes fit returns that pose
+    exactly (whatever the weights); the global rotation leaves the identity it starts from."""
+    torch.manual_seed(1)
+    cfg = model_preset("cpu", {"pose": {"correspondence": "rotated"}}).pose
+    head = CorrespondencePoseHead(32, cfg)
+    with torch.no_grad():
+        head.out.weight[:3].zero_()
+        head.out.bias[:3].zero_()
+        head.global_out.weight.normal_(std=0.5)
+    tokens, pos = torch.randn(2, 20, 32), torch.randn(2, 20, 3)
+    out = head(tokens, pos, torch.randn(1, 15, 32), torch.randn(1, 15, 3))
+    R, t = out.transform[:, :3, :3].detach(), out.transform[:, :3, 3].detach()
+    assert_close(torch.linalg.det(R).numpy(), np.ones(2), atol=1e-5)
+    assert float((R - torch.eye(3)).abs().max()) > 0.1
+    expected = pos @ R.transpose(1, 2) + t[:, None]
+    assert_close(out.correspondences.predicted.detach().numpy(), expected.numpy(), atol=1e-4)
+    out.transform.sum().backward()  # the pose trains the global head
+    assert float(head.global_out.weight.grad.abs().sum()) > 0
