@@ -201,8 +201,8 @@ def coarse_to_fine_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
     return T, rmse
 
 
-#: The mesh refinement of a network's coarse pose (``model.icp.inference: mesh``): US points
-#: used (evenly strided), most iterations, and the share of the farthest pairs left out (the
+#: The mesh refinement of the network's ICP result (``model.icp.mesh_refine``): US points used
+#: (evenly strided), most iterations, and the share of the farthest pairs left out (the
 #: sweep's false intersections; untrimmed, the refinement leaves half the simulated validation
 #: sweeps over 2 mm / 2 deg from the truth even when it starts there).
 MESH_REFINE_POINTS = 1024

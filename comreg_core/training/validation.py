@@ -1,8 +1,9 @@
 """Validation of a network during pretraining: its errors on the run's fixed held-out samples.
 
 :func:`validate` registers the validation samples with the network in eval mode (CT half
-encoded once; the ICP's pose refined on the CT mesh with ``model.icp.mesh_refine``) and returns the ``val_*`` figures of ``training_log.csv``: RTE (mm, at the
-centroid of the moved US cloud) and RRE (deg) as in :mod:`comreg_core.registration.metrics`, of
+encoded once; the ICP's pose refined on the CT mesh with ``model.icp.mesh_refine``) and
+returns the ``val_*`` figures of ``training_log.csv``: RTE (mm, at the centroid of the moved
+US cloud) and RRE (deg) as in :mod:`comreg_core.registration.metrics`, of
 the fine (after ICP) and the coarse estimate; success = RTE < 2 mm and RRE < 2 deg, flip = RRE >
 90 deg; the training objective; and the evaluation's completion CD (mm) against the CT surface.
 :func:`identity_errors` gives the same errors for doing nothing (the initial misalignment).
