@@ -14,6 +14,14 @@ POLISH_TOLERANCE_MM = 0.01
 #: ... or once its RMS has not fallen by 1e-4 mm for this many iterations (its gated pairs
 #: can make it jitter above the tolerance for good).
 POLISH_PATIENCE = 5
+#: The mesh refinement of the network's ICP result (``model.icp.mesh_refine``,
+#: :func:`~comreg_core.registration.icp.refine_on_mesh`): US points used (evenly strided),
+#: most iterations, and the share of the farthest pairs left out (the sweep's false
+#: intersections; untrimmed, it leaves half the simulated validation sweeps over 2 mm / 2 deg
+#: from the truth even when it starts there).
+MESH_REFINE_POINTS = 1024
+MESH_REFINE_ITERATIONS = 50
+MESH_REFINE_TRIM = 0.1
 #: US points and most iterations of the quick polish that compares poses tied with the best.
 QUICK_POLISH_POINTS = 512
 QUICK_POLISH_ITERATIONS = 30

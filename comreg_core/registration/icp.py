@@ -21,6 +21,8 @@ from typing import NamedTuple
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
+from comreg_core.registration.config import (MESH_REFINE_ITERATIONS, MESH_REFINE_POINTS,
+                                             MESH_REFINE_TRIM, POLISH_PATIENCE)
 from comreg_core.registration.surface import Matcher
 from comreg_core.transforms import as_points
 
@@ -201,24 +203,15 @@ def coarse_to_fine_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
     return T, rmse
 
 
-#: The mesh refinement of the network's ICP result (``model.icp.mesh_refine``): US points used
-#: (evenly strided), most iterations, and the share of the farthest pairs left out (the
-#: sweep's false intersections; untrimmed, the refinement leaves half the simulated validation
-#: sweeps over 2 mm / 2 deg from the truth even when it starts there).
-MESH_REFINE_POINTS = 1024
-MESH_REFINE_ITERATIONS = 50
-MESH_REFINE_TRIM = 0.1
-#: It stops once its RMS has not fallen for this many iterations (as the search's polish).
-MESH_REFINE_PATIENCE = 5
-
-
 def refine_on_mesh(points_mm: np.ndarray, T_start: np.ndarray, match: Matcher
                    ) -> tuple[np.ndarray, float]:
     """Trimmed point-to-plane ICP of US points ``(N, 3)`` mm from the pose ``T_start``
     ``(4, 4)`` (US -> CT, mm) onto the CT mesh (``match``: e.g. ``CTSurface.matcher()``).
-    Returns the refined pose ``(4, 4)`` and its RMS point-to-plane residual (mm)."""
+    It stops, as the search's polish does, once its RMS has stalled for
+    :data:`~comreg_core.registration.config.POLISH_PATIENCE` iterations. Returns the refined
+    pose ``(4, 4)`` and its RMS point-to-plane residual (mm)."""
     result = point_to_plane_icp(strided(as_points(points_mm, "US points"), MESH_REFINE_POINTS),
                                 np.asarray(T_start, dtype=np.float64)[None], match,
                                 iterations=MESH_REFINE_ITERATIONS,
-                                trim_fraction=MESH_REFINE_TRIM, patience=MESH_REFINE_PATIENCE)
+                                trim_fraction=MESH_REFINE_TRIM, patience=POLISH_PATIENCE)
     return result.T[0], float(result.rmse_mm[0])

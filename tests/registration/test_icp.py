@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from comreg_core.registration.icp import (MESH_REFINE_POINTS, coarse_to_fine_icp,
-                                          point_to_plane_icp, refine_on_mesh)
+from comreg_core.registration.config import MESH_REFINE_POINTS
+from comreg_core.registration.icp import coarse_to_fine_icp, point_to_plane_icp, refine_on_mesh
 from comreg_core.transforms import apply_transform
 from tests.helpers import assert_close, box_distance, rigid_about
 
