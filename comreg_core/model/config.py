@@ -118,7 +118,7 @@ class PoseHeadConfig:
         correspondence: how the correspondence head predicts CT points: ``"regress"`` (three
             coordinates per token), ``"match"`` (scores against the CT's tokens) or
             ``"rotated"`` (a global rotation applied to each token's position, plus an offset;
-            see :mod:`.pose_head`).
+            see :mod:`.pose_head`; the ``cpu`` preset's).
         rotation: the ``mlp`` head's rotation output: ``"quaternion"`` (the paper) or ``"6d"``
             (the continuous 6-D representation of Zhou et al. 2019).
         token_dim: width of the shared per-token layer applied before pooling.
@@ -232,7 +232,9 @@ class ModelConfig:
             normalised coordinates. ``"centroid"``: the source is first moved so that the
             centroid of its network input lies at 0 (the shift is undone on every output), so
             the network never has to learn where the cloud happens to sit: its outputs are
-            the same for a cloud translated anywhere. Not in the paper; used by ``cpu``.
+            the same for a cloud translated anywhere, but it loses where the cloud lies, which
+            the paper's initial poses make informative (docs/learning.md, trial W). Not in the
+            paper; not used by a preset.
             ``"principal"``: also turned onto the input's principal axes (signs from its third
             moments), so the outputs are the same for a cloud moved anywhere, turned included
             (up to the axes' ambiguities when two spreads are about equal).

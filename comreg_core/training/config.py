@@ -175,7 +175,6 @@ PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "cpu": {
         "model": {
-            "input_frame": "centroid",
             "completion": {
                 "input_points": 2048,
                 "center_num": [256, 128],
@@ -190,7 +189,8 @@ PRESETS: dict[str, dict[str, Any]] = {
                 "fold_grid": [4, 4],
                 "fold_hidden": 128,
             },
-            "pose": {"token_dim": 256, "head": "correspondence"},
+            # the source in the CT's frame (the default), as the paper: docs/learning.md, W
+            "pose": {"token_dim": 256, "head": "correspondence", "correspondence": "rotated"},
             "loss": {"rho": 1.0},
             "icp": {"num_points": 2048, "neighbors": 16, "mesh_refine": True},
         },

@@ -38,6 +38,8 @@ def test_cpu_preset_is_smaller_and_keeps_the_method_constants():
     assert cpu.loss.rho == 1.0 and replace(cpu.loss, rho=paper.loss.rho) == paper.loss
     assert (paper.input_frame, paper.pose.head, paper.pose.rotation) == ("ct", "mlp",
                                                                          "quaternion")
+    assert (cpu.input_frame, cpu.pose.head, cpu.pose.correspondence) == ("ct", "correspondence",
+                                                                         "rotated")
 
 
 def test_overrides_yaml_round_trip_and_errors(tmp_path):
