@@ -189,7 +189,7 @@ PRESETS: dict[str, dict[str, Any]] = {
                 "fold_grid": [4, 4],
                 "fold_hidden": 128,
             },
-            # the source in the CT's frame (the default), as the paper: docs/learning.md, W
+            # no input_frame: the CT's frame (the default), as the paper; docs/learning.md, W
             "pose": {"token_dim": 256, "head": "correspondence", "correspondence": "rotated"},
             "loss": {"rho": 1.0},
             "icp": {"num_points": 2048, "neighbors": 16, "mesh_refine": True},
