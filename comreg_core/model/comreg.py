@@ -147,6 +147,8 @@ class ComRegNet(nn.Module):
         if corr is not None:
             corr = corr._replace(positions=transform_points(invert_frame(frame),
                                                             corr.positions))
+            if corr.global_transform is not None:
+                corr = corr._replace(global_transform=corr.global_transform @ frame)
         return PoseOutput(transform, matrix_to_quaternion(transform[:, :3, :3].detach()),
                           transform[:, :3, 3], corr)
 

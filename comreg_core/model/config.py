@@ -119,6 +119,9 @@ class PoseHeadConfig:
             coordinates per token), ``"match"`` (scores against the CT's tokens) or
             ``"rotated"`` (a global rotation applied to each token's position, plus an offset;
             see :mod:`.pose_head`; the ``cpu`` preset's).
+        moments: ``correspondence: rotated`` only: also feed the global rotation's MLP the
+            source tokens' centroid and covariance directions (9 numbers), so the direction a
+            sweep runs is an input, not something pooled features must find. Not in the paper.
         rotation: the ``mlp`` head's rotation output: ``"quaternion"`` (the paper) or ``"6d"``
             (the continuous 6-D representation of Zhou et al. 2019).
         token_dim: width of the shared per-token layer applied before pooling.
@@ -130,6 +133,7 @@ class PoseHeadConfig:
     head: Literal["mlp", "correspondence"] = "mlp"
     correspondence: Literal["regress", "match", "rotated"] = "regress"
     rotation: Literal["quaternion", "6d"] = "quaternion"
+    moments: bool = False
     token_dim: int = 512
     hidden_dim: int = 512
     num_blocks: int = 5
@@ -200,17 +204,23 @@ class LossConfig:
             correspondence`` only): the mean distance (normalised units) of each token's
             predicted CT point from where the true transform puts its query centre. It is a
             third term of ``L_registration``.
+        lambda_global: weight of a fourth term for ``pose.correspondence: rotated``: the pose
+            loss of the head's global rotation and translation against the truth, so that the
+            rotation is trained directly and not only through the per-token points (which the
+            per-token offsets can fit without it). 0 leaves it out.
     """
 
     lambda_coarse: float = 1.0
     lambda_fine: float = 0.5
     lambda_correspondence: float = 1.0
+    lambda_global: float = 0.0
     rho: float = 0.1
     fine_gate_deg: float = 10.0
     fine_gate_translation: float = 0.025
 
     def __post_init__(self) -> None:
-        for name in ("lambda_coarse", "lambda_fine", "lambda_correspondence", "rho"):
+        for name in ("lambda_coarse", "lambda_fine", "lambda_correspondence", "lambda_global",
+                     "rho"):
             require(getattr(self, name) >= 0, f"loss.{name}", "must be 0 or more")
         require(0 < self.fine_gate_deg <= 180, "loss.fine_gate_deg",
                 "must lie in (0, 180] degrees (180 = no gate, the paper's loss)")

@@ -8,7 +8,8 @@
 * ``L_registration = mean(lambda_coarse L_reg(coarse) + lambda_fine L_reg(fine))``, the fine
   term gated per sample by the coarse pose error (``LossConfig.fine_gate_*``); with the
   correspondence head, ``+ lambda_correspondence mean_i ||y_i - T^-1 c_i||`` (each token's
-  predicted CT point against where the truth puts its query centre).
+  predicted CT point against where the truth puts its query centre), and for the rotated
+  correspondences ``+ lambda_global L_reg(global)`` (their global rotation and translation).
 * ``L_final = L_completion + lambda_reg L_registration`` with
   ``lambda_reg = rho L_completion / L_registration``, the weight detached (a number, not a path
   for gradients).
@@ -130,6 +131,9 @@ def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transf
     correspondence = correspondence_loss(correspondences, gt_transform)
     if correspondences is not None:
         registration = registration + config.lambda_correspondence * correspondence
+        if correspondences.global_transform is not None and config.lambda_global > 0:
+            registration = registration + config.lambda_global * pose_loss(
+                correspondences.global_transform, gt_transform).mean()
     lambda_reg = balance_weight(completion, registration, config)
     total = completion + lambda_reg * registration
     return LossTerms(total, completion, sparse, dense_cd, registration, reg_coarse, reg_fine,

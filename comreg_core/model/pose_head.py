@@ -32,7 +32,9 @@ are also trained by cross-entropy towards the CT token nearest the truth, so a t
 between two places along a shaft keeps two peaks instead of regressing to their mean.
 With ``correspondence: rotated``, ``y_i = R c_i + t + d_i``: a global rotation (6-D
 representation) and translation from the pooled vectors (one more MLP), applied to the centre
-itself, plus a per-token offset ``d_i`` from the per-token MLP. A regressed ``y_i`` makes the
+itself, plus a per-token offset ``d_i`` from the per-token MLP (``loss.lambda_global`` can also
+supervise ``R, t`` directly, and ``pose.moments`` gives the global MLP the token positions'
+centroid and covariance directions). A regressed ``y_i`` makes the
 MLP compute the product ``R c_i`` from features and position, which it learns slowly (its
 points were 40 mm off, docs/learning.md); here the product is computed, and every token's
 error still trains ``R``.
@@ -66,6 +68,8 @@ class Correspondences(NamedTuple):
             match``), None when regressed.
         anchors: ``(B | 1, T', 3)`` the target tokens' positions (CT frame) the scores refer
             to, None when regressed.
+        global_transform: ``(B, 4, 4)`` the global rotation and translation of ``correspondence:
+            rotated`` (source -> CT), None otherwise.
     """
 
     positions: Tensor
@@ -73,6 +77,7 @@ class Correspondences(NamedTuple):
     weights: Tensor
     logits: Tensor | None = None
     anchors: Tensor | None = None
+    global_transform: Tensor | None = None
 
 
 class PoseOutput(NamedTuple):
@@ -112,6 +117,18 @@ def _init_linear(module: nn.Module) -> None:
         if isinstance(m, nn.Linear):
             nn.init.trunc_normal_(m.weight, std=0.02)
             nn.init.zeros_(m.bias)
+
+
+def position_moments(positions: Tensor) -> Tensor:
+    """``(B, T, 3)`` -> ``(B, 9)``: the positions' centroid and the six distinct entries of their
+    covariance divided by its trace (the spread's directions, not its size; invariant to
+    which way an axis points, so it carries no sign the network has to undo)."""
+    centroid = positions.mean(dim=1)  # B 3
+    d = positions - centroid[:, None]
+    cov = d.transpose(1, 2) @ d / positions.shape[1]  # B 3 3
+    cov = cov / cov.diagonal(dim1=1, dim2=2).sum(-1).clamp_min(1e-12)[:, None, None]
+    i, j = torch.triu_indices(3, 3)
+    return torch.cat([centroid, cov[:, i, j]], dim=-1)
 
 
 def build_pose_head(feature_dim: int, config: PoseHeadConfig) -> nn.Module:
@@ -198,7 +215,7 @@ class CorrespondencePoseHead(nn.Module):
             self.match_query = nn.Linear(config.hidden_dim, P)
             self.match_key = nn.Linear(P, P)
         if config.correspondence == "rotated":
-            self.global_mlp = _mlp_blocks(4 * P, config)
+            self.global_mlp = _mlp_blocks(4 * P + (9 if config.moments else 0), config)
             self.global_out = nn.Linear(config.hidden_dim, 9)  # 6-D rotation + translation
         _init_linear(self)
         if config.correspondence == "rotated":
@@ -218,7 +235,7 @@ class CorrespondencePoseHead(nn.Module):
         x = torch.cat([h_src, pooled.unsqueeze(1).expand(-1, T, -1)], dim=-1)  # B T 5P
         hidden = self.mlp(x.reshape(B * T, -1))  # B*T H
         out = self.out(hidden).reshape(B, T, 4)  # B T 4
-        logits = anchors = None
+        logits = anchors = global_transform = None
         if self.config.correspondence == "match":
             query = self.match_query(hidden).reshape(B, T, -1)  # B T P
             key = self.match_key(h_tgt)  # Bt T' P
@@ -226,8 +243,12 @@ class CorrespondencePoseHead(nn.Module):
             anchors = target_positions.detach()  # Bt T' 3
             predicted = torch.softmax(logits, dim=-1) @ anchors  # B T 3
         elif self.config.correspondence == "rotated":
-            pose = self.global_out(self.global_mlp(pooled))  # B 9
+            inputs = pooled
+            if self.config.moments:
+                inputs = torch.cat([pooled, position_moments(source_positions.detach())], -1)
+            pose = self.global_out(self.global_mlp(inputs))  # B 9
             rotation = rotation_6d_to_matrix(pose[:, :6])  # B 3 3
+            global_transform = make_transform(rotation, pose[:, 6:])  # B 4 4
             predicted = (source_positions.detach() @ rotation.transpose(1, 2)
                          + pose[:, None, 6:] + out[..., :3])  # B T 3
         else:
@@ -237,4 +258,5 @@ class CorrespondencePoseHead(nn.Module):
         R, t = weighted_procrustes(positions, predicted, weights)  # B 3 3, B 3
         transform = make_transform(R, t)  # B 4 4
         return PoseOutput(transform, matrix_to_quaternion(R.detach()), t,
-                          Correspondences(positions, predicted, weights, logits, anchors))
+                          Correspondences(positions, predicted, weights, logits, anchors,
+                                          global_transform))

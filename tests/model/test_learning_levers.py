@@ -232,5 +232,54 @@ def test_rotated_correspondences_apply_the_global_pose_to_each_token():
     assert float((R - torch.eye(3)).abs().max()) > 0.1
     expected = pos @ R.transpose(1, 2) + t[:, None]
     assert_close(out.correspondences.predicted.detach().numpy(), expected.numpy(), atol=1e-4)
+    assert_close(out.correspondences.global_transform.detach().numpy(),
+                 out.transform.detach().numpy(), atol=1e-4)  # no offsets: the global pose
     out.transform.sum().backward()  # the pose trains the global head
     assert float(head.global_out.weight.grad.abs().sum()) > 0
+
+
+def test_global_pose_term_adds_the_global_poses_error_to_the_registration_loss():
+    """``loss.lambda_global``: the rotated head's global pose, 30 deg and 0.05 units off the
+    truth, adds ``lambda_global * (0.05 + pi / 6)`` to ``L_registration``; at the truth it adds
+    nothing; other heads' correspondences carry no global pose."""
+    from comreg_core.model.config import LossConfig
+    from comreg_core.model.losses import comreg_loss
+
+    gt = make_transform(torch.tensor(Rotation.random(2, random_state=4).as_matrix(),
+                                     dtype=torch.float32), torch.tensor([[0.1, 0, 0], [0, 0.2, 0]]))
+    turn = torch.tensor(Rotation.from_rotvec([0, 0, np.pi / 6]).as_matrix(), dtype=torch.float32)
+    off = gt.clone()
+    off[:, :3, :3] = gt[:, :3, :3] @ turn
+    off[:, :3, 3] += torch.tensor([0.03, 0.0, 0.04])
+    pos = torch.randn(2, 30, 3)
+    pts, w = torch.randn(2, 64, 3), torch.full((2, 30), 1 / 30)
+
+    def registration(global_transform, weight):
+        corr = Correspondences(pos, transform_points(gt, pos), w, global_transform=global_transform)
+        return float(comreg_loss(pts[:, :16], pts, pts, gt, gt, gt, LossConfig(lambda_global=weight),
+                                 corr).registration)
+
+    assert registration(off, 0.0) < 1e-5
+    assert registration(gt, 2.0) < 1e-5
+    assert registration(off, 2.0) == pytest.approx(2.0 * (0.05 + np.pi / 6), rel=1e-4)
+    assert registration(None, 2.0) < 1e-5
+
+
+def test_position_moments_match_numpy_and_ignore_sign_and_scale():
+    from comreg_core.model.pose_head import position_moments
+
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(2, 50, 3)) * [3.0, 1.0, 0.5] + [0.2, -0.1, 0.4]
+    m = position_moments(torch.tensor(pts)).numpy()
+    for b in range(2):
+        cov = np.cov(pts[b].T, bias=True)
+        cov /= np.trace(cov)
+        assert_close(m[b, :3], pts[b].mean(0), atol=1e-12)
+        assert_close(m[b, 3:], cov[np.triu_indices(3)], atol=1e-12)
+    mirrored = position_moments(torch.tensor(-2.0 * (pts - pts.mean(1, keepdims=True)))).numpy()
+    assert_close(mirrored[:, 3:], m[:, 3:], atol=1e-12)  # sign and size do not change them
+    cfg = model_preset("cpu", {"pose": {"token_dim": 32, "moments": True}}).pose
+    head = CorrespondencePoseHead(16, cfg)
+    out = head(torch.randn(2, 20, 16), torch.randn(2, 20, 3), torch.randn(1, 15, 16),
+               torch.randn(1, 15, 3))
+    assert out.transform.shape == (2, 4, 4)
