@@ -189,9 +189,11 @@ PRESETS: dict[str, dict[str, Any]] = {
                 "fold_grid": [4, 4],
                 "fold_hidden": 128,
             },
-            # no input_frame: the CT's frame (the default), as the paper; docs/learning.md, W
-            "pose": {"token_dim": 256, "head": "correspondence", "correspondence": "rotated"},
-            "loss": {"rho": 1.0},
+            # no input_frame: the CT's frame (the default), as the paper; docs/learning.md, W;
+            # moments and lambda_global: trial GM (the coarse rotation learns on both bones)
+            "pose": {"token_dim": 256, "head": "correspondence", "correspondence": "rotated",
+                     "moments": True},
+            "loss": {"rho": 1.0, "lambda_global": 1.0},
             "icp": {"num_points": 2048, "neighbors": 16, "mesh_refine": True},
         },
         "simulation": {"n_points": 2048},

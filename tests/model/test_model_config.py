@@ -34,8 +34,10 @@ def test_cpu_preset_is_smaller_and_keeps_the_method_constants():
     assert cpu.icp.sigma == paper.icp.sigma and cpu.icp.iterations == paper.icp.iterations
     assert cpu.icp.mesh_refine
     assert cpu.pose.hidden_dim == 512 and cpu.pose.num_blocks == 5
-    # the loss is the paper's but for rho, the share of the registration term
-    assert cpu.loss.rho == 1.0 and replace(cpu.loss, rho=paper.loss.rho) == paper.loss
+    # the loss is the paper's but for rho (the registration term's share) and the global pose term
+    assert cpu.loss.rho == 1.0 and cpu.loss.lambda_global == 1.0 and paper.loss.lambda_global == 0
+    assert replace(cpu.loss, rho=paper.loss.rho, lambda_global=0.0) == paper.loss
+    assert cpu.pose.moments and not paper.pose.moments
     assert (paper.input_frame, paper.pose.head, paper.pose.rotation) == ("ct", "mlp",
                                                                          "quaternion")
     assert (cpu.input_frame, cpu.pose.head, cpu.pose.correspondence) == ("ct", "correspondence",
