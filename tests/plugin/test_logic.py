@@ -356,7 +356,7 @@ def test_pretraining_cancel_stops_it_and_leaves_no_half_written_checkpoint(logic
     # what a kill in the middle of an atomic checkpoint write would leave behind
     leftover = run / ".checkpoint.pt.abc123.tmp.pt"
     leftover.write_bytes(b"half a checkpoint")
-    assert job.temporaryFiles() == [leftover]
+    assert leftover in job.temporaryFiles()  # beside, maybe, the job's own write in flight
     status = logic.cancelPretraining()
     assert status.state == "cancelled" and status.returnCode not in (None, 0)
     assert not job.running and logic.getParameterNode().pretrainingState == "cancelled"
