@@ -348,25 +348,29 @@ def test_pretraining_cancel_stops_it_and_leaves_no_half_written_checkpoint(logic
     run = tmp_path / "run"
     job = logic.startPretraining(FIBULA_STL, run, preset="cpu", epochs=1000, maxMinutes=0,
                                  seed=0, device="cpu", config=MICRO)
-    deadline = time.monotonic() + 120
-    while not (run / "training_log.csv").is_file() and time.monotonic() < deadline:
-        assert job.running, job.consolePath.read_text()
-        time.sleep(0.2)
-    assert job.running  # training (1000 epochs) is under way
-    # what a kill in the middle of an atomic checkpoint write would leave behind
-    leftover = run / ".checkpoint.pt.abc123.tmp.pt"
-    leftover.write_bytes(b"half a checkpoint")
-    assert leftover in job.temporaryFiles()  # beside, maybe, the job's own write in flight
-    status = logic.cancelPretraining()
-    assert status.state == "cancelled" and status.returnCode not in (None, 0)
-    assert not job.running and logic.getParameterNode().pretrainingState == "cancelled"
-    assert not job.temporaryFiles()
-    assert not [p for p in run.iterdir() if ".tmp" in p.name]
-    if (run / "checkpoint.pt").exists():  # the last complete one
-        state = load_checkpoint(run)
-        assert 0 <= state["epoch"] < 1000  # a complete checkpoint from before the cancel
-    with pytest.raises(ComRegError, match="not running"):
-        logic.cancelPretraining()
+    try:  # a failed assertion must not leave a 1000-epoch job running
+        deadline = time.monotonic() + 120
+        while not (run / "training_log.csv").is_file() and time.monotonic() < deadline:
+            assert job.running, job.consolePath.read_text()
+            time.sleep(0.2)
+        assert job.running  # training (1000 epochs) is under way
+        # what a kill in the middle of an atomic checkpoint write would leave behind
+        leftover = run / ".checkpoint.pt.abc123.tmp.pt"
+        leftover.write_bytes(b"half a checkpoint")
+        assert leftover in job.temporaryFiles()  # beside, maybe, the job's own write in flight
+        status = logic.cancelPretraining()
+        assert status.state == "cancelled" and status.returnCode not in (None, 0)
+        assert not job.running and logic.getParameterNode().pretrainingState == "cancelled"
+        assert not job.temporaryFiles()
+        assert not [p for p in run.iterdir() if ".tmp" in p.name]
+        if (run / "checkpoint.pt").exists():  # the last complete one
+            state = load_checkpoint(run)
+            assert 0 <= state["epoch"] < 1000  # a complete checkpoint from before the cancel
+        with pytest.raises(ComRegError, match="not running"):
+            logic.cancelPretraining()
+    finally:
+        if job.running:
+            job.cancel()
 
 
 # --------------------------------------------------------------------------------------------
