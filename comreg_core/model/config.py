@@ -248,10 +248,22 @@ class ModelConfig:
             ``"principal"``: also turned onto the input's principal axes (signs from its third
             moments), so the outputs are the same for a cloud moved anywhere, turned included
             (up to the axes' ambiguities when two spreads are about equal).
+            ``"azimuth"``: turned about the CT's long axis (its largest principal axis, through
+            the CT's centre) until the input's centroid lies at azimuth 0 (towards the CT's
+            second principal axis); the azimuth's cosine and sine go to the pose head's global
+            MLP (``pose.correspondence: rotated`` only). A sweep turned about the long axis
+            then enters the network the same wherever it was turned to, so its shape, not
+            where it sits, must say which side of the bone it shows. Not in the paper.
     """
 
-    input_frame: Literal["ct", "centroid", "principal"] = "ct"
+    input_frame: Literal["ct", "centroid", "principal", "azimuth"] = "ct"
     completion: CompletionConfig = field(default_factory=CompletionConfig)
     pose: PoseHeadConfig = field(default_factory=PoseHeadConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+
+    def __post_init__(self) -> None:
+        require(self.input_frame != "azimuth" or (self.pose.head == "correspondence"
+                                                  and self.pose.correspondence == "rotated"),
+                "model.input_frame", "'azimuth' needs pose.head: correspondence and "
+                "pose.correspondence: rotated")

@@ -131,10 +131,12 @@ def position_moments(positions: Tensor) -> Tensor:
     return torch.cat([centroid, cov[:, i, j]], dim=-1)
 
 
-def build_pose_head(feature_dim: int, config: PoseHeadConfig) -> nn.Module:
-    """The head ``config.head`` names: :class:`PoseHead` or :class:`CorrespondencePoseHead`."""
+def build_pose_head(feature_dim: int, config: PoseHeadConfig, context_dim: int = 0
+                    ) -> nn.Module:
+    """The head ``config.head`` names: :class:`PoseHead` or :class:`CorrespondencePoseHead`
+    (``context_dim``: width of the extra input of the rotated head's global MLP)."""
     if config.head == "correspondence":
-        return CorrespondencePoseHead(feature_dim, config)
+        return CorrespondencePoseHead(feature_dim, config, context_dim)
     return PoseHead(feature_dim, config)
 
 
@@ -202,10 +204,13 @@ class CorrespondencePoseHead(nn.Module):
     Args:
         feature_dim: width of the tokens.
         config: :class:`PoseHeadConfig` (``token_dim``, ``hidden_dim``, ``num_blocks``).
+        context_dim: width of the ``context`` the forward pass appends to the global MLP's
+            input (``correspondence: rotated``; e.g. the input frame's azimuth).
     """
 
-    def __init__(self, feature_dim: int, config: PoseHeadConfig):
+    def __init__(self, feature_dim: int, config: PoseHeadConfig, context_dim: int = 0):
         super().__init__()
+        self.context_dim = context_dim
         self.config = config
         P = config.token_dim
         self.token = nn.Linear(feature_dim + 3, P)
@@ -215,7 +220,8 @@ class CorrespondencePoseHead(nn.Module):
             self.match_query = nn.Linear(config.hidden_dim, P)
             self.match_key = nn.Linear(P, P)
         if config.correspondence == "rotated":
-            self.global_mlp = _mlp_blocks(4 * P + (9 if config.moments else 0), config)
+            self.global_mlp = _mlp_blocks(4 * P + (9 if config.moments else 0) + context_dim,
+                                          config)
             self.global_out = nn.Linear(config.hidden_dim, 9)  # 6-D rotation + translation
         _init_linear(self)
         if config.correspondence == "rotated":
@@ -223,9 +229,12 @@ class CorrespondencePoseHead(nn.Module):
                 self.global_out.bias[0] = self.global_out.bias[4] = 1.0
 
     def forward(self, source_tokens: Tensor, source_positions: Tensor, target_tokens: Tensor,
-                target_positions: Tensor) -> PoseOutput:
-        """Same arguments as :meth:`PoseHead.forward`; returns :class:`PoseOutput` with the
-        :class:`Correspondences`."""
+                target_positions: Tensor, context: Tensor | None = None) -> PoseOutput:
+        """Same arguments as :meth:`PoseHead.forward` (``context``: ``(B, context_dim)`` or
+        None); returns :class:`PoseOutput` with the :class:`Correspondences`."""
+        if (context is None) != (self.context_dim == 0) or (
+                context is not None and context.shape[-1] != self.context_dim):
+            raise ValueError(f"this head needs a context of width {self.context_dim}")
         _check_tokens(source_tokens, source_positions, target_tokens, target_positions)
         B, T, _ = source_tokens.shape
         h_src = F.gelu(self.token(torch.cat([source_tokens, source_positions], -1)))  # B T P
@@ -246,6 +255,8 @@ class CorrespondencePoseHead(nn.Module):
             inputs = pooled
             if self.config.moments:
                 inputs = torch.cat([pooled, position_moments(source_positions.detach())], -1)
+            if context is not None:
+                inputs = torch.cat([inputs, context.to(inputs.dtype)], -1)
             pose = self.global_out(self.global_mlp(inputs))  # B 9
             rotation = rotation_6d_to_matrix(pose[:, :6])  # B 3 3
             global_transform = make_transform(rotation, pose[:, 6:])  # B 4 4

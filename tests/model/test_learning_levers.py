@@ -10,6 +10,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from comreg_core.model import ComRegNet, output_loss
+from comreg_core.config import ConfigError
+from comreg_core.model.comreg import principal_axes
 from comreg_core.training.config import model_preset
 from comreg_core.model.losses import correspondence_loss, in_fine_gate
 from comreg_core.model.ops import (make_transform, matrix_to_quaternion, rotation_6d_to_matrix,
@@ -283,3 +285,27 @@ def test_position_moments_match_numpy_and_ignore_sign_and_scale():
     out = head(torch.randn(2, 20, 16), torch.randn(2, 20, 3), torch.randn(1, 15, 16),
                torch.randn(1, 15, 3))
     assert out.transform.shape == (2, 4, 4)
+
+
+def test_azimuth_frame_turns_the_completion_with_a_turn_about_the_ct_long_axis(tiny_batch):
+    torch.manual_seed(0)
+    source, target, _, _ = tiny_batch
+    axes = principal_axes(target[0])
+    x = (target[0] - target[0].mean(0)).double().numpy()
+    long_axis = np.linalg.eigh(x.T @ x)[1][:, -1]  # numpy's largest principal axis
+    assert abs(float(axes[0].numpy() @ long_axis)) > 1 - 1e-6
+    assert_close(principal_axes(target[0, ::3]).numpy(), axes.numpy(), atol=0.05)  # same signs
+    turn = make_transform(torch.tensor(Rotation.from_rotvec(1.1 * axes[0].numpy()).as_matrix(),
+                                       dtype=torch.float32), torch.zeros(3))
+    moved = transform_points(turn.expand(4, 4, 4), source)
+    net = tiny_model(input_frame="azimuth").eval()
+    with torch.no_grad():
+        a = net(source, target)
+        b = net(moved, target)
+    # f sees the same input, so its completion turns with the cloud; the pose head also gets
+    # the azimuth, so the coarse pose is free to differ from a's turned one.
+    assert_close(b.completion.dense.numpy(),
+                 transform_points(turn.expand(4, 4, 4), a.completion.dense).numpy(), atol=1e-3)
+    assert b.coarse_transform.shape == (4, 4, 4)
+    with pytest.raises(ConfigError, match="azimuth"):
+        tiny_model(input_frame="azimuth", pose={"correspondence": "regress"})
