@@ -214,15 +214,22 @@ MODEL_ENTRIES = ("config_yaml", "ct_fingerprint", "ct_space", "ct_vertices", "ct
                  "ct_points", "norm_center", "norm_scale", "epoch", "samples_seen", "elapsed_s",
                  "validation", "validation_epoch", "initial_error")
 
-#: The network counts as not having learned while its validation coarse RRE (median) is above
-#: this share of the validation set's initial misalignment (median RRE of doing nothing).
+#: The network counts as not having learned while its coarse rotation halves the initial error
+#: on fewer than this share of the validation sweeps (``val_coarse_improved_share``).
+NOT_LEARNED_IMPROVED_SHARE = 0.1
+
+#: Runs validated before that share was logged: the network counts as not having learned while
+#: its validation coarse RRE (median) is above this share of the validation set's initial
+#: misalignment (median RRE of doing nothing).
 NOT_LEARNED_RRE_SHARE = 0.75
 
 
 def network_warning(state: dict[str, Any]) -> str | None:
     """A one-line warning when a checkpoint's own validation says its network has not learned
-    (coarse RRE median above :data:`NOT_LEARNED_RRE_SHARE` of the initial poses'), or when it
-    has no training or validation to judge by; None when it has learned."""
+    the pose (its coarse rotation halves the initial error on fewer than
+    :data:`NOT_LEARNED_IMPROVED_SHARE` of the validation sweeps; for older runs: coarse RRE
+    median above :data:`NOT_LEARNED_RRE_SHARE` of the initial poses'), or when it has no
+    training or validation to judge by; None when it has learned."""
     epochs = int(state.get("epoch", 0))
     if epochs == 0:
         return ("The network has not been trained (0 epochs): its pose is a guess; only the "
@@ -232,11 +239,19 @@ def network_warning(state: dict[str, Any]) -> str | None:
         return None  # written before validation was stored: nothing to judge by
     coarse = float(validation["val_coarse_RRE_deg_median"])
     start = float(initial["RRE_deg_median"])
-    if coarse > NOT_LEARNED_RRE_SHARE * start:
-        return (f"The network has not learned the pose: after {epochs} epochs its validation "
-                f"coarse rotation error (median {coarse:.0f} deg) is no better than the initial "
-                f"poses' ({start:.0f} deg); the result rests on the pose search. Train longer.")
-    return None
+    share = validation.get("val_coarse_improved_share")
+    if share is None:
+        learned = coarse <= NOT_LEARNED_RRE_SHARE * start
+        how = f"is no better than the initial poses' ({start:.0f} deg)"
+    else:
+        learned = float(share) >= NOT_LEARNED_IMPROVED_SHARE
+        how = (f"halves the initial poses' ({start:.0f} deg) on only {float(share):.0%} of the "
+               "validation sweeps")
+    if learned:
+        return None
+    return (f"The network has not learned the pose: after {epochs} epochs its validation "
+            f"coarse rotation error (median {coarse:.0f} deg) {how}; the result rests on the "
+            "pose search. Train longer.")
 
 
 def export_model(run_dir: str | Path, path: str | Path, *, half: bool = True) -> Path:

@@ -65,8 +65,9 @@ LOG_COLUMNS = (
     "epoch", "samples", "world_size", "time_s", "epoch_s", "lr_backbone", "lr_head", "loss",
     "completion", "sparse", "dense", "registration", "reg_coarse", "reg_fine", "correspondence",
     "skipped_steps", "val_RTE_mm_median", "val_RRE_deg_median", "val_RTE_mm_mean", "val_RRE_deg_mean",
-    "val_coarse_RTE_mm_median", "val_coarse_RRE_deg_median", "val_success_rate",
-    "val_flip_rate", "val_loss", "val_completion", "val_completion_CD_mm_median", "val_s",
+    "val_coarse_RTE_mm_median", "val_coarse_RRE_deg_median", "val_coarse_improved_share",
+    "val_success_rate", "val_flip_rate", "val_loss", "val_completion",
+    "val_completion_CD_mm_median", "val_s",
 )
 
 @dataclass

@@ -29,6 +29,7 @@ import yaml
 COLUMNS = (("min", "time_s", 60.0), ("epoch", "epoch", None), ("samples", "samples", None),
            ("CD_mm", "val_completion_CD_mm_median", None),
            ("coarseRRE", "val_coarse_RRE_deg_median", None),
+           ("improved", "val_coarse_improved_share", None),
            ("coarseRTE", "val_coarse_RTE_mm_median", None),
            ("fineRRE", "val_RRE_deg_median", None), ("fineRTE", "val_RTE_mm_median", None),
            ("success", "val_success_rate", None), ("flips", "val_flip_rate", None))

@@ -195,3 +195,44 @@ def test_resume_with_another_ct_is_refused(tmp_path):
         pretrain(other, run, resume=True, device="cpu")
     with pytest.raises(CheckpointError, match="no checkpoint.pt"):
         pretrain(other, tmp_path / "empty", resume=True, device="cpu")
+
+
+def test_not_learned_warning_judges_by_the_share_of_sweeps_the_network_turns_right():
+    initial = {"RRE_deg_median": 62.0, "RTE_mm_median": 55.0}
+
+    def state(median, share=None):
+        validation = {"val_coarse_RRE_deg_median": median}
+        if share is not None:
+            validation["val_coarse_improved_share"] = share
+        return {"epoch": 36, "validation": validation, "initial_error": initial}
+
+    # A bimodal validation (half the sweeps turned right, half left where they lie) has a
+    # median that may land in either group; the share says the network has learned.
+    assert network_warning(state(63.0, share=0.5)) is None
+    warning = network_warning(state(12.0, share=0.04))
+    assert "has not learned" in warning and "4%" in warning and "\n" not in warning
+    # checkpoints validated before the share was logged: the median against the initial poses'
+    assert network_warning(state(20.0)) is None
+    assert "no better than the initial poses' (62 deg)" in network_warning(state(50.0))
+
+
+def test_validation_share_is_zero_for_a_network_that_leaves_sweeps_where_they_lie():
+    from comreg_core.registration.surface import CTSurface
+    from comreg_core.training.config import pretrain_preset
+    from comreg_core.training.data import TrainingCT, validation_samples
+    from comreg_core.training.validation import identity_errors, validate
+    from comreg_core.io.meshes import read_mesh
+
+    cfg = pretrain_preset("cpu", {**TINY, "model": {**TINY["model"], "pose": {
+        **TINY["model"]["pose"], "head": "mlp", "rotation": "6d"}}})
+    mesh = read_mesh(FIBULA_STL)
+    ct = TrainingCT.from_mesh(mesh.vertices, mesh.faces, 512, seed=0)
+    samples = validation_samples(ct, cfg.simulation, cfg.data.pose, 0, 6)
+    net = ComRegNet(cfg.model)
+    torch.nn.init.zeros_(net.pose_head.out.weight)  # the pose: exactly its bias, the identity
+    norm = ct.normalization
+    points = torch.from_numpy(norm.points_to_model(ct.points)).float()
+    val = validate(net, points, samples, norm, surface=CTSurface((mesh.vertices, mesh.faces)))
+    assert val["val_coarse_improved_share"] == 0.0
+    assert val["val_coarse_RRE_deg_median"] == pytest.approx(
+        identity_errors(samples, norm)["RRE_deg_median"], abs=1e-3)
