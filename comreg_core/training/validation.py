@@ -41,6 +41,11 @@ def _pose_errors(T_est_n: np.ndarray, sample: Sample, norm: Normalization) -> tu
     return translation_error_mm(T_est, truth, at), rotation_error_deg(T_est, truth)
 
 
+def _initial_errors(samples: list[Sample], norm: Normalization) -> np.ndarray:
+    """``(n, 2)`` RTE (mm) and RRE (deg) of doing nothing, per sample."""
+    return np.array([_pose_errors(np.eye(4), s, norm) for s in samples])
+
+
 def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
              norm: Normalization, batch_size: int = 8, loss=None,
              surface: CTSurface | None = None) -> dict[str, float]:
@@ -85,7 +90,7 @@ def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
             for T, s in zip(fine, samples)]
     fe = np.array([_pose_errors(T, s, norm) for T, s in zip(fine, samples)])
     ce = np.array([_pose_errors(T, s, norm) for T, s in zip(coarse, samples)])
-    initial = np.array([_pose_errors(np.eye(4), s, norm) for s in samples])
+    initial = _initial_errors(samples, norm)
     return {
         "val_RTE_mm_median": float(np.median(fe[:, 0])),
         "val_RRE_deg_median": float(np.median(fe[:, 1])),
@@ -106,6 +111,6 @@ def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
 
 def identity_errors(samples: list[Sample], norm: Normalization) -> dict[str, float]:
     """Validation errors of doing nothing (the initial misalignment): medians and means."""
-    e = np.array([_pose_errors(np.eye(4), s, norm) for s in samples])
+    e = _initial_errors(samples, norm)
     return {"RTE_mm_median": float(np.median(e[:, 0])), "RRE_deg_median": float(np.median(e[:, 1])),
             "RTE_mm_mean": float(e[:, 0].mean()), "RRE_deg_mean": float(e[:, 1].mean())}
