@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -30,14 +31,22 @@ def require(condition: bool, field: str, message: str) -> None:
                           "Fix it in the config file or on the command line.")
 
 
+#: A retired key's check: ``(value, section) -> True`` when the old value means what the code
+#: does now (the key is then dropped), ``section`` being the whole section's dict.
+RetiredCheck = Callable[[Any, dict], bool]
+
+
 def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     """Build dataclass ``cls`` from a (possibly partial) dict; nested dataclasses recurse.
 
     Missing keys keep their defaults; unknown keys raise :class:`ConfigError` naming the valid ones.
+    Keys of options that were removed (``cls.RETIRED_KEYS``: key -> :data:`RetiredCheck`), as
+    old run folders and checkpoints still carry them, are dropped when they hold the value that
+    survived and rejected otherwise.
     """
-    data = dict(data or {})
-    if not isinstance(data, dict):
+    if data is not None and not isinstance(data, dict):
         raise ConfigError(f"Config section '{where or cls.__name__}' must be a mapping.", "")
+    data = _drop_retired(cls, dict(data or {}), where)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - set(fields))
     if unknown:
@@ -49,6 +58,18 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     for name, value in data.items():
         kwargs[name] = _coerce(hints[name], value, f"{where}.{name}" if where else name)
     return cls(**kwargs)
+
+
+def _drop_retired(cls: type, data: dict[str, Any], where: str) -> dict[str, Any]:
+    retired: dict[str, RetiredCheck] = getattr(cls, "RETIRED_KEYS", {})
+    for key in [k for k in data if k in retired]:
+        if not retired[key](data[key], data):
+            name = f"{where}.{key}" if where else key
+            raise ConfigError(
+                f"Config value '{name}' = {data[key]!r} selects an option that has been removed.",
+                "It was an experiment that lost (docs/results.md); use a current preset.")
+        del data[key]
+    return data
 
 
 def _coerce(hint, value, where: str):

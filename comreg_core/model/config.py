@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
-from comreg_core.config import require
+from comreg_core.config import RetiredCheck, require
 
 
 @dataclass(frozen=True)
@@ -110,20 +110,12 @@ class PoseHeadConfig:
     Attributes:
         features: ``"decoded"`` feeds ``H = M_D(Q, V)`` (the paper); ``"encoded"`` feeds ``V``
             (the paper's "w/o completion" ablation).
-        head: ``"mlp"`` (the paper): pooled tokens -> MLP -> rotation + translation.
+        head: ``"mlp"`` (the paper): pooled tokens -> MLP -> quaternion + translation.
             ``"correspondence"``: every source token predicts where its query centre lies on
-            the CT (normalised CT coordinates) and a weight; the coarse pose is the weighted
-            Procrustes fit of the centres to those points (see :mod:`.pose_head`). Not in the
-            paper; the ``cpu`` preset uses it because it learns within a CPU budget.
-        correspondence: how the correspondence head predicts CT points: ``"regress"`` (three
-            coordinates per token), ``"match"`` (scores against the CT's tokens) or
-            ``"rotated"`` (a global rotation applied to each token's position, plus an offset;
-            see :mod:`.pose_head`; the ``cpu`` preset's).
-        moments: ``correspondence: rotated`` only: also feed the global rotation's MLP the
-            source tokens' centroid and covariance directions (9 numbers), so the direction a
-            sweep runs is an input, not something pooled features must find. Not in the paper.
-        rotation: the ``mlp`` head's rotation output: ``"quaternion"`` (the paper) or ``"6d"``
-            (the continuous 6-D representation of Zhou et al. 2019).
+            the CT as a global rotation and translation applied to the centre plus a per-token
+            offset, and a weight; the coarse pose is the weighted Procrustes fit of the centres
+            to those points (see :mod:`.pose_head`). Not in the paper; the ``cpu`` preset uses
+            it because it learns within a CPU budget (docs/results.md).
         token_dim: width of the shared per-token layer applied before pooling.
         hidden_dim, num_blocks: the MLP: ``num_blocks`` x (Linear + GroupNorm + GELU).
         norm_groups: GroupNorm groups in the MLP.
@@ -131,9 +123,14 @@ class PoseHeadConfig:
 
     features: Literal["decoded", "encoded"] = "decoded"
     head: Literal["mlp", "correspondence"] = "mlp"
-    correspondence: Literal["regress", "match", "rotated"] = "regress"
-    rotation: Literal["quaternion", "6d"] = "quaternion"
-    moments: bool = False
+
+    #: removed options (docs/results.md): what survived, or any value where the head ignored it
+    RETIRED_KEYS: ClassVar[dict[str, RetiredCheck]] = {
+        "rotation": lambda value, section: value == "quaternion",
+        "correspondence": lambda value, section: (value == "rotated"
+                                                  or section.get("head", "mlp") == "mlp"),
+        "moments": lambda value, section: value is True or section.get("head", "mlp") == "mlp",
+    }
     token_dim: int = 512
     hidden_dim: int = 512
     num_blocks: int = 5
@@ -155,8 +152,6 @@ class ICPConfig:
         num_points: N_c, points per cloud (FPS subset of source and target).
         sigma: softness of the correspondences, normalised units.
         neighbors: soft correspondences are restricted to this many nearest targets.
-        mode: ``"soft"`` (softmax-weighted correspondences) or ``"hard"`` (nearest neighbour).
-        trim_fraction: share of the worst residuals left out of each Procrustes step.
         mesh_refine: outside training (validation, ``register``, ``evaluate``), refine the
             ICP's result by trimmed point-to-plane ICP against the CT mesh
             (:func:`comreg_core.registration.icp.refine_on_mesh`). Not in the paper; used by
@@ -170,16 +165,19 @@ class ICPConfig:
     num_points: int = 4096
     sigma: float = 5e-3
     neighbors: int = 32
-    mode: Literal["soft", "hard"] = "soft"
-    trim_fraction: float = 0.0
     mesh_refine: bool = False
+
+    #: removed options (docs/results.md): the soft, untrimmed ICP survived
+    RETIRED_KEYS: ClassVar[dict[str, RetiredCheck]] = {
+        "mode": lambda value, section: value == "soft",
+        "trim_fraction": lambda value, section: value == 0,
+    }
 
     def __post_init__(self) -> None:
         require(self.iterations >= 0, "icp.iterations", "must be 0 or more")
         require(self.num_points >= 3, "icp.num_points", "must be at least 3")
         require(self.sigma > 0, "icp.sigma", "must be positive")
         require(self.neighbors >= 1, "icp.neighbors", "must be at least 1")
-        require(0.0 <= self.trim_fraction < 1.0, "icp.trim_fraction", "must be in [0, 1)")
 
 
 @dataclass(frozen=True)
@@ -200,27 +198,30 @@ class LossConfig:
             (30 deg) the coarse translation still diverged (225 mm after one epoch); with
             the fine term off it learned (median 16.6 deg after 6 minutes). Not in the paper:
             ``fine_gate_deg: 180`` and ``fine_gate_translation: .inf`` give the paper's loss.
-        lambda_correspondence: weight of the correspondence term (``pose.head:
+        lambda_correspondence: weight of the correspondence terms (``pose.head:
             correspondence`` only): the mean distance (normalised units) of each token's
-            predicted CT point from where the true transform puts its query centre. It is a
-            third term of ``L_registration``.
-        lambda_global: weight of a fourth term for ``pose.correspondence: rotated``: the pose
-            loss of the head's global rotation and translation against the truth, so that the
-            rotation is trained directly and not only through the per-token points (which the
-            per-token offsets can fit without it). 0 leaves it out.
+            predicted CT point from where the true transform puts its query centre, plus the
+            pose loss of the head's global rotation and translation against the truth (so the
+            rotation is trained directly, not only through the per-token points, which the
+            per-token offsets can fit without it).
     """
 
     lambda_coarse: float = 1.0
     lambda_fine: float = 0.5
     lambda_correspondence: float = 1.0
-    lambda_global: float = 0.0
     rho: float = 0.1
     fine_gate_deg: float = 10.0
     fine_gate_translation: float = 0.025
 
+    #: removed option (docs/results.md): the global pose term now has the correspondence
+    #: term's weight (0: the paper preset's MLP head, which ignored it)
+    RETIRED_KEYS: ClassVar[dict[str, RetiredCheck]] = {
+        "lambda_global": lambda value, section: value in (0, section.get(
+            "lambda_correspondence", 1.0)),
+    }
+
     def __post_init__(self) -> None:
-        for name in ("lambda_coarse", "lambda_fine", "lambda_correspondence", "lambda_global",
-                     "rho"):
+        for name in ("lambda_coarse", "lambda_fine", "lambda_correspondence", "rho"):
             require(getattr(self, name) >= 0, f"loss.{name}", "must be 0 or more")
         require(0 < self.fine_gate_deg <= 180, "loss.fine_gate_deg",
                 "must lie in (0, 180] degrees (180 = no gate, the paper's loss)")
@@ -237,33 +238,16 @@ class LossConfig:
 class ModelConfig:
     """The whole network: completion, pose head, ICP, losses (defaults = ``paper`` preset).
 
-    Attributes:
-        input_frame: ``"ct"`` (the paper): the source enters ``f`` and ``g`` in the CT's
-            normalised coordinates. ``"centroid"``: the source is first moved so that the
-            centroid of its network input lies at 0 (the shift is undone on every output), so
-            the network never has to learn where the cloud happens to sit: its outputs are
-            the same for a cloud translated anywhere, but it loses where the cloud lies, which
-            the paper's initial poses make informative (docs/learning.md, trial W). Not in the
-            paper; not used by a preset.
-            ``"principal"``: also turned onto the input's principal axes (signs from its third
-            moments), so the outputs are the same for a cloud moved anywhere, turned included
-            (up to the axes' ambiguities when two spreads are about equal).
-            ``"azimuth"``: turned about the CT's long axis (its largest principal axis, through
-            the CT's centre) until the input's centroid lies at azimuth 0 (towards the CT's
-            second principal axis); the azimuth's cosine and sine go to the pose head's global
-            MLP (``pose.correspondence: rotated`` only). A sweep turned about the long axis
-            then enters the network the same wherever it was turned to, so its shape, not
-            where it sits, must say which side of the bone it shows. Not in the paper.
+    The source enters ``f`` and ``g`` in the CT's normalised coordinates, as in the paper
+    (the trials of other input frames are in docs/results.md).
     """
 
-    input_frame: Literal["ct", "centroid", "principal", "azimuth"] = "ct"
+    #: removed option (docs/results.md): the CT's frame survived
+    RETIRED_KEYS: ClassVar[dict[str, RetiredCheck]] = {
+        "input_frame": lambda value, section: value == "ct",
+    }
+
     completion: CompletionConfig = field(default_factory=CompletionConfig)
     pose: PoseHeadConfig = field(default_factory=PoseHeadConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     loss: LossConfig = field(default_factory=LossConfig)
-
-    def __post_init__(self) -> None:
-        require(self.input_frame != "azimuth" or (self.pose.head == "correspondence"
-                                                  and self.pose.correspondence == "rotated"),
-                "model.input_frame", "'azimuth' needs pose.head: correspondence and "
-                "pose.correspondence: rotated")

@@ -5,9 +5,9 @@ the current estimate) to a soft target ``y_i = sum_j w_ij t_j`` with
 ``w_ij = softmax_j(-||x_i - t_j||^2 / (2 sigma^2))`` over its k nearest targets (found with a
 KD-tree, no gradient; the weights and ``y_i`` are recomputed in torch, so they are exact and
 differentiable), then solves ``min_{R,t} sum_i a_i ||R s_i + t - y_i||^2`` in closed form (weighted
-Procrustes by SVD with the reflection fix). ``a_i`` are optional per-point weights times the
-trimming mask. Gradients flow through every iteration to the initial (coarse) transform and to
-the source and target points.
+Procrustes by SVD with the reflection fix). ``a_i`` are optional per-point
+weights. Gradients flow through every iteration to the initial (coarse) transform and to the
+source and target points.
 """
 
 from __future__ import annotations
@@ -140,10 +140,9 @@ def weighted_procrustes(source: Tensor, target: Tensor,
 
 def differentiable_icp(source: Tensor, target: Tensor, init_transform: Tensor | None = None, *,
                        iterations: int = 25, sigma: float = 5e-3, neighbors: int | None = 16,
-                       mode: str = "soft", trim_fraction: float = 0.0,
                        source_weights: Tensor | None = None,
                        rel_tol: float | None = None) -> ICPResult:
-    """Align ``source`` to ``target`` by K iterations of soft (or hard) ICP.
+    """Align ``source`` to ``target`` by K iterations of soft ICP.
 
     Args:
         source: ``(B, N, 3)`` source points (e.g. the US cloud, normalised coordinates).
@@ -154,9 +153,6 @@ def differentiable_icp(source: Tensor, target: Tensor, init_transform: Tensor | 
         sigma: correspondence softness, same units as the points.
         neighbors: soft correspondences over this many nearest targets (KD-tree); None uses all
             M targets (a dense softmax, O(N M) memory).
-        mode: ``"soft"`` or ``"hard"`` (each point's nearest target, weight 1).
-        trim_fraction: in [0, 1): the worst ``trim_fraction`` of the residuals of each iteration
-            get weight 0 in its Procrustes step.
         source_weights: ``(B, N)`` optional non-negative per-point weights.
         rel_tol: stop early once every cloud's relative rmse change is below this; None runs all
             K iterations (training).
@@ -170,10 +166,6 @@ def differentiable_icp(source: Tensor, target: Tensor, init_transform: Tensor | 
     M = target.shape[1]
     if target.shape[0] not in (1, B):
         raise ValueError(f"target batch {target.shape[0]} must be 1 or the source batch {B}")
-    if mode not in ("soft", "hard"):
-        raise ValueError(f"mode must be 'soft' or 'hard', got {mode!r}")
-    if not 0.0 <= trim_fraction < 1.0:
-        raise ValueError(f"trim_fraction must be in [0, 1), got {trim_fraction}")
     if sigma <= 0:
         raise ValueError(f"sigma must be positive, got {sigma}")
     if iterations < 0:
@@ -188,13 +180,12 @@ def differentiable_icp(source: Tensor, target: Tensor, init_transform: Tensor | 
     if source_weights is not None and source_weights.shape != (B, N):
         raise ValueError(f"source_weights must have shape {(B, N)}, got "
                          f"{tuple(source_weights.shape)}")
-    k = 1 if mode == "hard" else (M if neighbors is None else min(neighbors, M))
-    dense = mode == "soft" and neighbors is None
+    k = M if neighbors is None else min(neighbors, M)
+    dense = neighbors is None
 
     R0, t0 = init_transform[:, :3, :3], init_transform[:, :3, 3]
     coarse = source @ R0.transpose(1, 2) + t0.unsqueeze(1)  # B N 3, s^c
     index = None if dense else KNNIndex(target)
-    keep = N - int(trim_fraction * N)
 
     aligned = coarse  # B N 3
     R = torch.eye(3, dtype=source.dtype, device=source.device).expand(B, 3, 3)  # B 3 3
@@ -210,17 +201,8 @@ def differentiable_icp(source: Tensor, target: Tensor, init_transform: Tensor | 
         else:
             idx = index.query(aligned, k).to(source.device)  # B N k
             nb = gather_points(target, idx)  # B N k 3
-            if mode == "hard":
-                corr = nb[:, :, 0]  # B N 3
-            else:
-                corr = soft_correspondences(aligned, nb, sigma)  # B N 3
+            corr = soft_correspondences(aligned, nb, sigma)  # B N 3
         point_w = source_weights
-        if keep < N:
-            with torch.no_grad():
-                resid = (aligned - corr).square().sum(-1)  # B N
-                best = resid.topk(keep, dim=1, largest=False).indices  # B keep
-                mask = torch.zeros_like(resid).scatter_(1, best, 1.0)  # B N
-            point_w = mask if point_w is None else point_w * mask
         R, t = weighted_procrustes(coarse, corr, point_w)  # B 3 3, B 3
         aligned = coarse @ R.transpose(1, 2) + t.unsqueeze(1)  # B N 3
         sq = (aligned - corr).square().sum(-1)  # B N

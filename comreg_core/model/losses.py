@@ -7,9 +7,9 @@
   gradient stay finite at 0 and 180 degrees (see :func:`rotation_angle`).
 * ``L_registration = mean(lambda_coarse L_reg(coarse) + lambda_fine L_reg(fine))``, the fine
   term gated per sample by the coarse pose error (``LossConfig.fine_gate_*``); with the
-  correspondence head, ``+ lambda_correspondence mean_i ||y_i - T^-1 c_i||`` (each token's
-  predicted CT point against where the truth puts its query centre), and for the rotated
-  correspondences ``+ lambda_global L_reg(global)`` (their global rotation and translation).
+  correspondence head, ``+ lambda_correspondence (mean_i ||y_i - T^-1 c_i|| + L_reg(global))``
+  (each token's predicted CT point against where the truth puts its query centre, and the
+  head's global rotation and translation against the truth).
 * ``L_final = L_completion + lambda_reg L_registration`` with
   ``lambda_reg = rho L_completion / L_registration``, the weight detached (a number, not a path
   for gradients).
@@ -131,9 +131,8 @@ def comreg_loss(centres: Tensor, dense: Tensor, gt_points: Tensor, coarse_transf
     correspondence = correspondence_loss(correspondences, gt_transform)
     if correspondences is not None:
         registration = registration + config.lambda_correspondence * correspondence
-        if correspondences.global_transform is not None and config.lambda_global > 0:
-            registration = registration + config.lambda_global * pose_loss(
-                correspondences.global_transform, gt_transform).mean()
+        registration = registration + config.lambda_correspondence * pose_loss(
+            correspondences.global_transform, gt_transform).mean()
     lambda_reg = balance_weight(completion, registration, config)
     total = completion + lambda_reg * registration
     return LossTerms(total, completion, sparse, dense_cd, registration, reg_coarse, reg_fine,
@@ -149,9 +148,7 @@ def balance_weight(completion: Tensor, registration: Tensor, config: LossConfig)
 
 
 def correspondence_loss(correspondences: Correspondences | None, gt_transform: Tensor) -> Tensor:
-    """Mean distance of the predicted CT points ``y_i`` from ``T^-1 c_i`` (0 when None), plus,
-    for matched correspondences, the cross-entropy of each token's scores towards the CT token
-    nearest ``T^-1 c_i``.
+    """Mean distance of the predicted CT points ``y_i`` from ``T^-1 c_i`` (0 when None).
 
     Args:
         correspondences: positions ``c_i`` ``(B, T, 3)`` (source frame) and predictions ``y_i``.
@@ -160,14 +157,7 @@ def correspondence_loss(correspondences: Correspondences | None, gt_transform: T
     if correspondences is None:
         return gt_transform.new_zeros(())
     truth = transform_points(gt_transform, correspondences.positions.detach())  # B T 3
-    loss = safe_norm(correspondences.predicted - truth, dim=-1).mean()
-    if correspondences.logits is not None:
-        anchors = correspondences.anchors.expand(truth.shape[0], -1, -1)  # B T' 3
-        nearest = torch.cdist(truth, anchors).argmin(dim=-1)  # B T
-        logits = correspondences.logits
-        loss = loss + torch.nn.functional.cross_entropy(
-            logits.reshape(-1, logits.shape[-1]), nearest.reshape(-1))
-    return loss
+    return safe_norm(correspondences.predicted - truth, dim=-1).mean()
 
 
 def output_loss(output: ComRegOutput, gt_points: Tensor, gt_transform: Tensor,

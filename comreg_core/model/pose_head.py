@@ -17,30 +17,19 @@ through one shared Linear + GELU layer, then max- and mean-pooled. Reasons:
 The two pooled vectors are concatenated (source first) and fed to ``num_blocks`` blocks of
 Linear + GroupNorm + GELU (width 512 in the paper) and a last Linear to 7 numbers: a quaternion
 (w, x, y, z), normalised, and a translation. The last layer's quaternion bias starts at the identity
-rotation. With ``rotation: 6d`` the last layer gives the continuous 6-D rotation representation
-(Zhou et al. 2019: two vectors, orthonormalised) instead of the quaternion.
+rotation.
 
-``CorrespondencePoseHead`` (``head: correspondence``, not in the paper) predicts the pose through
-the points instead: each source token (query centre ``c_i``, feature ``H_i``) gets the pooled
-source and target vectors appended and a per-token MLP (the same blocks) predicts ``y_i``, where
-``c_i`` lies on the CT (normalised CT coordinates), and a weight logit. The coarse transform is
-the weighted Procrustes fit ``c_i -> y_i`` (weights: softmax over the tokens), differentiable.
-With ``correspondence: match``, ``y_i`` is not regressed but matched: each source token scores
-every target (CT) token (scaled dot product of a query from the source MLP and a key from the
-target token), and ``y_i`` is the softmax-weighted mean of the CT tokens' positions; the scores
-are also trained by cross-entropy towards the CT token nearest the truth, so a token unsure
-between two places along a shaft keeps two peaks instead of regressing to their mean.
-With ``correspondence: rotated``, ``y_i = R c_i + t + d_i``: a global rotation (6-D
-representation) and translation from the pooled vectors (one more MLP), applied to the centre
-itself, plus a per-token offset ``d_i`` from the per-token MLP (``loss.lambda_global`` can also
-supervise ``R, t`` directly, and ``pose.moments`` gives the global MLP the token positions'
-centroid and covariance directions). A regressed ``y_i`` makes the
-MLP compute the product ``R c_i`` from features and position, which it learns slowly (its
-points were 40 mm off, docs/learning.md); here the product is computed, and every token's
-error still trains ``R``.
-Every token is supervised (``y_i`` against ``T^-1 c_i``), so each sample gives ``Q`` targets
-instead of one pose: a dense signal that learns within a CPU budget, where the pooled MLP's
-rotation had not moved from the initial poses' error after 30 minutes.
+``CorrespondencePoseHead`` (``head: correspondence``, not in the paper; the ``cpu`` preset's)
+predicts the pose through the points instead: each source token (query centre ``c_i``, feature
+``H_i``) gets the pooled source and target vectors appended, and a per-token MLP (the same
+blocks) predicts an offset ``d_i`` and a weight logit. A global MLP on the pooled vectors and
+the tokens' centroid and covariance directions predicts a rotation ``R`` (6-D representation of
+Zhou et al. 2019) and translation ``t``; token ``i`` lies on the CT at ``y_i = R c_i + t + d_i``
+(normalised CT coordinates). The coarse transform is the weighted Procrustes fit ``c_i -> y_i``
+(weights: softmax over the tokens), differentiable. Every token is supervised (``y_i`` against
+``T^-1 c_i``) and so is ``R, t``: each sample gives ``Q`` targets instead of one pose, a dense
+signal that learns within a CPU budget, where the pooled MLP's rotation had not moved from the
+initial poses' error after 30 minutes (docs/results.md).
 """
 
 from __future__ import annotations
@@ -64,20 +53,14 @@ class Correspondences(NamedTuple):
         positions: ``(B, T, 3)`` the source tokens' positions (query centres), source frame.
         predicted: ``(B, T, 3)`` where each lies on the CT, CT frame.
         weights: ``(B, T)`` Procrustes weights (sum 1 per sample).
-        logits: ``(B, T, T')`` matching scores against the target's tokens (``correspondence:
-            match``), None when regressed.
-        anchors: ``(B | 1, T', 3)`` the target tokens' positions (CT frame) the scores refer
-            to, None when regressed.
-        global_transform: ``(B, 4, 4)`` the global rotation and translation of ``correspondence:
-            rotated`` (source -> CT), None otherwise.
+        global_transform: ``(B, 4, 4)`` the head's global rotation and translation (source ->
+            CT).
     """
 
     positions: Tensor
     predicted: Tensor
     weights: Tensor
-    logits: Tensor | None = None
-    anchors: Tensor | None = None
-    global_transform: Tensor | None = None
+    global_transform: Tensor
 
 
 class PoseOutput(NamedTuple):
@@ -131,12 +114,10 @@ def position_moments(positions: Tensor) -> Tensor:
     return torch.cat([centroid, cov[:, i, j]], dim=-1)
 
 
-def build_pose_head(feature_dim: int, config: PoseHeadConfig, context_dim: int = 0
-                    ) -> nn.Module:
-    """The head ``config.head`` names: :class:`PoseHead` or :class:`CorrespondencePoseHead`
-    (``context_dim``: width of the extra input of the rotated head's global MLP)."""
+def build_pose_head(feature_dim: int, config: PoseHeadConfig) -> nn.Module:
+    """The head ``config.head`` names: :class:`PoseHead` or :class:`CorrespondencePoseHead`."""
     if config.head == "correspondence":
-        return CorrespondencePoseHead(feature_dim, config, context_dim)
+        return CorrespondencePoseHead(feature_dim, config)
     return PoseHead(feature_dim, config)
 
 
@@ -153,14 +134,10 @@ class PoseHead(nn.Module):
         self.config = config
         self.token = nn.Linear(feature_dim + 3, config.token_dim)
         self.mlp = _mlp_blocks(4 * config.token_dim, config)  # [max, mean] x [source, target]
-        self.rotation_size = 4 if config.rotation == "quaternion" else 6
-        self.out = nn.Linear(config.hidden_dim, self.rotation_size + 3)
+        self.out = nn.Linear(config.hidden_dim, 7)  # quaternion + translation
         _init_linear(self)
         with torch.no_grad():  # identity rotation at the start
-            if config.rotation == "quaternion":
-                self.out.bias[0] = 1.0  # (1, 0, 0, 0)
-            else:
-                self.out.bias[0] = self.out.bias[4] = 1.0  # columns (1, 0, 0), (0, 1, 0)
+            self.out.bias[0] = 1.0  # (1, 0, 0, 0)
 
     def pool(self, tokens: Tensor, positions: Tensor) -> Tensor:
         """Args: tokens ``(B, T, C)``, positions ``(B, T, 3)``. Returns ``(B, 2 * token_dim)``."""
@@ -184,16 +161,10 @@ class PoseHead(nn.Module):
         B = source_tokens.shape[0]
         src = self.pool(source_tokens, source_positions)  # B 2P
         tgt = self.pool(target_tokens, target_positions).expand(B, -1)  # B 2P
-        out = self.out(self.mlp(torch.cat([src, tgt], dim=-1)))  # B 7 | B 9
-        r = self.rotation_size
-        translation = out[:, r:]  # B 3
-        if r == 4:
-            quaternion = out[:, :4] / out[:, :4].norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            rotation = quaternion_to_matrix(quaternion)  # B 3 3
-        else:
-            rotation = rotation_6d_to_matrix(out[:, :6])  # B 3 3
-            quaternion = matrix_to_quaternion(rotation.detach())
-        transform = make_transform(rotation, translation)  # B 4 4
+        out = self.out(self.mlp(torch.cat([src, tgt], dim=-1)))  # B 7
+        translation = out[:, 4:]  # B 3
+        quaternion = out[:, :4] / out[:, :4].norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        transform = make_transform(quaternion_to_matrix(quaternion), translation)  # B 4 4
         return PoseOutput(transform, quaternion, translation, None)
 
 
@@ -204,37 +175,25 @@ class CorrespondencePoseHead(nn.Module):
     Args:
         feature_dim: width of the tokens.
         config: :class:`PoseHeadConfig` (``token_dim``, ``hidden_dim``, ``num_blocks``).
-        context_dim: width of the ``context`` the forward pass appends to the global MLP's
-            input (``correspondence: rotated``; e.g. the input frame's azimuth).
     """
 
-    def __init__(self, feature_dim: int, config: PoseHeadConfig, context_dim: int = 0):
+    def __init__(self, feature_dim: int, config: PoseHeadConfig):
         super().__init__()
-        self.context_dim = context_dim
         self.config = config
         P = config.token_dim
         self.token = nn.Linear(feature_dim + 3, P)
         self.mlp = _mlp_blocks(5 * P, config)  # [token, source max, mean, target max, mean]
-        self.out = nn.Linear(config.hidden_dim, 4)  # CT point (3) + weight logit
-        if config.correspondence == "match":
-            self.match_query = nn.Linear(config.hidden_dim, P)
-            self.match_key = nn.Linear(P, P)
-        if config.correspondence == "rotated":
-            self.global_mlp = _mlp_blocks(4 * P + (9 if config.moments else 0) + context_dim,
-                                          config)
-            self.global_out = nn.Linear(config.hidden_dim, 9)  # 6-D rotation + translation
+        self.out = nn.Linear(config.hidden_dim, 4)  # CT point offset (3) + weight logit
+        self.global_mlp = _mlp_blocks(4 * P + 9, config)  # pooled + position moments
+        self.global_out = nn.Linear(config.hidden_dim, 9)  # 6-D rotation + translation
         _init_linear(self)
-        if config.correspondence == "rotated":
-            with torch.no_grad():  # identity rotation at the start
-                self.global_out.bias[0] = self.global_out.bias[4] = 1.0
+        with torch.no_grad():  # identity rotation at the start
+            self.global_out.bias[0] = self.global_out.bias[4] = 1.0
 
     def forward(self, source_tokens: Tensor, source_positions: Tensor, target_tokens: Tensor,
-                target_positions: Tensor, context: Tensor | None = None) -> PoseOutput:
-        """Same arguments as :meth:`PoseHead.forward` (``context``: ``(B, context_dim)`` or
-        None); returns :class:`PoseOutput` with the :class:`Correspondences`."""
-        if (context is None) != (self.context_dim == 0) or (
-                context is not None and context.shape[-1] != self.context_dim):
-            raise ValueError(f"this head needs a context of width {self.context_dim}")
+                target_positions: Tensor) -> PoseOutput:
+        """Same arguments as :meth:`PoseHead.forward`; returns :class:`PoseOutput` with the
+        :class:`Correspondences`."""
         _check_tokens(source_tokens, source_positions, target_tokens, target_positions)
         B, T, _ = source_tokens.shape
         h_src = F.gelu(self.token(torch.cat([source_tokens, source_positions], -1)))  # B T P
@@ -242,32 +201,15 @@ class CorrespondencePoseHead(nn.Module):
         pooled = torch.cat([h_src.amax(1), h_src.mean(1), h_tgt.amax(1).expand(B, -1),
                             h_tgt.mean(1).expand(B, -1)], dim=-1)  # B 4P
         x = torch.cat([h_src, pooled.unsqueeze(1).expand(-1, T, -1)], dim=-1)  # B T 5P
-        hidden = self.mlp(x.reshape(B * T, -1))  # B*T H
-        out = self.out(hidden).reshape(B, T, 4)  # B T 4
-        logits = anchors = global_transform = None
-        if self.config.correspondence == "match":
-            query = self.match_query(hidden).reshape(B, T, -1)  # B T P
-            key = self.match_key(h_tgt)  # Bt T' P
-            logits = query @ key.transpose(1, 2) / key.shape[-1] ** 0.5  # B T T'
-            anchors = target_positions.detach()  # Bt T' 3
-            predicted = torch.softmax(logits, dim=-1) @ anchors  # B T 3
-        elif self.config.correspondence == "rotated":
-            inputs = pooled
-            if self.config.moments:
-                inputs = torch.cat([pooled, position_moments(source_positions.detach())], -1)
-            if context is not None:
-                inputs = torch.cat([inputs, context.to(inputs.dtype)], -1)
-            pose = self.global_out(self.global_mlp(inputs))  # B 9
-            rotation = rotation_6d_to_matrix(pose[:, :6])  # B 3 3
-            global_transform = make_transform(rotation, pose[:, 6:])  # B 4 4
-            predicted = (source_positions.detach() @ rotation.transpose(1, 2)
-                         + pose[:, None, 6:] + out[..., :3])  # B T 3
-        else:
-            predicted = out[..., :3]  # B T 3
-        weights = torch.softmax(out[..., 3], dim=1)  # B T
+        out = self.out(self.mlp(x.reshape(B * T, -1))).reshape(B, T, 4)  # B T 4
         positions = source_positions.detach()
+        inputs = torch.cat([pooled, position_moments(positions)], -1)  # B 4P+9
+        pose = self.global_out(self.global_mlp(inputs))  # B 9
+        rotation = rotation_6d_to_matrix(pose[:, :6])  # B 3 3
+        global_transform = make_transform(rotation, pose[:, 6:])  # B 4 4
+        predicted = positions @ rotation.transpose(1, 2) + pose[:, None, 6:] + out[..., :3]  # B T 3
+        weights = torch.softmax(out[..., 3], dim=1)  # B T
         R, t = weighted_procrustes(positions, predicted, weights)  # B 3 3, B 3
         transform = make_transform(R, t)  # B 4 4
         return PoseOutput(transform, matrix_to_quaternion(R.detach()), t,
-                          Correspondences(positions, predicted, weights, logits, anchors,
-                                          global_transform))
+                          Correspondences(positions, predicted, weights, global_transform))

@@ -25,10 +25,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
-from comreg_core.config import (ConfigError, deep_merge, from_dict, parse_yaml_mapping,
-                                read_yaml_mapping, require, to_dict)
+from comreg_core.config import (ConfigError, RetiredCheck, deep_merge, from_dict,
+                                parse_yaml_mapping, read_yaml_mapping, require, to_dict)
 from comreg_core.model.config import ModelConfig
 from comreg_core.simulation.config import SimulationConfig
 
@@ -79,7 +79,6 @@ class TrainingConfig:
             ``lr_decay_epochs`` epochs (LambdaLR, stepped after every training step).
         warmup_steps: the learning rates rise linearly from ``1 / warmup_steps`` of their value
             to it over the first ``warmup_steps`` steps (0 = none, the paper).
-        grad_clip: clip the global gradient norm to this value (0 = no clipping).
         validation_every: validate every this many epochs (0 = never).
         validation_sweeps: held-out simulated sweeps in the validation set.
         checkpoint_minutes: write a checkpoint at least this often (also mid-epoch).
@@ -104,7 +103,6 @@ class TrainingConfig:
     lr_decay: float = 0.9
     lr_decay_epochs: int = 20
     warmup_steps: int = 0
-    grad_clip: float = 0.0
     validation_every: int = 1
     validation_sweeps: int = 32
     checkpoint_minutes: float = 5.0
@@ -112,6 +110,11 @@ class TrainingConfig:
     max_minutes: float = 0.0
     device: Literal["auto", "cpu", "cuda"] = "auto"
     world_size: int = 1
+
+    #: removed option (docs/results.md): no clipping survived
+    RETIRED_KEYS: ClassVar[dict[str, RetiredCheck]] = {
+        "grad_clip": lambda value, section: value == 0,
+    }
 
     def __post_init__(self) -> None:
         require(self.epochs >= 1, "training.epochs", "must be at least 1")
@@ -126,7 +129,6 @@ class TrainingConfig:
         require(0 < self.lr_decay <= 1, "training.lr_decay", "must lie in (0, 1]")
         require(self.lr_decay_epochs >= 1, "training.lr_decay_epochs", "must be at least 1")
         require(self.warmup_steps >= 0, "training.warmup_steps", "must be 0 or more")
-        require(self.grad_clip >= 0, "training.grad_clip", "must be 0 or more")
         require(self.validation_every >= 0, "training.validation_every", "must be 0 or more")
         require(self.validation_sweeps >= 1, "training.validation_sweeps", "must be at least 1")
         require(self.checkpoint_minutes > 0, "training.checkpoint_minutes", "must be positive")
@@ -189,11 +191,9 @@ PRESETS: dict[str, dict[str, Any]] = {
                 "fold_grid": [4, 4],
                 "fold_hidden": 128,
             },
-            # no input_frame: the CT's frame (the default), as the paper; docs/learning.md, W;
-            # moments and lambda_global: trial GM (the coarse rotation learns on both bones)
-            "pose": {"token_dim": 256, "head": "correspondence", "correspondence": "rotated",
-                     "moments": True},
-            "loss": {"rho": 1.0, "lambda_global": 1.0},
+            # the correspondence head (trials W and GM in docs/results.md)
+            "pose": {"token_dim": 256, "head": "correspondence"},
+            "loss": {"rho": 1.0},
             "icp": {"num_points": 2048, "neighbors": 16, "mesh_refine": True},
         },
         "simulation": {"n_points": 2048},

@@ -52,8 +52,6 @@ def train_step(model: torch.nn.Module, batch: dict[str, torch.Tensor], ct_points
     (terms.completion + weight * terms.registration).backward()
     applied = bool(torch.isfinite(means).all()) and bool(torch.isfinite(total))
     if applied:
-        if cfg.training.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.training.grad_clip)
         for opt in optimizers:
             opt.step()
     values = dict(zip(LOSS_TERMS[1:], means.tolist()))

@@ -85,8 +85,7 @@ def _plain_icp(us, start, ct_subset, norm):
     src = subsample(torch.from_numpy(norm.points_to_model(us)).float()[None], 2048, 0)
     init = torch.from_numpy(norm.transform_to_model(start)).float()[None]
     with torch.no_grad():
-        icp = differentiable_icp(src, ct_subset, init, iterations=25, sigma=5e-3, neighbors=16,
-                                 mode="soft")
+        icp = differentiable_icp(src, ct_subset, init, iterations=25, sigma=5e-3, neighbors=16)
     return norm.transform_to_mm(orthonormalize(icp.transform[0].double().numpy()))
 
 

@@ -100,7 +100,7 @@ def test_cached_target_and_shared_target_batch_agree(cpu_batch):
 
 def test_encoded_feature_switch_feeds_v_to_the_pose_head(cpu_batch):
     torch.manual_seed(3)
-    cfg = model_preset("cpu", {"completion": {"decoder_dim": 96}, "input_frame": "ct",
+    cfg = model_preset("cpu", {"completion": {"decoder_dim": 96},
                                "pose": {"features": "encoded"}})
     net = ComRegNet(cfg).eval()
     assert net.pose_head.token.in_features == cfg.completion.encoder_dim + 3

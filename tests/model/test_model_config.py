@@ -34,27 +34,22 @@ def test_cpu_preset_is_smaller_and_keeps_the_method_constants():
     assert cpu.icp.sigma == paper.icp.sigma and cpu.icp.iterations == paper.icp.iterations
     assert cpu.icp.mesh_refine
     assert cpu.pose.hidden_dim == 512 and cpu.pose.num_blocks == 5
-    # the loss is the paper's but for rho (the registration term's share) and the global pose term
-    assert cpu.loss.rho == 1.0 and cpu.loss.lambda_global == 1.0 and paper.loss.lambda_global == 0
-    assert replace(cpu.loss, rho=paper.loss.rho, lambda_global=0.0) == paper.loss
-    assert cpu.pose.moments and not paper.pose.moments
-    assert (paper.input_frame, paper.pose.head, paper.pose.rotation) == ("ct", "mlp",
-                                                                         "quaternion")
-    assert (cpu.input_frame, cpu.pose.head, cpu.pose.correspondence) == ("ct", "correspondence",
-                                                                         "rotated")
+    # the loss is the paper's but for rho (the registration term's share)
+    assert cpu.loss.rho == 1.0 and replace(cpu.loss, rho=paper.loss.rho) == paper.loss
+    assert (paper.pose.head, cpu.pose.head) == ("mlp", "correspondence")
 
 
 def test_overrides_yaml_round_trip_and_errors(tmp_path):
-    cfg = model_preset("cpu", {"icp": {"mode": "hard"}, "pose": {"features": "encoded"}})
-    assert cfg.icp.mode == "hard" and cfg.pose.features == "encoded"
+    cfg = model_preset("cpu", {"icp": {"sigma": 0.01}, "pose": {"features": "encoded"}})
+    assert cfg.icp.sigma == 0.01 and cfg.pose.features == "encoded"
     path = write_config(cfg, tmp_path / "model.yaml")
     assert load_config(ModelConfig, path) == cfg
     with pytest.raises(ConfigError, match="Unknown model preset"):
         model_preset("gpu")
     with pytest.raises(ConfigError, match="num_heads"):
         model_preset("paper", {"completion": {"encoder_dim": 100}})
-    with pytest.raises(ConfigError, match="trim_fraction"):
-        model_preset("paper", {"icp": {"trim_fraction": 1.0}})
+    with pytest.raises(ConfigError, match="sigma"):
+        model_preset("paper", {"icp": {"sigma": 0.0}})
     with pytest.raises(ConfigError, match="Unknown config key"):
         model_preset("paper", {"icp": {"simga": 1.0}})
     with pytest.raises(ConfigError):
@@ -77,3 +72,33 @@ def test_normalization_round_trips_points_and_transforms():
     assert_close(norm.matrix() @ np.append(ct[0], 1.0), np.append(model[0], 1.0), atol=1e-12)
     with pytest.raises(InvalidGeometryError):
         Normalization.from_ct(np.ones((5, 3)))
+
+
+def test_removed_options_in_old_configs_load_when_they_hold_what_survived():
+    """Old run folders and checkpoints carry the keys of removed options: the values that
+    survived load (and give today's config); a removed value is a clear ConfigError."""
+    from comreg_core.training.checkpoint import load_checkpoint
+    from comreg_core.training.config import config_from_yaml, pretrain_preset
+    from pathlib import Path
+
+    old_cpu = {"input_frame": "ct", "pose": {"head": "correspondence", "correspondence": "rotated",
+                                             "moments": True, "rotation": "quaternion"},
+               "loss": {"lambda_global": 1.0}, "icp": {"mode": "soft", "trim_fraction": 0.0}}
+    assert model_preset("cpu", old_cpu) == model_preset("cpu")
+    old_paper = {"pose": {"correspondence": "regress", "moments": False}, "loss": {
+        "lambda_global": 0.0}}
+    assert model_preset("paper", old_paper) == model_preset("paper")
+    for removed in ({"input_frame": "azimuth"}, {"pose": {"rotation": "6d"}},
+                    {"pose": {"head": "correspondence", "correspondence": "match"}},
+                    {"icp": {"mode": "hard"}}, {"loss": {"lambda_global": 0.5}}):
+        with pytest.raises(ConfigError, match="has been removed"):
+            model_preset("cpu", removed)
+    with pytest.raises(ConfigError, match="training.grad_clip"):
+        pretrain_preset("cpu", {"training": {"grad_clip": 1.0}})
+    # the sample's shipped model was written before the removal and its weights still fit
+    from comreg_core.model import ComRegNet
+
+    sample = Path(__file__).parents[2] / "resources" / "sample" / "fibula_cpu.pt"
+    state = load_checkpoint(sample)
+    assert "mode: soft" in state["config_yaml"]
+    ComRegNet(config_from_yaml(state["config_yaml"]).model).load_state_dict(state["model"])

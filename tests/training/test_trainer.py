@@ -224,7 +224,7 @@ def test_validation_share_is_zero_for_a_network_that_leaves_sweeps_where_they_li
     from comreg_core.io.meshes import read_mesh
 
     cfg = pretrain_preset("cpu", {**TINY, "model": {**TINY["model"], "pose": {
-        **TINY["model"]["pose"], "head": "mlp", "rotation": "6d"}}})
+        **TINY["model"]["pose"], "head": "mlp"}}})
     mesh = read_mesh(FIBULA_STL)
     ct = TrainingCT.from_mesh(mesh.vertices, mesh.faces, 512, seed=0)
     samples = validation_samples(ct, cfg.simulation, cfg.data.pose, 0, 6)
