@@ -177,22 +177,67 @@ def read_frame_folder(folder: str | Path, *, calibration: str | Path | None = No
 
 def read_frame_image(path: str | Path) -> np.ndarray:
     """One 2D image file (PNG, JPEG, BMP, TIFF, PNM) as ``(H, W)``, row 0 at the top; colour
-    images become luminance."""
-    import vtk
-    from vtk.util import numpy_support
+    images become luminance, palettes are expanded, alpha is dropped and 1-bit images become
+    0/255.
 
+    Decoded by Pillow, which reports a truncated or corrupt file as an error (VTK's readers
+    crash on a truncated PNG and fill a truncated JPEG, BMP, TIFF or PNM with garbage): such a
+    file raises :class:`CorruptFileError` naming it. PNG files are also checked chunk by chunk
+    (lengths and CRCs) before they are decoded.
+    """
     path = require_input_file(path, "frame image")
-    reader = vtk.vtkImageReader2Factory.CreateImageReader2(str(path))
-    if reader is None:
-        raise CorruptFileError(path, "not an image VTK can read (PNG, JPEG, BMP, TIFF, PNM)")
-    reader.SetFileName(str(path))
-    reader.Update()
-    image = reader.GetOutput()
-    scalars = image.GetPointData().GetScalars() if image else None
-    nx, ny, nz = image.GetDimensions() if image else (0, 0, 0)
-    if scalars is None or nx * ny == 0:
+    pixels = _decode_image(path)
+    if pixels.ndim not in (2, 3) or pixels.size == 0:
         raise CorruptFileError(path, "the image holds no pixels")
-    if nz != 1:
-        raise CorruptFileError(path, f"a 2D frame was expected, found {nx} x {ny} x {nz}")
-    pixels = numpy_support.vtk_to_numpy(scalars).reshape(ny, nx, -1)[::-1]
     return np.ascontiguousarray(frames_to_grey(pixels[None])[0])
+
+
+#: Pillow modes kept as they are (grey, RGB(A), 16/32-bit integer, float); the others become
+#: grey ("1", grey + alpha) or RGB (palettes, CMYK, YCbCr, ...).
+_KEPT_MODES = ("L", "RGB", "RGBA", "I", "F", "I;16", "I;16L", "I;16B", "I;16N")
+
+
+def _decode_image(path: Path) -> np.ndarray:
+    """``(H, W)`` or ``(H, W, C)`` pixels of one image file, row 0 at the top; every decoding
+    failure of Pillow as :class:`CorruptFileError`."""
+    import struct
+    import warnings
+    import zlib
+
+    from PIL import Image, ImageFile, UnidentifiedImageError
+
+    previous = ImageFile.LOAD_TRUNCATED_IMAGES
+    ImageFile.LOAD_TRUNCATED_IMAGES = False  # a truncated file must fail, never be padded
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(path) as image:
+                if image.format == "PNG":
+                    image.verify()  # chunk lengths and CRCs, without decoding
+            with Image.open(path) as image:
+                if getattr(image, "n_frames", 1) != 1:
+                    raise CorruptFileError(path, f"a 2D frame was expected, found "
+                                                 f"{image.n_frames} images in one file")
+                image.load()
+                if image.mode not in _KEPT_MODES:  # alpha is dropped: it is no intensity
+                    image = image.convert("L" if image.mode in ("1", "LA", "La") else "RGB")
+                pixels = np.asarray(image)
+    except (Image.DecompressionBombWarning, Image.DecompressionBombError) as exc:
+        raise ComRegError(f"The frame image '{path}' is too large to be an ultrasound frame "
+                          f"({' '.join(str(exc).split())})", "Check the image files.") from None
+    except UnidentifiedImageError:
+        raise CorruptFileError(path, "not a PNG, JPEG, BMP, TIFF or PNM image, or its header "
+                                     "is damaged") from None
+    except (FileNotFoundError, PermissionError):
+        raise
+    except (OSError, SyntaxError, ValueError, EOFError, IndexError, TypeError, KeyError,
+            struct.error, zlib.error) as exc:  # Pillow's ways of saying 'truncated' or 'broken'
+        detail = " ".join(str(exc).split()).rstrip(".") or type(exc).__name__
+        raise CorruptFileError(path, f"the image cannot be decoded ({detail})") from None
+    finally:
+        ImageFile.LOAD_TRUNCATED_IMAGES = previous
+    if pixels.dtype.byteorder not in ("=", "|"):
+        pixels = pixels.astype(pixels.dtype.newbyteorder("="))
+    if pixels.dtype == np.int32 and pixels.size and pixels.min() >= 0 and pixels.max() < 65536:
+        pixels = pixels.astype(np.uint16)  # 16-bit grey that Pillow opened as 32-bit 'I'
+    return pixels

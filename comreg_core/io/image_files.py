@@ -8,6 +8,7 @@ Geometry conventions: see :mod:`comreg_core.io.volumes`.
 from __future__ import annotations
 
 import contextlib
+import re
 import zlib
 from collections.abc import Iterator
 from pathlib import Path
@@ -73,7 +74,16 @@ def parse_errors_as_corrupt(path: Path) -> Iterator[None]:
         raise CorruptFileError(path, "the file ends inside its header") from exc
     except (nrrd.NRRDError, zlib.error, OSError, EOFError, ValueError, KeyError, IndexError,
             TypeError) as exc:
+        sizes = _PYNRRD_SIZE_MISMATCH.search(str(exc))
+        if sizes:  # a truncated (or padded) data part
+            raise CorruptFileError(path, f"the header's 'sizes' need {sizes[1]} voxel values but "
+                                         f"the file holds {sizes[2]}") from exc
         raise CorruptFileError(path, f"{type(exc).__name__}: {str(exc).rstrip('.')}") from exc
+
+
+#: pynrrd's message when the data part holds fewer (or more) values than the header's sizes.
+_PYNRRD_SIZE_MISMATCH = re.compile(r"does not equal the product of all the dimensions: "
+                                   r"(\d+)-(\d+)=")
 
 
 def refuse_tracked_sequence(path: Path, keys) -> None:

@@ -143,9 +143,11 @@ def read_metaimage_grid(path: Path) -> tuple[np.ndarray, dict[str, str], np.ndar
 
 def read_metaimage_voxels(path: Path, fields: dict[str, str], offset: int,
                           expected: int) -> bytes:
-    """The (decompressed) voxel bytes of a MetaImage; checks their length is ``expected``."""
+    """The (decompressed) voxel bytes of a MetaImage; checks their length is ``expected``
+    (a truncated file, or data file of a ``.mhd``, raises :class:`CorruptFileError` naming it)."""
     data_file = header_field(fields, "ElementDataFile") or ""
     compressed = header_flag(fields, "CompressedData")
+    source, of = path, ""  # the file holding the voxels, for messages
     with parse_errors_as_corrupt(path):
         if data_file.upper() == "LOCAL":
             with open(path, "rb") as fh:
@@ -157,6 +159,7 @@ def read_metaimage_voxels(path: Path, fields: dict[str, str], offset: int,
                                   f"('ElementDataFile = {data_file}').",
                                   "Save the volume as a single .mha file.")
             data_path = require_input_file(path.parent / data_file, "MetaImage data file")
+            source, of = data_path, f" (the voxel data of '{path}')"
             data = data_path.read_bytes()
             skip = int(header_field(fields, "HeaderSize") or 0)
             if skip == -1 and not compressed:
@@ -166,13 +169,14 @@ def read_metaimage_voxels(path: Path, fields: dict[str, str], offset: int,
             inflater = zlib.decompressobj(zlib.MAX_WBITS | 32)  # zlib or gzip stream
             raw = inflater.decompress(data) + inflater.flush()
             if not inflater.eof:
-                raise CorruptFileError(path, f"the compressed voxel data end early "
-                                             f"({len(raw)} of {expected} bytes recovered)")
+                raise CorruptFileError(source, f"the compressed voxel data end early "
+                                               f"({len(raw)} of {expected} bytes recovered){of}")
             data = raw
     if len(data) != expected:
         raise CorruptFileError(
-            path, f"'DimSize = {header_field(fields, 'DimSize')}' and "
-                  f"'{header_field(fields, 'ElementType')}' need {expected} bytes of voxel data but the file holds {len(data)}")
+            source, f"'DimSize = {header_field(fields, 'DimSize')}' and "
+                    f"'{header_field(fields, 'ElementType')}' need {expected} bytes of voxel data "
+                    f"but the file holds {len(data)}{of}")
     return data
 
 

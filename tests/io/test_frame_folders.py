@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import shutil
 from pathlib import Path
 
@@ -12,7 +13,8 @@ import numpy as np
 import pytest
 
 from comreg_core.errors import CorruptFileError, InputFileNotFoundError
-from comreg_core.io.frame_folders import read_frame_folder, read_frame_folder_tracking
+from comreg_core.io.frame_folders import (FRAME_IMAGE_EXTENSIONS, read_frame_folder,
+                                          read_frame_folder_tracking, read_frame_image)
 from comreg_core.io.sweeps import CalibrationMismatchError, NoValidFramesError
 from tests.helpers import SHARED_DATA, assert_close
 
@@ -121,3 +123,88 @@ def test_realism_loader_uses_the_frame_folder_reader(fibula):
     shift = np.eye(4)
     shift[:2, 3] = 0.5 * fibula.spacing
     assert_close(poses.T_ct_image @ shift, fibula.T_ref_image, atol=1e-9)
+
+
+# --- frame images: every format, decoded by a reader that reports damage -----------------------
+
+SAMPLE_SWEEP = Path(__file__).resolve().parents[2] / "resources" / "sample" / "sweep"
+
+
+def sample_folder(tmp_path: Path, n: int = 3, ext: str = ".png") -> Path:
+    """A frame folder with the first ``n`` frames of the bundled sample sweep (475 x 405 px
+    grey PNGs), saved as ``ext`` images."""
+    from PIL import Image
+
+    folder = tmp_path / "sweep"
+    (folder / "frames").mkdir(parents=True)
+    lines = (SAMPLE_SWEEP / "tracking.csv").read_text().splitlines()
+    (folder / "tracking.csv").write_text("\n".join(lines[:n + 1]) + "\n")
+    shutil.copy(SAMPLE_SWEEP / "calibration.json", folder)
+    for line in lines[1:n + 1]:
+        name = line.split(",")[0]
+        if ext == ".png":
+            shutil.copy(SAMPLE_SWEEP / "frames" / f"{name}.png", folder / "frames")
+        else:
+            Image.open(SAMPLE_SWEEP / "frames" / f"{name}.png").save(
+                folder / "frames" / f"{name}{ext}")
+    return folder
+
+
+def cut_in_half(path: Path) -> Path:
+    """Keep the first half of ``path``'s bytes: a file whose copy or download stopped."""
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    return path
+
+
+@pytest.mark.parametrize("ext", FRAME_IMAGE_EXTENSIONS)
+def test_a_truncated_frame_image_is_a_corrupt_file(tmp_path, ext):
+    """VTK's PNG reader crashed the process on a truncated PNG; its JPEG, BMP, TIFF and PNM
+    readers filled the missing rows with garbage. Every format now fails naming the file."""
+    folder = sample_folder(tmp_path, 3, ext)
+    bad = cut_in_half(sorted((folder / "frames").iterdir())[1])
+    with pytest.raises(CorruptFileError, match=re.escape(bad.name) + ".*truncated"):
+        read_frame_folder(folder)
+    with pytest.raises(CorruptFileError, match=re.escape(bad.name)) as caught:
+        read_frame_image(bad)
+    assert caught.value.path == bad
+
+
+def test_damaged_and_non_image_frames_are_corrupt_files(tmp_path):
+    from PIL import Image
+
+    frame = sorted((SAMPLE_SWEEP / "frames").iterdir())[0]
+    data = bytearray(frame.read_bytes())
+    data[len(data) // 2: len(data) // 2 + 64] = bytes(64)  # full length, a damaged IDAT chunk
+    cases = {"damaged.png": bytes(data), "empty.png": b"", "text.png": b"timestamp,x,y,z\n",
+             "cut_header.jpg": b"\xff\xd8\xff\xe0\x00"}
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(CorruptFileError, match=re.escape(name)):
+            read_frame_image(tmp_path / name)
+    pages = [Image.open(frame), Image.open(frame)]
+    pages[0].save(tmp_path / "pages.tif", save_all=True, append_images=pages[1:])
+    with pytest.raises(CorruptFileError, match="2D frame was expected"):
+        read_frame_image(tmp_path / "pages.tif")
+
+
+def test_frame_images_of_every_format_read_the_same_pixels(tmp_path):
+    """Row 0 at the top in every format (VTK's reader turned TIFF frames upside down), colour
+    as luminance, grey + alpha and palettes as grey, 16-bit PGM as uint16."""
+    from PIL import Image
+
+    frame = sorted((SAMPLE_SWEEP / "frames").iterdir())[0]
+    grey = np.asarray(Image.open(frame))
+    assert np.array_equal(read_frame_image(frame), grey)
+    image = Image.fromarray(grey)
+    for name, saved in [("f.bmp", image), ("f.tif", image), ("f.tiff", image), ("f.pgm", image),
+                        ("f.pnm", image), ("rgb.png", image.convert("RGB")),
+                        ("la.png", image.convert("LA")), ("p.png", image.convert("P"))]:
+        saved.save(tmp_path / name)
+        assert np.array_equal(read_frame_image(tmp_path / name), grey), name
+    Image.fromarray(grey.astype(np.uint16) * 257).save(tmp_path / "deep.pgm")
+    deep = read_frame_image(tmp_path / "deep.pgm")
+    assert deep.dtype == np.uint16 and np.array_equal(deep, grey.astype(np.uint16) * 257)
+    image.save(tmp_path / "f.jpg", quality=95)
+    jpeg = read_frame_image(tmp_path / "f.jpg")
+    assert jpeg.shape == grey.shape and np.abs(jpeg.astype(int) - grey).mean() < 2

@@ -384,3 +384,29 @@ def test_bad_files(tmp_path):
     (tmp_path / "none.xml").write_text("<PlusConfiguration/>")
     with pytest.raises(ComRegError, match="no ImageToProbe"):
         read_plus_calibration(tmp_path / "none.xml")
+
+
+@pytest.mark.parametrize("source", [NWIRE_MHA, NWIRE_NRRD], ids=["igs.mha", "igs.nrrd"])
+def test_a_truncated_recording_is_a_corrupt_file(tmp_path, shared_data, source):
+    """The real PLUS recordings (zlib and gzip voxel data) cut to half their bytes."""
+    data = source.read_bytes()
+    path = tmp_path / source.name
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CorruptFileError, match=re.escape(source.name) + ".*(end early|need)"):
+        read_tracked_sweep(path, calibration=NWIRE_XML)
+
+
+def test_truncated_raw_voxel_data_is_a_corrupt_file(tmp_path, synthetic):
+    frames, records, _, _, xml = synthetic
+    path = write_plus_mha(tmp_path / "s.igs.mha", frames, records, compress=False)
+    data = path.read_bytes()
+    path.write_bytes(data[:-frames[0].size // 2])
+    with pytest.raises(CorruptFileError, match=r"s\.igs\.mha.*need \d+ bytes .* holds \d+"):
+        read_tracked_sweep(path, calibration=xml)
+    # the same as a .mhd header and a data file that was cut: the message names the data file
+    header, voxels = data[: -frames.size], data[-frames.size:]
+    (tmp_path / "s.mhd").write_bytes(header.replace(b"ElementDataFile = LOCAL",
+                                                    b"ElementDataFile = s.raw"))
+    (tmp_path / "s.raw").write_bytes(voxels[: len(voxels) // 2])
+    with pytest.raises(CorruptFileError, match=r"s\.raw.*holds \d+ \(the voxel data of .*s\.mhd"):
+        read_tracked_sweep(tmp_path / "s.mhd", calibration=xml)

@@ -7,7 +7,7 @@ import nrrd
 import numpy as np
 import pytest
 
-from comreg_core.errors import ComRegError
+from comreg_core.errors import ComRegError, CorruptFileError
 from comreg_core.io.slicer_sequences import read_slicer_volume_sequence
 from comreg_core.io.tracked_us import read_tracked_sweep
 from tests.helpers import assert_close
@@ -45,3 +45,17 @@ def test_slicer_volume_sequence(tmp_path, list_first):
                    {**header, "space directions": np.vstack([np.eye(3), [np.nan] * 3]),
                     "kinds": ["domain"] * 3 + ["list"]}, index_order="F")
         read_slicer_volume_sequence(tmp_path / "v.seq.nrrd")
+
+
+@pytest.mark.parametrize("encoding", ["raw", "gzip"])
+def test_a_truncated_volume_sequence_is_a_corrupt_file(tmp_path, encoding):
+    frames = np.random.default_rng(4).integers(0, 255, (8, 60, 50, 1), dtype=np.uint8)
+    header = {"space": "left-posterior-superior", "encoding": encoding,
+              "space directions": np.vstack([[np.nan] * 3, np.diag([0.2, 0.2, 1.0])]),
+              "space origin": np.zeros(3), "kinds": ["list", "domain", "domain", "domain"]}
+    path = tmp_path / "cut.seq.nrrd"
+    nrrd.write(str(path), frames, header, index_order="F")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CorruptFileError, match=r"cut\.seq\.nrrd.*need 24000 voxel values"):
+        read_tracked_sweep(path)

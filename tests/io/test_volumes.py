@@ -124,8 +124,21 @@ def test_damaged_compressed_data_and_wrong_sizes_are_corrupt(tmp_path):
         "type: uchar", "dimension: 3", "space: LPS", "sizes: 2 2 3",
         "space directions: (1,0,0) (0,1,0) (0,0,1)", "encoding: raw",
         "space origin: (0,0,0)"], bytes(8))
-    with pytest.raises(CorruptFileError, match="Size of the data"):
+    with pytest.raises(CorruptFileError, match="sizes.* need 12 voxel values but the file "
+                                               "holds 8"):
         read_volume(bad_sizes)
+
+
+@pytest.mark.parametrize("compress", [True, False])
+def test_a_truncated_mhd_data_file_is_named(tmp_path, compress):
+    path = write_volume(make_volume(10, np.float32, shape=(12, 10, 8)), tmp_path / "v.mhd",
+                        compress=compress)
+    data_file = tmp_path / ("v.zraw" if compress else "v.raw")
+    data = data_file.read_bytes()
+    data_file.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CorruptFileError, match=r"v\.z?raw.*(end early|holds).*voxel data of "
+                                               r".*v\.mhd"):
+        read_volume(path)
 
 
 @pytest.mark.parametrize("name", ["junk.nrrd", "junk.mha", "junk.mhd", "junk.seg.nrrd"])
