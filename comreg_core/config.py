@@ -67,7 +67,8 @@ def _drop_retired(cls: type, data: dict[str, Any], where: str) -> dict[str, Any]
             name = f"{where}.{key}" if where else key
             raise ConfigError(
                 f"Config value '{name}' = {data[key]!r} selects an option that has been removed.",
-                "It was an experiment that lost (docs/results.md); use a current preset.")
+                "It was an experiment that lost (docs/results.md); remove the key from the "
+                "config file.")
         del data[key]
     return data
 

@@ -119,7 +119,7 @@ class Registrar:
         whole registration (always on) and ties go to the best score (no network's pose)."""
         config = as_hypothesis_config(hypotheses)
         if self.model is None:
-            config = replace(config, enabled=True, tie_break="score", include_coarse=False)
+            config = replace(config, enabled=True, tie_break="score")
         return config
 
     @classmethod
@@ -291,7 +291,7 @@ class Registrar:
         if target is not None and hyp_cfg.refine_top:
             target.closest_point_grid  # built once per CT: not part of a registration's time
         mesh_refine = self.model is not None and self.model.config.icp.mesh_refine
-        if (target is not None and hyp_cfg.polish or mesh_refine) and self.surface is not None:
+        if (target is not None or mesh_refine) and self.surface is not None:
             self.surface.closest(self.ct_points[:1])  # likewise (its KD-tree)
         start = time.perf_counter() - check_s  # the checks count as preprocessing
         warnings = list(self.warnings)
@@ -310,10 +310,7 @@ class Registrar:
             hyp = search_hypotheses(pts, T, target, dense, hyp_cfg,
                                     T_coarse=None if self.model is None else T_coarse,
                                     start_name="network" if self.model is not None else "pca",
-                                    beam_origins=origins, space=self.space,
-                                    extra_bases=None if self.model is not None else {
-                                        f"pca-axis{k}": principal_axes_pose(pts, target, k)
-                                        for k in range(1, hyp_cfg.patch_axes)})
+                                    beam_origins=origins, space=self.space)
             T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
             if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
                 icp_rmse = hyp.polish["rmse_mm"]

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
-from comreg_core.config import ConfigError, from_dict, load_config, require
+from comreg_core.config import ConfigError, RetiredCheck, from_dict, load_config, require
 
 #: The polish stops once an update moves no US point by more than this (mm).
 POLISH_TOLERANCE_MM = 0.01
@@ -31,65 +31,92 @@ QUICK_POLISH_ITERATIONS = 30
 class HypothesisConfig:
     """Settings of the pose search (steps in :mod:`comreg_core.registration.search`).
 
+    The search always builds every kind of start (the network's pose, its coarse pose and the
+    principal-axes solve of the completion as bases, each also flipped end to end; a patch's
+    orientations over all rotations), always polishes the best pose and those tied with it on
+    the mesh (when there is one), and always gives an ambiguous result a second round: the
+    switches that turned these off were removed (:data:`RETIRED_KEYS`). What is left is the
+    stage itself, the tie-break and numbers a user sets to trade time for reach or to match
+    their data; each says why.
+
     Attributes:
-        enabled: run the stage at all (False = the paper's plain pipeline).
+        enabled: run the stage at all. False = the paper's plain pipeline (network + ICP only:
+            ``comreg register --no-hypotheses``, the ``comreg-plain`` method), to reproduce the
+            paper or to compare against it.
         shaft_rotations: rotations about the long axis per base, ``360 / shaft_rotations``
-            deg apart, the base included (1 = only the base).
-        axis_flips: also flip each of them end to end (180 deg about a short axis).
-        include_coarse: the network's coarse pose is a base too (when one is given).
-        principal_axes_solve: the principal-axes solve of the completion vs the CT is a base
-            too (needs a completion).
+            deg apart, the base included (1 = only the base). Fewer for a faster search when
+            the starts are known to be near the truth about the shaft; more when they may be
+            far off (the second round halves the spacing only for ambiguous results).
         slide_step_mm: also try each rotation hypothesis slid along its long axis in steps of
-            this (mm; suffix ``+slide16`` etc.; 0 = no slides).
-        slide_range_mm: the largest slide (mm); None = half the CT's length.
+            this (mm; suffix ``+slide16`` etc.; 0 = no slides). Coarser (or 0) for a faster
+            search when the sweep's place along the bone is known; finer when the bone's
+            shaft has features shorter than 8 mm that fix the place.
+        slide_range_mm: the largest slide (mm); None = half the CT's length. Smaller when the
+            sweep's place along the bone is roughly known (fewer starts, fewer wrong places
+            that fit as well).
         screen_points, screen_iterations, screen_score_points: the screening of all starts
             (:func:`~comreg_core.registration.search.screen_starts`): US points and
-            iterations of its quick ICP, US points of its quick score.
+            iterations of its quick ICP, US points of its quick score. More when the right
+            basin is screened out on a hard bone (a near-symmetric shaft), fewer on a slow
+            machine: the screening runs on every start (thousands) and dominates the time.
         refine_top: starts refined by the full ICP and scored (the network's own pose and
-            the best screened distinct others); 0 = all of them, unscreened.
+            the best screened distinct others); 0 = all of them, unscreened (only for a small
+            grid: every start then gets the full ICP). More when the right basin ranks low
+            after the screening, at the cost of a larger refinement batch.
         icp_points: US points in the hypotheses' ICP and score: a seeded uniform subset of
             the US cloud, kept in sweep order: it keeps the sweep's own share of false echoes
             (a farthest-point subset picks isolated false echoes first: on simulated fibula
-            sweeps 10-15 % of it instead of ~3 %, more than ``icp_trim`` drops).
+            sweeps 10-15 % of it instead of ~3 %, more than ``icp_trim`` drops). More for a
+            noisy or sparse sweep (less noise in the score), at linear cost
+            (``tests/benchmarks/bench_hypotheses.py`` compares 2048 and 4096).
         target_points: area-uniform CT surface samples: the ICP target and the score's cloud.
+            Denser for a small bone or a fine CT mesh (the samples' spacing should stay well
+            under the features that tell poses apart), sparser for a very large bone.
         icp_iterations: iterations of the refinement's last stage, on all ``icp_points``
             (point-to-plane, :func:`~comreg_core.registration.icp.coarse_to_fine_icp`).
-        icp_schedule: its coarse stages before, ``(US points, iterations)`` each.
+        icp_schedule: its coarse stages before, ``(US points, iterations)`` each. Both: more
+            when refined poses stop short of their basin's minimum (a long bone, starts far
+            off), fewer for speed.
         icp_margin_mm: after each stage only the hypotheses whose residual (trimmed RMS, mm)
             is within this of the best go on (the others are far behind; this only saves
-            time).
+            time). Larger when the US cloud is noisy enough that the right pose's residual
+            can trail a wrong one's by more than 1 mm before the last stage.
         icp_trim: share of the worst residuals left out of each ICP step.
-        score_trim: share of the largest distances left out of the score.
+        score_trim: share of the largest distances left out of the score. Both: the share of
+            false echoes and of US points the CT does not explain; raise them for a noisier
+            detector or a CT segmentation that misses part of the imaged bone.
         tie_break: among the tied poses (scores within ``1 / (1 - min_confidence)`` of the
-            best), ``"network"``
-            keeps the best-scoring of those rotated like the one rotated least from the
-            network's pose (the learned prior decides a flip or spin the geometry cannot; a
-            slide is still decided by the score), ``"score"`` the best score.
+            best), ``"network"`` keeps the best-scoring of those rotated like the one rotated
+            least from the network's pose (the learned prior decides a flip or spin the
+            geometry cannot; a slide is still decided by the score), ``"score"`` the best
+            score: what the search without a network uses (:meth:`Registrar.from_ct
+            <comreg_core.inference.Registrar.from_ct>` sets it: there is no learned pose to
+            prefer).
         distinct_deg, distinct_mm: two refined poses are different poses when their rotations
             differ by more than ``distinct_deg`` or they place the US centroid more than
-            ``distinct_mm`` apart; otherwise the later one is a duplicate.
-        retry_ambiguous: when the result is ambiguous, search again from the starts
-            interleaved with the first grid (rotations and slides shifted by half a step) and
-            choose among both rounds' hypotheses (step 7).
-        polish: polish the best pose and those tied with it by point-to-plane ICP to the
-            exact closest points of the CT mesh and re-score them (step 5 of the module
-            docstring; needs the mesh, skipped without one).
-        polish_top: at most this many poses are polished.
-        polish_max_distance_mm: pairs farther apart than this are left out of the polish.
-        polish_iterations: most iterations of a polish.
+            ``distinct_mm`` apart; otherwise the later one is a duplicate. Set them to the
+            error a procedure can tolerate: poses closer than that are not a competing pose.
+        polish_top: at most this many poses are polished (each costs a polish on the mesh;
+            raise it on a near-symmetric bone where more than 4 distinct poses tie).
+        polish_max_distance_mm: pairs farther apart than this are left out of the polish (the
+            false echoes). Raise it when the right pose's US points may lie further than 2 mm
+            from the CT (a coarse segmentation, a swollen soft-tissue interface); lower it for
+            clean data.
+        polish_iterations: most iterations of a polish (it stops earlier once it moves no
+            point by more than 0.01 mm; raise it if polishes end unconverged in
+            ``result.json``).
         score_floor_mm: score differences are measured relative to at least this (mm) in the
-            confidence: below it they are noise (step 6).
-        patch_axes: without a network, how many of the US cloud's principal axes are tried
-            as the bone's long axis (1-3; bases ``pca``, ``pca-axis1``, ``pca-axis2``): a
-            short sweep's largest spread may run across the bone. Each adds a full grid.
-        patch_orientations: for a *patch* (a US cloud whose largest spread is under
-            ``patch_max_share`` of the CT's length), also this many orientations of it spread
-            evenly over all rotations (a finite rotation group from scipy: 12, 24 or 60; 0 =
-            off), each with the patch's centroid on the CT's centre and slid along the long
-            axis (no flips or turns: the group holds them). A short sweep's own axes say little
-            about the bone's, so starts built on them alone can miss the right basin entirely.
-            The retry round (``retry_ambiguous``) turns the whole set by half its spacing.
-        patch_max_share: see ``patch_orientations``.
+            confidence: below it they are noise (step 6). Raise it for a coarse CT mesh or
+            noisy US points, where near-perfect fits differ by more than 0.05 mm by chance.
+        patch_max_share: a US cloud whose largest spread is under this share of the CT's
+            length is a *patch* (a short sweep): it also gets 60 orientations spread evenly
+            over all rotations (scipy's icosahedral group) as starts, each with the patch's
+            centroid on the CT's centre and slid along the long axis (a short sweep's own
+            axes say little about the bone's: on simulated 40-50 mm one-face fibula sweeps,
+            without them the search missed the right basin in 2 of 20, with them in 0 of 20),
+            and must lead by ``patch_min_confidence``. Raise it when sweeps longer than half
+            the bone still run across it (the extra starts cost ~1 s), lower it to keep
+            longer sweeps on the cheaper grid alone.
         patch_min_confidence: for a patch, a result is ambiguous below this confidence
             instead of ``min_confidence`` (the larger of the two counts). On the real fibula
             sweep cut into 30-60 mm runs, the pose ICP reaches from the recorded tracking
@@ -99,17 +126,17 @@ class HypothesisConfig:
         facing_penalty_mm: with beam origins (a tracked sweep knows where the probe was for
             every echo), each US point whose matched CT surface faces away from its probe adds
             this to its distance in every score (screening, refinement, polish): a pose the
-            beams could not have seen loses to one they could, whatever its fit; 0 = off.
+            beams could not have seen loses to one they could, whatever its fit; 0 = off, for
+            beam origins that cannot be trusted (a doubtful probe calibration).
         min_confidence: a result is ambiguous when its confidence is below this (a different
             pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score, or
-            within ``min_confidence * score_floor_mm`` of it).
+            within ``min_confidence * score_floor_mm`` of it). Higher flags more results for
+            a visual check (fewer unflagged wrong poses), lower flags fewer; the verdict's
+            ``min_confidence`` (:mod:`comreg_core.registration.verdict`) is the same 0.3.
     """
 
     enabled: bool = True
     shaft_rotations: int = 8
-    axis_flips: bool = True
-    include_coarse: bool = True
-    principal_axes_solve: bool = True
     slide_step_mm: float = 8.0
     slide_range_mm: float | None = None
     screen_points: int = 64
@@ -126,18 +153,28 @@ class HypothesisConfig:
     tie_break: Literal["network", "score"] = "network"
     distinct_deg: float = 10.0
     distinct_mm: float = 5.0
-    retry_ambiguous: bool = True
-    polish: bool = True
     polish_top: int = 4
     polish_max_distance_mm: float = 2.0
     polish_iterations: int = 100
     score_floor_mm: float = 0.05
     min_confidence: float = 0.3
     facing_penalty_mm: float = 5.0
-    patch_axes: int = 1
-    patch_orientations: int = 60
     patch_max_share: float = 0.5
     patch_min_confidence: float = 0.5
+
+    #: Removed switches (every registration folder's ``config.yaml`` written before carries
+    #: them): dropped when they hold what the search now always does, refused otherwise.
+    #: ``include_coarse: false`` is accepted too: ``Registrar.from_ct`` wrote it, where there
+    #: is no coarse pose and it did nothing.
+    RETIRED_KEYS: ClassVar[dict[str, RetiredCheck]] = {
+        "axis_flips": lambda value, section: value is True,
+        "include_coarse": lambda value, section: isinstance(value, bool),
+        "principal_axes_solve": lambda value, section: value is True,
+        "retry_ambiguous": lambda value, section: value is True,
+        "polish": lambda value, section: value is True,
+        "patch_axes": lambda value, section: type(value) is int and value == 1,
+        "patch_orientations": lambda value, section: type(value) is int and value == 60,
+    }
 
     def __post_init__(self) -> None:
         require(isinstance(self.enabled, bool), "hypotheses.enabled", "must be true or false")
@@ -165,9 +202,6 @@ class HypothesisConfig:
                 "must be 'network' or 'score'")
         require(self.distinct_deg > 0, "hypotheses.distinct_deg", "must be positive")
         require(self.distinct_mm > 0, "hypotheses.distinct_mm", "must be positive")
-        require(isinstance(self.polish, bool), "hypotheses.polish", "must be true or false")
-        require(isinstance(self.retry_ambiguous, bool), "hypotheses.retry_ambiguous",
-                "must be true or false")
         require(self.polish_top >= 1, "hypotheses.polish_top", "must be at least 1")
         require(self.score_floor_mm > 0, "hypotheses.score_floor_mm", "must be positive (mm)")
         require(self.polish_max_distance_mm > 0, "hypotheses.polish_max_distance_mm",
@@ -178,9 +212,6 @@ class HypothesisConfig:
                 "must be in [0, 1)")
         require(self.facing_penalty_mm >= 0, "hypotheses.facing_penalty_mm",
                 "must be 0 (off) or more (mm)")
-        require(self.patch_axes in (1, 2, 3), "hypotheses.patch_axes", "must be 1, 2 or 3")
-        require(self.patch_orientations in (0, 12, 24, 60), "hypotheses.patch_orientations",
-                "must be 0 (off), 12, 24 or 60")
         require(0.0 < self.patch_max_share <= 1.0, "hypotheses.patch_max_share",
                 "must be in (0, 1]")
         require(0.0 <= self.patch_min_confidence < 1.0, "hypotheses.patch_min_confidence",

@@ -30,7 +30,7 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
     runner-up or None)`` indices."""
     eligible = np.ones(len(poses), dtype=bool)
     placed = apply_poses(poses, centroid[None])[:, 0]  # B 3
-    if config.polish and target.surface is not None:
+    if target.surface is not None:
         # the best pose and those tied with it, polished and re-scored exactly; only polished
         # poses can be chosen (the scores of the others are not exact, and they were not tied)
         candidates = polish_candidates(scores, poses, placed, config)

@@ -7,20 +7,20 @@ alternative, plain ICP converges there and the result is a flip. This module tri
 alternatives at test time, with no extra training data:
 
 1. **Start poses** (all ``T_ct_us``, mm). Bases: ``network`` (the network's pose after its
-   ICP), ``coarse`` (its coarse pose before the ICP, with ``include_coarse``) and ``pca`` (with
-   ``principal_axes_solve`` and a completion: the full-to-full solve of the completed shape
-   against the CT by principal axes; the completion is a whole bone, so this is well posed up
-   to the axes' signs, which the flips below cover). Around each base ``T_b``: ``G @ T_b`` with
+   ICP), ``coarse`` (its coarse pose before the ICP, when given) and ``pca`` (with a
+   completion: the full-to-full solve of the completed shape against the CT by principal axes;
+   the completion is a whole bone, so this is well posed up to the axes' signs, which the flips
+   below cover). Around each base ``T_b``: ``G @ T_b`` with
    ``G`` a rigid motion of the *CT frame* about the principal axes of the completed bone placed
    by ``T_b`` (centroid ``c``, axes ``a0`` = long, ``a1``, ``a2``; the CT's own frame without a
    completion): rotations about ``a0`` by ``360 k / shaft_rotations`` deg (``+rot45``, ...),
-   with ``axis_flips`` each also flipped end to end (180 deg about ``a1``, ``+flip``), and
+   each also flipped end to end (180 deg about ``a1``, ``+flip``), and
    each of these slid along ``a0`` by multiples of ``slide_step_mm`` over +-``slide_range_mm``
    (default half the CT's length; ``+slide-16``, ...), for the slides along the shaft ICP
    cannot undo. Names read like ``network+flip+rot90+slide24``. With the defaults that is
    3 bases x 16 rotations x ~50 slides, about 2,400 starts on a fibula. A *patch* (a short
    sweep: its largest spread under ``patch_max_share`` of the CT's length) also gets
-   ``patch_orientations`` (60) orientations spread evenly over all rotations, each slid along
+   :data:`PATCH_ORIENTATIONS` (60) orientations spread evenly over all rotations, each slid along
    the shaft (:func:`patch_orientation_starts`, ``patch7+slide16``): a short sweep's own
    principal axes need not run along the bone, and on simulated 40-50 mm one-face fibula
    sweeps the grid built on them alone missed the right basin in 2 of 20 (one of them
@@ -54,7 +54,7 @@ alternatives at test time, with no extra training data:
    scores near 0 and the gaps between poses are not blurred). Trimming keeps false bone echoes
    and parts of the sweep the CT does not explain from dominating.
 
-5. **Polish** (``polish``, needs the mesh): the best-scoring pose and the distinct poses *tied*
+5. **Polish** (needs the mesh): the best-scoring pose and the distinct poses *tied*
    with it (confidence below ``min_confidence``, step 6; at most ``polish_top``) get a last
    point-to-plane ICP of the same US subset against the *exact* closest points of the CT mesh
    and their triangles' normals (the same ICP with :meth:`CTSurface.matcher`'s
@@ -89,7 +89,7 @@ alternatives at test time, with no extra training data:
    several, the choice is made on their quick-polish scores and the chosen one is then polished
    in full (its final score is the one reported).
 
-7. **Second round** (``retry_ambiguous``): an ambiguous result may mean only that no start
+7. **Second round**: an ambiguous result may mean only that no start
    landed in the right basin (from poses the network was not trained for, its bases can be
    20-30 deg off and the grid's 45 deg spacing too coarse). Then steps 1-3 run again on the
    grid interleaved with the first (rotations and slides shifted by half a step: ``+rot22.5``,
@@ -144,17 +144,11 @@ def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.nda
     return T
 
 
-def principal_axes_pose(points_us: np.ndarray, target: SurfaceCloud, long_axis: int = 0
-                        ) -> np.ndarray:
+def principal_axes_pose(points_us: np.ndarray, target: SurfaceCloud) -> np.ndarray:
     """``(4, 4)`` ``T_ct_us`` putting the principal frame of ``(N, 3)`` points (US frame, mm)
-    onto the CT's: centroid onto centroid, the points' axis ``long_axis`` (0 = their largest
-    spread) onto the CT's long axis, the others in order (up to the axes' signs, which the
-    search's flips and turns cover). A short sweep's largest spread may run across the bone:
-    ``long_axis`` 1 tries its second axis along it."""
-    c_us, a_us = principal_frame(points_us)
-    order = [long_axis] + [k for k in range(3) if k != long_axis]
-    a_us = a_us[:, order]
-    a_us[:, 2] = np.cross(a_us[:, 0], a_us[:, 1])  # right-handed again
+    onto the CT's: centroid onto centroid, the points' largest spread onto the CT's long axis,
+    the others in order (up to the axes' signs, which the search's flips and turns cover)."""
+    c_us, a_us = principal_frame(points_us)  # right-handed, like the CT's
     T = np.eye(4)
     T[:3, :3] = target.axes @ a_us.T
     T[:3, 3] = target.centre - T[:3, :3] @ c_us
@@ -165,8 +159,7 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
                      completion: np.ndarray | None = None,
                      config: HypothesisConfig | None = None, *,
                      T_coarse: np.ndarray | None = None,
-                     grid_offset: float = 0.0, start_name: str = "network",
-                     extra_bases: dict[str, np.ndarray] | None = None
+                     grid_offset: float = 0.0, start_name: str = "network"
                      ) -> dict[str, np.ndarray]:
     """The start poses ``{name: T_ct_us (4, 4) mm}`` of the hypotheses (module docstring).
 
@@ -175,19 +168,17 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
         target: the CT side (its principal frame is used without a completion).
         completion: ``(M, 3)`` mm, the completed bone in the US frame, or None.
         config: settings (default :class:`HypothesisConfig`).
-        T_coarse: ``(4, 4)`` mm, the network's coarse pose, or None.
+        T_coarse: ``(4, 4)`` mm, the network's coarse pose (a base too), or None.
         grid_offset: shift of the rotations and slides, as a share of their steps (0.5: the
             grid interleaved with the default one; the bases themselves are not included).
         start_name: the name of ``T_start``'s base (``"pca"`` when the search runs without a
             network, from :func:`principal_axes_pose`).
-        extra_bases: more named bases, each with its flips, turns and slides.
     """
     cfg = config or HypothesisConfig()
     bases = {start_name: check_rigid(T_start)}
-    bases.update({name: check_rigid(T) for name, T in (extra_bases or {}).items()})
-    if T_coarse is not None and cfg.include_coarse:
+    if T_coarse is not None:
         bases["coarse"] = check_rigid(T_coarse)
-    if completion is not None and cfg.principal_axes_solve:
+    if completion is not None:
         bases["pca"] = principal_axes_pose(completion, target)
     starts: dict[str, np.ndarray] = {}
     slides = slide_offsets_mm(target, cfg) + grid_offset * cfg.slide_step_mm
@@ -197,7 +188,7 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
         else:
             centre, axes = target.centre, target.axes
         flip = rotation_about(centre, axes[:, 1], math.pi)
-        for flipped in ((False, True) if cfg.axis_flips else (False,)):
+        for flipped in (False, True):
             for k in range(cfg.shaft_rotations):
                 angle = 360.0 * (k + grid_offset) / cfg.shaft_rotations
                 G = rotation_about(centre, axes[:, 0], math.radians(angle))
@@ -210,8 +201,9 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
     return starts
 
 
-#: scipy's finite rotation groups by their order (``Rotation.create_group``).
-ROTATION_GROUPS = {12: "T", 24: "O", 60: "I"}
+#: Orientations a patch gets (:func:`patch_orientation_starts`): scipy's icosahedral group
+#: (``Rotation.create_group("I")``), every rotation within 45 deg of one of them.
+PATCH_ORIENTATIONS = 60
 
 
 def is_patch(points_us: np.ndarray, target: SurfaceCloud, config: HypothesisConfig) -> bool:
@@ -231,16 +223,16 @@ def patch_orientation_starts(points_us: np.ndarray, target: SurfaceCloud,
                              config: HypothesisConfig, grid_offset: float = 0.0
                              ) -> dict[str, np.ndarray]:
     """Starts ``{name: T_ct_us (4, 4) mm}`` that turn a patch (:func:`is_patch`) into
-    ``patch_orientations`` orientations spread evenly over all rotations (scipy's rotation
-    group of that order, applied to its principal-axes pose about the CT's centre), each slid
+    :data:`PATCH_ORIENTATIONS` orientations spread evenly over all rotations (scipy's
+    icosahedral group, applied to its principal-axes pose about the CT's centre), each slid
     along the CT's long axis like the other starts (``patch7+slide16``). ``grid_offset`` 0.5
     turns the whole group by half its spacing (about a fixed, generic axis) and shifts the
-    slides by half a step: the retry round's starts. Empty when off or not a patch."""
+    slides by half a step: the retry round's starts. Empty when not a patch."""
     from scipy.spatial.transform import Rotation
 
-    if not config.patch_orientations or not is_patch(points_us, target, config):
+    if not is_patch(points_us, target, config):
         return {}
-    group = Rotation.create_group(ROTATION_GROUPS[config.patch_orientations])
+    group = Rotation.create_group("I")  # PATCH_ORIENTATIONS
     if grid_offset:
         angles = group.magnitude()  # rad; the identity's is 0
         spacing = angles[angles > 1e-9].min()
@@ -337,11 +329,10 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                       T_coarse: np.ndarray | None = None,
                       start_name: str = "network",
                       beam_origins: np.ndarray | None = None,
-                      space: str = "LPS",
-                      extra_bases: dict[str, np.ndarray] | None = None) -> HypothesisResult:
+                      space: str = "LPS") -> HypothesisResult:
     """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
 
-    With ``retry_ambiguous``, an ambiguous result gets a second round from the grid of starts
+    An ambiguous result gets a second round from the grid of starts
     interleaved with the first (rotations and slides shifted by half a step), and the choice
     is made again among the hypotheses of both rounds.
 
@@ -360,7 +351,6 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
             under which the CT surface faces away from the probe (``facing_penalty_mm``).
         space: the CT's patient space, for naming the bone's ends in the advice of an
             ambiguous result.
-        extra_bases: more named start poses, each with its own flips, turns and slides.
 
     Returns:
         :class:`HypothesisResult` (all mm).
@@ -394,10 +384,9 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
     scores, rmse = np.zeros(0), np.zeros(0)
     polishes: list[dict[str, Any] | None] = []
     tried = 0
-    for offset in (0.0, 0.5) if cfg.retry_ambiguous else (0.0,):
+    for offset in (0.0, 0.5):  # the second round only for an ambiguous result (step 7)
         grid = build_hypotheses(T_network, target, completion, cfg, T_coarse=T_coarse,
-                                grid_offset=offset, start_name=start_name,
-                                extra_bases=extra_bases)
+                                grid_offset=offset, start_name=start_name)
         grid.update(patch_orientation_starts(pts, target, cfg, offset))
         tried += len(grid)
         new_names, new_starts, new_poses, new_rmse = refine_starts(

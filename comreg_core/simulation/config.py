@@ -33,7 +33,10 @@ def _require_range(value: tuple, name: str, lo: float, hi: float, *, strict: boo
 @dataclass(frozen=True)
 class ProbeConfig:
     """Linear-array probe: the image is ``width_mm`` wide (lateral, image x) and ``depth_mm`` deep
-    (beam, image y); ``n_rays`` parallel rays, one per lateral position, start at the face."""
+    (beam, image y); ``n_rays`` parallel rays, one per lateral position, start at the face.
+
+    Set them to the probe (and depth setting) that records the real sweeps: the simulated
+    images should cover what the real ones do (the defaults are UltraBones100k's)."""
 
     width_mm: float = 51.2
     depth_mm: float = 43.7
@@ -48,6 +51,11 @@ class ProbeConfig:
 @dataclass(frozen=True)
 class TrajectoryConfig:
     """Sweep layout, relative to the bone's principal axes (PCA of its surface).
+
+    The defaults spread sweeps over the whole bone and every side. Set them to how the real
+    sweeps are taken, so that the network trains on what it will see: e.g. short sweeps over
+    one face (``length_mm: [40, 50]``, ``side_drift_deg: 20``, ``longitudinal_probability:
+    0``: ``comreg evaluate --config``, ``tests/benchmarks/bench_partial.py``).
 
     Attributes:
         longitudinal_probability: chance a sweep is longitudinal (array along the long axis,
@@ -66,7 +74,11 @@ class TrajectoryConfig:
             (longitudinal) to the long axis (a bounded walk like the side angle's).
         side_angle_deg: range of the starting side angle about the long axis, measured from
             ``side_reference`` (a CT-frame direction, projected normal to the long axis) or, if
-            that is unset, from the second principal axis.
+            that is unset, from the second principal axis. Together with ``side_reference``:
+            when only one face of the bone can be scanned (the approach of a procedure), say
+            which, e.g. ``side_reference: [0, -1, 0]`` (anterior, in an LPS mesh),
+            ``side_angle_deg: [-30, 30]`` and a small ``side_drift_deg``; the second principal
+            axis points in no anatomical direction.
         side_drift_deg: total range the side angle may drift within one sweep (bounded walk).
         face_distance_mm: range of the transducer-face-to-bone distance (bounded walk).
         lateral_offset_mm: the bone's centre may sit up to this far off the image centre.
@@ -122,6 +134,11 @@ class TrajectoryConfig:
 class PerturbationConfig:
     """The paper's perturbations (section 2), paper values as defaults.
 
+    Change them to match the real sweeps of a site (a steadier or shakier hand, a tracker's
+    dropouts, a detector's false echoes): :mod:`comreg_core.simulation.realism` measures the
+    same statistics on a real tracked sweep and on simulated ones
+    (``tests/benchmarks/bench_simulation.py`` prints them side by side).
+
     Attributes:
         tilt_x_max_deg, tilt_y_max_deg: bounds |theta_x|max, |theta_y|max of the per-slice tilts;
             theta_x turns the probe about its array (lateral) axis, fanning the image plane along
@@ -134,7 +151,10 @@ class PerturbationConfig:
         speed_noise: "mean" applies MA_ws as a plain moving average (the paper's formula, to the
             letter: the smoothed noise has std 1/sqrt(w_s), so multipliers stay within about
             exp(+-0.5)); "standardized" rescales the smoothed noise to unit variance (multipliers
-            then use most of the clip range).
+            then use most of the clip range). The two readings of the paper's formula; set
+            "standardized" for sweeps as uneven as the real one: the real fibula sweep's advance
+            per frame spans p5-p95 ratio ~50, "mean" gives ~2-3, "standardized" within a factor
+            4 of it (``tests/simulation/test_realism.py``). "mean" stays the default: the paper.
         drop_probability: chance that a slice is dropped (produces no points).
         false_hit_probability: chance per ray of a false intersection (segmentation noise).
         false_hit_neighbors: a false intersection also replaces the result of this many
@@ -184,11 +204,14 @@ class SimulationConfig:
 
     Attributes:
         mode: "sweep" (ray-cast US sweeps, the paper's method) or "uniform" (area-uniform samples
-            of the CT surface: the paper's ablation, AdaPoinTr's sampling).
-        n_points: points per output cloud (the paper uses 20,000).
+            of the CT surface: the paper's ablation, AdaPoinTr's sampling; Table 3).
+        n_points: points per output cloud (the paper uses 20,000; the ``cpu`` preset 2048).
         uniform_keep_fraction: in "uniform" mode, keep only this fraction of the surface nearest
             to a random viewpoint (AdaPoinTr-style partial crop); 1.0 keeps the whole surface.
+            For the ablation with partial inputs as AdaPoinTr makes them (its crops keep the
+            part of the shape nearest a random viewpoint) instead of whole-surface samples.
         min_hits: a sweep that yields fewer raw points is redrawn (up to ``max_attempts``).
+            Lower it for a small bone or a narrow probe, whose sweeps rarely hit it 200 times.
         max_attempts: redraws before giving up with a SimulationError.
     """
 

@@ -20,7 +20,9 @@ class BoneDetectorConfig:
     The defaults were set on every other frame of the UltraBones100k fibula sweep and checked on
     the others: raw detections within median 0.43 / 90th percentile 1.5 mm of the CT surface on
     the held-out frames, from 89% of them (tests/benchmarks/bench_us_detector.py prints the
-    figures for the whole sweep).
+    figures for the whole sweep). Another scanner, probe or imaging preset (echo thickness,
+    speckle, gain, depth) may need other values: check them the same way on a sweep with a
+    known pose.
 
     Attributes:
         working_pixel_mm: frames are block-averaged to about this pixel size first (0 = keep).
@@ -35,7 +37,8 @@ class BoneDetectorConfig:
         tissue_depth_mm: depth of the soft-tissue window above a pixel (ending shadow_gap_mm
             above it).
         tissue_min_fill: fraction of that window that must be echogenic (brighter than a
-            quarter of the median tissue intensity) for full credit; 0 = no such check.
+            quarter of the median tissue intensity) for full credit; 0 = no such check (for a
+            phantom scanned in a water bath, where no tissue lies above the bone).
         min_depth_mm, max_depth_mm: depth range searched (below the transducer face); None =
             to the bottom.
         intensity_power, ridge_power, shadow_power, tissue_power: exponents of the four terms.
@@ -92,6 +95,9 @@ class BoneDetectorConfig:
 class DenoiseConfig:
     """Point-cloud clean-up after extraction. Lengths in mm; 0 switches a step off.
 
+    The registration needs no down-sampling (it subsets clouds over 100,000 points itself);
+    ``downsample`` is for point files meant for other tools (smaller, or evenly spaced).
+
     Attributes:
         cluster_radius_mm: DBSCAN neighbourhood radius (0 = no cluster selection).
         cluster_min_points: neighbours (self included) that make a point a core point.
@@ -138,8 +144,10 @@ class USExtractionConfig:
         detector: the B-mode detector (used without masks).
         denoise: the clean-up of the extracted points.
         mask_top_edge: with masks, keep only the top pixel of each bone run along the beam.
-        frame_step: use every n-th valid frame.
-        reference: PLUS coordinate frame the points are given in.
+        frame_step: use every n-th valid frame (a faster extraction of a densely recorded
+            sweep, whose neighbouring frames image nearly the same bone).
+        reference: PLUS coordinate frame the points are given in (the name in the sweep's
+            PLUS device-set configuration, e.g. ``Tracker`` instead of ``Reference``).
     """
 
     detector: BoneDetectorConfig = field(default_factory=BoneDetectorConfig)

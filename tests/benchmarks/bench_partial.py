@@ -93,9 +93,6 @@ def _methods(bone: str, ct, args) -> dict:
     from comreg_core.inference import Registrar
 
     methods = {"search": Registrar.from_ct(ct)}
-    if args.patch_axes > 1:
-        methods[f"search-axes{args.patch_axes}"] = Registrar.from_ct(
-            ct, hypotheses={"patch_axes": args.patch_axes})
     runs = {"comreg": dict(a.split("=", 1) for a in args.model),
             "untrained": dict(a.split("=", 1) for a in args.untrained)}
     for label, by_bone in runs.items():
@@ -132,8 +129,6 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", default=",".join(SETS))
     p.add_argument("--perturbation", default="paper,full")
-    p.add_argument("--patch-axes", type=int, default=1,
-                   help="also the search trying this many of the patch's axes as the bone's")
     p.add_argument("--model", action="append", default=[], help="BONE=RUN trained on that CT")
     p.add_argument("--untrained", action="append", default=[],
                    help="BONE=RUN of the same network at 0 epochs")

@@ -15,9 +15,10 @@ from scipy.spatial.transform import Rotation
 from comreg_core.config import ConfigError
 from comreg_core.registration.config import HypothesisConfig, as_hypothesis_config
 from comreg_core.registration.icp import coarse_to_fine_icp
-from comreg_core.registration.search import (build_hypotheses, principal_axes_pose,
-                                             rotation_about, screen_starts, search_hypotheses,
-                                             slide_offsets_mm, us_subset)
+from comreg_core.registration.search import (PATCH_ORIENTATIONS, build_hypotheses,
+                                             patch_orientation_starts, principal_axes_pose,
+                                             refine_starts, rotation_about, screen_starts,
+                                             search_hypotheses, slide_offsets_mm, us_subset)
 from comreg_core.registration.surface import CTSurface, SurfaceCloud
 from comreg_core.pointsets import farthest_point_indices
 from comreg_core.transforms import apply_transform, invert_rigid
@@ -82,11 +83,13 @@ def test_distal_patch_near_start_lands_and_is_not_ambiguous(fibula_target, dista
     rte, rre = _errors(result.T_ct_us, truth, us)
     assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen)
     assert not result.ambiguous and result.confidence > 0.5, result.to_json()
+    # not ambiguous: no second round (its hypotheses are named by the half steps)
+    assert not any("rot22.5" in h.name or "+turned" in h.name for h in result.hypotheses)
     # a patch (40 mm of the bone) must lead by patch_min_confidence, not min_confidence
     assert result.patch and result.to_json()["patch"]
     assert result.confidence < 1.0  # it has a runner-up
     stricter = (1.0 + result.confidence) / 2  # above this result's lead
-    strict = HypothesisConfig(patch_min_confidence=stricter, retry_ambiguous=False)
+    strict = HypothesisConfig(patch_min_confidence=stricter)
     flagged = search_hypotheses(us, start, fibula_target, config=strict)
     assert flagged.confidence < stricter and flagged.ambiguous
     whole = search_hypotheses(fibula_target.points[::10], np.eye(4), fibula_target,
@@ -109,7 +112,8 @@ def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_pa
     if with_completion:
         whole, _ = CTSurface(FIBULA_STL, sample_seed=5).samples(4000)
         completion = apply_transform(invert_rigid(truth), whole)  # the bone in the US frame
-    config = HypothesisConfig(patch_orientations=0)  # the flips alone (patch starts: below)
+    # the flips alone: the 40 mm patch counts as a whole cloud (no patch starts: below)
+    config = HypothesisConfig(patch_max_share=0.05)
     result = search_hypotheses(us, start, fibula_target, completion, config)
     rte, rre = _errors(result.T_ct_us, truth, us)
     assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen, result.scores)
@@ -196,14 +200,14 @@ def test_cylinder_patch_is_flagged_ambiguous():
     assert rre > 10.0 or rte > 5.0
     # every hypothesis fits the cylinder (the patch lies on it in all of these poses)
     assert max(result.scores.values()) < 0.05
-    # ambiguous: a second round from the interleaved grid was searched too (twice the starts,
-    # its hypotheses named by the half steps); without the retry, one round
-    one_round = search_hypotheses(us, truth, target,
-                                  config=HypothesisConfig(retry_ambiguous=False))
-    assert one_round.ambiguous and result.starts_tried == 2 * one_round.starts_tried
+    # ambiguous: a second round from the interleaved grid was searched too (twice the starts
+    # of the first, its hypotheses named by the half steps)
+    config = HypothesisConfig()
+    first_round = (len(build_hypotheses(truth, target, None, config))
+                   + len(patch_orientation_starts(us, target, config)))
+    assert result.starts_tried == 2 * first_round
     second = ("rot22.5", "+turned")  # the half-step turns of the grid and of the patch starts
     assert any(any(s in h.name for s in second) for h in result.hypotheses)
-    assert not any(any(s in h.name for s in second) for h in one_round.hypotheses)
     # an ambiguous result says where the runner-up puts the sweep and what to scan
     runner = next(h for h in result.hypotheses if h.name == result.runner_up)
     advice = result.advice
@@ -231,10 +235,8 @@ def test_the_hypotheses_built(fibula_target):
         assert_close(R.T @ R, np.eye(3), atol=1e-9, what=name)
         assert np.linalg.det(R) > 0
     only = build_hypotheses(T, fibula_target, None,
-                            HypothesisConfig(shaft_rotations=1, axis_flips=False,
-                                             include_coarse=False, slide_step_mm=0),
-                            T_coarse=np.eye(4))
-    assert list(only) == ["network"]
+                            HypothesisConfig(shaft_rotations=1, slide_step_mm=0))
+    assert list(only) == ["network", "network+flip"]
     # the principal-axes solve of the CT cloud against itself, flipped and turned: the identity
     # is one of its 4 proper sign choices (pca, pca+flip, pca+rot180, pca+flip+rot180)
     completion = fibula_target.points
@@ -359,12 +361,11 @@ def test_polish_gates_out_false_echoes(fibula_target):
     assert info["moved_mm"] > 0.5 and info["rmse_mm"] < 0.2
     assert polished.chosen in polished.polished and polished.to_json()["polish"] == info
 
-    unpolished = search_hypotheses(us, start, fibula_target,
-                                   config=HypothesisConfig(polish=False))
-    assert unpolished.polish is None and not unpolished.polished
-    rte_raw, rre_raw = _errors(unpolished.T_ct_us, truth, us)
-    assert rte_raw > 0.5 and rre_raw > 2.0, (rte_raw, rre_raw)  # measured 0.8 mm / 3.0 deg
-    refined = unpolished.hypotheses[0].T_ct_us  # the network's pose before the polish
+    # the refinement alone (the network's start, before the polish) stays off the truth
+    config = HypothesisConfig()
+    _, _, refined, _ = refine_starts(us_subset(us, config.icp_points), {"network": start},
+                                     fibula_target, config, keep_first=True)
+    refined = refined[0]
     rte_net, rre_net = _errors(refined, truth, us)
     assert rte_net > 0.5 and rre_net > 2.0, (rte_net, rre_net)
     centre = us.mean(axis=0)[None]
@@ -419,10 +420,9 @@ def test_target_from_points_estimates_normals():
     ("min_confidence", 1.0), ("icp_schedule", ((3, 10),)), ("icp_schedule", ((128, -1),)),
     ("icp_margin_mm", 0.0), ("slide_step_mm", -1.0), ("slide_range_mm", -5.0),
     ("screen_points", 2), ("screen_iterations", -1), ("screen_score_points", 0),
-    ("refine_top", -1), ("tie_break", "random"), ("polish", "yes"),
+    ("refine_top", -1), ("tie_break", "random"),
     ("polish_max_distance_mm", 0.0), ("polish_iterations", 0), ("polish_top", 0),
-    ("score_floor_mm", 0.0), ("retry_ambiguous", "yes"), ("patch_axes", 0), ("patch_axes", 4),
-    ("patch_orientations", 30), ("patch_max_share", 0.0), ("patch_max_share", 1.5),
+    ("score_floor_mm", 0.0), ("patch_max_share", 0.0), ("patch_max_share", 1.5),
     ("patch_min_confidence", 1.0),
     ("facing_penalty_mm", -1.0),
 ])
@@ -443,6 +443,34 @@ def test_config_from_settings():
         as_hypothesis_config(3)
 
 
+#: The removed switches as every registration folder's config.yaml recorded them (defaults),
+#: and ``include_coarse: false`` as ``register --ct`` (no network) recorded it.
+OLD_KEYS = {"axis_flips": True, "include_coarse": True, "principal_axes_solve": True,
+            "retry_ambiguous": True, "polish": True, "patch_axes": 1, "patch_orientations": 60}
+
+
+def test_old_registration_configs_load_when_they_hold_what_survived(tmp_path):
+    import yaml
+
+    from comreg_core.registration.config import load_register_config
+
+    path = tmp_path / "config.yaml"
+    old = {"hypotheses": {**OLD_KEYS, "shaft_rotations": 6}, "inputs": {"seed": 0}}
+    path.write_text(yaml.safe_dump(old))
+    assert load_register_config(path).hypotheses == HypothesisConfig(shaft_rotations=6)
+    assert as_hypothesis_config({**OLD_KEYS, "include_coarse": False}) == HypothesisConfig()
+
+
+@pytest.mark.parametrize("key, value", [
+    ("axis_flips", False), ("principal_axes_solve", False), ("retry_ambiguous", False),
+    ("polish", False), ("patch_axes", 2), ("patch_axes", 3), ("patch_orientations", 0),
+    ("patch_orientations", 12), ("polish", "yes"), ("include_coarse", "no"),
+])
+def test_removed_options_are_refused_with_a_clear_error(key, value):
+    with pytest.raises(ConfigError, match=rf"'hypotheses\.{key}' = .* has been removed"):
+        as_hypothesis_config({key: value})
+
+
 @pytest.mark.parametrize("count", [0, 2, 5])
 def test_too_few_us_points_is_a_clear_error(fibula_target, count):
     from comreg_core.errors import InvalidGeometryError
@@ -451,18 +479,17 @@ def test_too_few_us_points_is_a_clear_error(fibula_target, count):
         search_hypotheses(fibula_target.points[:count], np.eye(4), fibula_target)
 
 
-def test_principal_axes_pose_puts_the_chosen_patch_axis_along_the_bone(fibula_target):
-    """Axis 0 (the patch's largest spread) or axis 1 onto the CT's long axis, right-handed,
-    centroid onto the CT's centre."""
+def test_principal_axes_pose_puts_the_largest_spread_along_the_bone(fibula_target):
+    """The patch's largest spread onto the CT's long axis, right-handed, centroid onto the
+    CT's centre."""
     rng = np.random.default_rng(2)
     patch = rng.normal(size=(500, 3)) * [30.0, 10.0, 2.0]  # spreads along x, y, z
-    for k, along in ((0, [1.0, 0, 0]), (1, [0, 1.0, 0])):
-        T = principal_axes_pose(patch, fibula_target, k)
-        assert_close(np.linalg.det(T[:3, :3]), 1.0, atol=1e-9)
-        assert_close(abs(T[:3, :3] @ np.array(along) @ fibula_target.axes[:, 0]), 1.0,
-                     atol=0.02, what=f"patch axis {k} along the bone")
-        assert_close(apply_transform(T, patch.mean(axis=0)[None])[0], fibula_target.centre,
-                     atol=1e-9)
+    T = principal_axes_pose(patch, fibula_target)
+    assert_close(np.linalg.det(T[:3, :3]), 1.0, atol=1e-9)
+    assert_close(abs(T[:3, :3] @ np.array([1.0, 0, 0]) @ fibula_target.axes[:, 0]), 1.0,
+                 atol=0.02, what="the largest spread along the bone")
+    assert_close(apply_transform(T, patch.mean(axis=0)[None])[0], fibula_target.centre,
+                 atol=1e-9)
 
 
 # --- patches: starts over all rotations --------------------------------------------------------
@@ -470,16 +497,16 @@ def test_principal_axes_pose_puts_the_chosen_patch_axis_along_the_bone(fibula_ta
 def test_patch_starts_cover_all_rotations(fibula_target, distal_patch):
     """A patch (40 mm of a 404 mm bone) gets 60 orientations x the slides, spread over SO(3)
     (every rotation within 45 deg of one of them, by scipy); the whole bone gets none."""
-    from comreg_core.registration.search import is_patch, patch_orientation_starts
+    from comreg_core.registration.search import is_patch
 
     us, _, _ = distal_patch
     config = HypothesisConfig()
     starts = patch_orientation_starts(us, fibula_target, config)
     slides = len(slide_offsets_mm(fibula_target, config))
-    assert is_patch(us, fibula_target, config) and len(starts) == 60 * slides
+    assert is_patch(us, fibula_target, config) and len(starts) == PATCH_ORIENTATIONS * slides
     turns = Rotation.from_matrix(np.stack([T[:3, :3] for n, T in starts.items()
                                            if "slide" not in n]))
-    assert len(turns) == 60
+    assert len(turns) == PATCH_ORIENTATIONS
     probes = Rotation.random(2000, random_state=3)
     gaps = [np.degrees((turns * probe.inv()).magnitude().min()) for probe in probes]
     assert max(gaps) < 45.0, max(gaps)
@@ -489,14 +516,16 @@ def test_patch_starts_cover_all_rotations(fibula_target, distal_patch):
     whole = fibula_target.points[::4]
     assert not is_patch(whole, fibula_target, config)
     assert patch_orientation_starts(whole, fibula_target, config) == {}
+    # a lower patch_max_share counts the 40 mm cloud as whole: no patch starts
     assert patch_orientation_starts(us, fibula_target, HypothesisConfig(
-        patch_orientations=0)) == {}
+        patch_max_share=0.05)) == {}
 
 
 def test_short_sweep_whose_own_axes_mislead_registers(shared_data):
     """A simulated 40-50 mm one-face sweep of the fibula (the partial-sweep benchmark's trial
-    19): from its principal axes alone the search lands 60-80 deg off, unflagged or not; with
-    the patch starts it lands on the truth, unambiguous."""
+    19): from its principal axes alone (the cloud not counted as a patch) the search lands
+    60-80 deg off, unflagged or not; with the patch starts it lands on the truth,
+    unambiguous."""
     from comreg_core.config import from_dict
     from comreg_core.evaluation.evaluate import (STREAM_CLOUDS, STREAM_POSES,
                                                  evaluation_rng)
@@ -511,7 +540,7 @@ def test_short_sweep_whose_own_axes_mislead_registers(shared_data):
     T_p = sample_initial_pose(evaluation_rng(0, STREAM_POSES, 19), "paper",
                               surface.bbox_centre)
     us, truth = apply_transform(T_p, sweep.points), invert_rigid(T_p)
-    without = Registrar.from_ct(FIBULA_STL, hypotheses={"patch_orientations": 0}).register(us)
+    without = Registrar.from_ct(FIBULA_STL, hypotheses={"patch_max_share": 0.05}).register(us)
     assert _errors(without.T_ct_us, truth, us)[1] > 30.0
     result = Registrar.from_ct(FIBULA_STL).register(us)
     rte, rre = _errors(result.T_ct_us, truth, us)
