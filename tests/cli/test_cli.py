@@ -222,13 +222,13 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     # registration's config.yaml reads back; unknown keys are refused before any work
     search = tmp_path / "search.yaml"
     search.write_text(yaml.safe_dump({"hypotheses": {"shaft_rotations": 2, "slide_step_mm": 0,
-                                                     "retry_ambiguous": False,
-                                                     "patch_orientations": 0}}))
+                                                     "patch_max_share": 0.05}}))  # no patch starts
     result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out",
                                  str(tmp_path / "narrow"), "--config", str(search)])
     assert result.exit_code == 0, result.output
     narrow = json.loads((tmp_path / "narrow" / "result.json").read_text())["hypotheses"]
-    assert narrow["starts_tried"] == 3 * 2 * 2 < saved["hypotheses"]["starts_tried"]
+    rounds = 2 if narrow["ambiguous"] else 1  # an ambiguous result always gets a second round
+    assert narrow["starts_tried"] == 3 * 2 * 2 * rounds < saved["hypotheses"]["starts_tried"]
     recorded = yaml.safe_load((tmp_path / "narrow" / "config.yaml").read_text())
     assert recorded["hypotheses"]["shaft_rotations"] == 2
     result = runner.invoke(app, ["register", str(run), str(tmp_path / "us.ply"), "--out",
