@@ -158,7 +158,7 @@ class ICPConfig:
             ``cpu``. Why: on the fibula's simulated validation sweeps this differentiable ICP
             (2,048 points of a 4,096-point CT cloud) keeps only 33 % of them within 2 mm /
             2 deg when started at the truth itself; the mesh refinement keeps 100 %
-            (docs/learning.md).
+            (docs/results.md).
     """
 
     iterations: int = 25
