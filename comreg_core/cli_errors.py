@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import errno
 import functools
+import inspect
 import logging
 import os
+import re
 
 import typer
 
@@ -112,9 +114,41 @@ def user_errors(command):
     return wrapper
 
 
+def reflow_help(text: str | None) -> str | None:
+    """A docstring or help text as typer should show it: paragraphs (separated by blank lines)
+    with the line breaks inside each joined into one line, so the terminal wraps them as whole
+    paragraphs (typer's rich mode keeps every single line break of the source). A line starting
+    with ``- `` or ``* `` (a list item) keeps its own line."""
+    if not text:
+        return text
+    paragraphs = []
+    for paragraph in re.split(r"\n[ \t]*\n", inspect.cleandoc(text)):
+        lines: list[str] = []
+        for line in (line.strip() for line in paragraph.splitlines()):
+            if line and lines and not line.startswith(("- ", "* ")):
+                lines[-1] += " " + line
+            elif line:
+                lines.append(line)
+        if lines:
+            paragraphs.append("\n".join(lines))
+    return "\n\n".join(paragraphs)
+
+
 class CommandApp(typer.Typer):
-    """A ``typer.Typer`` whose commands are all wrapped by :func:`user_errors`."""
+    """A ``typer.Typer`` whose commands are all wrapped by :func:`user_errors`, and whose help
+    texts (the app's, each command's docstring or ``help=``) are shown as reflowed paragraphs
+    (:func:`reflow_help`): the one place where that is done for every command."""
+
+    def __init__(self, *args, **kwargs):
+        if kwargs.get("help"):
+            kwargs["help"] = reflow_help(kwargs["help"])
+        super().__init__(*args, **kwargs)
 
     def command(self, *args, **kwargs):
-        register = super().command(*args, **kwargs)
-        return lambda function: register(user_errors(function))
+        parent = super().command
+
+        def register(function):
+            text = reflow_help(kwargs.get("help") or inspect.getdoc(function))
+            return parent(*args, **{**kwargs, "help": text})(user_errors(function))
+
+        return register

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from comreg_core.demo import SAMPLE_MODEL, run_demo
+from comreg_core.demo import SAMPLE_MODEL, TRUTH, run_demo, summary_lines
 from comreg_core.registration.surface import CTSurface
 from comreg_core.io import load_transform, read_mesh, read_points
 
@@ -65,6 +65,55 @@ def test_demo_errors_match_an_independent_computation(demo):
     assert len(metrics["trials"]) == 2
 
 
+def test_the_truth_is_icp_from_the_recorded_tracking(demo):
+    """The demo's truth is the paper's pseudo ground truth: ICP from the recorded tracking
+    (identity: CT and tracking share one frame). It puts the recorded points closer to the CT
+    bone than the recording does, and the moved points' truth is it after undoing the move."""
+    result, out, steps = demo
+    metrics = json.loads((out / "registration" / "metrics.json").read_text())["registration"]
+    assert metrics["truth"] == TRUTH and any("truth" in line for line in steps)
+    T_recorded = np.array(metrics["T_ct_recorded"])
+    recorded = read_points(out / "us_points.ply").points
+    moved = read_points(out / "us_points_moved.ply").points
+    T_true = load_transform(out / "T_ct_us_truth.tfm")
+    assert np.abs((moved @ T_true[:3, :3].T + T_true[:3, 3])
+                  - (recorded @ T_recorded[:3, :3].T + T_recorded[:3, 3])).max() < 1e-3
+    surface = CTSurface(read_mesh(out / "ct_bone.stl"))
+    on_bone = surface.distance(recorded @ T_recorded[:3, :3].T + T_recorded[:3, 3])
+    assert np.median(on_bone) < np.median(surface.distance(recorded))
+    # how far the recorded tracking lies from it, as numbers (at the points' centroid)
+    c = recorded.mean(axis=0)
+    offset = np.linalg.norm(T_recorded[:3, :3] @ c + T_recorded[:3, 3] - c)
+    angle = np.degrees(Rotation.from_matrix(T_recorded[:3, :3]).magnitude())
+    assert result.tracking_RTE_mm == pytest.approx(offset, abs=1e-6) and offset > 0.1
+    assert result.tracking_RRE_deg == pytest.approx(angle, abs=1e-4)
+    summary = json.loads((out / "demo.json").read_text())
+    assert summary["truth"] == TRUTH
+    assert summary["tracking_vs_truth"]["RTE_mm"] == pytest.approx(offset, abs=1e-6)
+    assert summary["tracking_vs_truth"]["RRE_deg"] == pytest.approx(angle, abs=1e-4)
+
+
+def test_success_agrees_with_the_verdict_and_the_summary_says_what_the_truth_is(demo):
+    result, out, _ = demo
+    assert result.verdict == "ok" and result.success  # on the bundled sample
+    assert result.success == (result.verdict == "ok")
+    registration = json.loads((out / "registration" / "result.json").read_text())
+    assert registration["verdict"] == result.verdict
+    html = (out / "registration" / "report.html").read_text(encoding="utf-8")
+    assert "Verdict: OK" in html and TRUTH in html
+    assert "<td>Error against the truth / Success (RTE &lt; 2 mm and RRE &lt; 2 deg)</td>" \
+           "<td>yes</td>" in html
+    tracking = (f"<td>Error against the truth / Offset of the recorded tracking from the truth "
+                f'(translation)</td><td class="num">{result.tracking_RTE_mm:.3f}</td><td>mm</td>')
+    assert tracking in html
+    lines = summary_lines(result, 2)
+    assert lines[0].endswith("success yes; Verdict: OK")
+    assert lines[1] == (f"truth: {TRUTH}; the tracking itself lies "
+                        f"{result.tracking_RTE_mm:.2f} mm / {result.tracking_RRE_deg:.2f}° "
+                        "from it")
+    assert lines[-1] == f"report: {result.report}"
+
+
 def test_registered_us_points_lie_on_the_ct_bone(demo):
     _, out, _ = demo
     registered = read_points(out / "registration" / "registered_us.ply").points
@@ -109,7 +158,8 @@ def test_demo_gives_the_same_figures_at_one_thread_on_a_busy_machine(demo, tmp_p
         busy.wait()
     again = json.loads((tmp_path / "demo" / "demo.json").read_text())
     first = json.loads((out / "demo.json").read_text())
-    for key in ("RTE_mm", "RRE_deg", "success_rate", "flip_rate", "n_us_points"):
+    for key in ("RTE_mm", "RRE_deg", "success_rate", "flip_rate", "n_us_points", "success",
+                "verdict", "tracking_vs_truth"):
         assert again[key] == first[key], key
     T_first = json.loads((out / "registration" / "result.json").read_text())["T_ct_us"]
     T_again = json.loads((tmp_path / "demo" / "registration" / "result.json").read_text())

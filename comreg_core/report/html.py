@@ -53,17 +53,73 @@ def format_value(value: Any) -> str:
     return str(value)
 
 
+@dataclass(frozen=True)
+class Quantity:
+    """A metric value with its unit, for a row labelled in words: ``{"Median distance to the CT
+    surface": Quantity(0.42, "mm")}`` shows the label as it is, the value and ``mm`` in the unit
+    column. ``unit`` is "" for a count, a ratio or yes/no."""
+
+    value: Any
+    unit: str = ""
+
+
 _UNITS = (("_mm", "mm"), ("_deg", "deg"), ("_rad", "rad"), ("_s", "s"), ("_ms", "ms"),
           ("_percent", "%"), ("_pct", "%"), ("_px", "px"))
 
+#: Metric names (without their unit suffix) of the evaluation and the network, in words.
+_WORDS = {
+    "RTE": "translation error (RTE)", "RRE": "rotation error (RRE)",
+    "CD": "Chamfer distance (CD)", "HD95": "95th percentile Hausdorff distance (HD95)",
+    "completion_CD": "Chamfer distance of the completion", "runtime": "registration time",
+    "completion_HD95": "95th percentile Hausdorff distance of the completion",
+    "wall": "wall-clock time", "success_rate": "success rate", "flip_rate": "flip rate",
+    "ambiguous_rate": "share flagged ambiguous", "unflagged_flip_rate": "unflagged flip rate",
+    "initial_RTE": "translation error before registration",
+    "initial_RRE": "rotation error before registration", "p90": "90th percentile",
+    "std": "standard deviation", "n": "count",
+}
+
+
+def _split_unit(part: str) -> tuple[str, str]:
+    for suffix, unit in _UNITS:
+        if part.endswith(suffix) and len(part) > len(suffix):
+            return part[:-len(suffix)], unit
+    return part, ""
+
 
 def unit_of(key: str) -> str:
-    """The unit a metric name's suffix declares (``RTE_mm`` -> ``mm``), else ""."""
+    """The unit a metric name's suffix declares (``RTE_mm`` -> ``mm``; the innermost part of
+    ``"summary / RTE_mm / median"`` that declares one), else ""."""
     for part in reversed(str(key).split(" / ")):
-        for suffix, unit in _UNITS:
-            if part.endswith(suffix):
-                return unit
+        unit = _split_unit(part)[1]
+        if unit:
+            return unit
     return ""
+
+
+def label_of(key: str) -> str:
+    """A metric name in words, without its unit: each ``" / "`` part loses its unit suffix,
+    known names are written out (``RTE_mm`` -> ``Translation error (RTE)``) and underscores
+    become spaces; the first letter of each part is upper case."""
+    parts = []
+    for part in str(key).split(" / "):
+        name = _split_unit(part)[0]
+        words = _WORDS.get(name, name.replace("_", " ").strip() or name)
+        parts.append(words[:1].upper() + words[1:])
+    return " / ".join(parts)
+
+
+def metric_rows(mapping: Mapping[str, Any]) -> list[tuple[str, Any, str]]:
+    """``(label in words, value, unit)`` for every leaf of ``mapping`` (:func:`flatten`): a
+    :class:`Quantity` gives its own unit and keeps its label as written; any other key is put
+    into words by :func:`label_of`, its unit taken from its suffix (:func:`unit_of`)."""
+    rows = []
+    for key, value in flatten(mapping):
+        if isinstance(value, Quantity):
+            rows.append((key, value.value, value.unit))
+        else:
+            rows.append((label_of(key), value, unit_of(key)))
+    return rows
 
 
 def flatten(mapping: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
@@ -123,18 +179,17 @@ code { font-size: 0.95em; }
 """
 
 
-def _table(rows: Sequence[tuple[str, Any]], header: tuple[str, ...], *, numbers: bool = False,
-           units: bool = False) -> str:
+def _table(rows: Sequence[tuple], header: tuple[str, ...], *, numbers: bool = False) -> str:
+    """Rows ``(label, value)``, or ``(label, value, unit)`` with a unit column."""
     head = "".join(f"<th>{esc(h)}</th>" for h in header)
     body = []
-    for key, value in rows:
+    for key, value, *unit in rows:
         cells = [f"<td>{esc(key)}</td>"]
         text = format_value(value) if numbers else ("n/a" if value is None else str(value))
         cls = ' class="num"' if numbers and isinstance(value, (int, float, np.number)) \
             and not isinstance(value, (bool, np.bool_)) else ""
         cells.append(f"<td{cls}>{esc(text)}</td>")
-        if units:
-            cells.append(f"<td>{esc(unit_of(key))}</td>")
+        cells.extend(f"<td>{esc(u)}</td>" for u in unit)
         body.append("<tr>" + "".join(cells) + "</tr>")
     if not body:
         return "<p class=\"meta\">None given.</p>"
@@ -177,8 +232,7 @@ def build_html(*, title: str, sections: Sequence[Section], metrics: Mapping[str,
         items = " &nbsp; ".join(f"{swatch(rgb)}{esc(label)}" for label, rgb in legend)
         parts.append(f'<p class="legend">{items}</p>')
     parts.append("<h2>Metrics</h2>")
-    parts.append(_table(flatten(metrics or {}), ("Metric", "Value", "Unit"), numbers=True,
-                        units=True))
+    parts.append(_table(metric_rows(metrics or {}), ("Metric", "Value", "Unit"), numbers=True))
     for section in sections:
         parts.append(f"<h2>{esc(section.heading)}</h2>")
         if section.text:

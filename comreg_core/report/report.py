@@ -83,9 +83,13 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
         us_after: ``(N, 3)`` the same points mapped into the CT by the estimated ``T_ct_us``.
         completion: ``(M, 3)`` the completed bone in the CT frame (the network's completion under
             the estimated transform), coloured by distance to the CT surface.
-        metrics: any JSON-like mapping (``RTE_mm``, ``RRE_deg``, ``CD_mm``, ``HD95_mm``,
-            ``runtime_s``, nested summaries, ...): one table row per leaf, units from the
-            ``_mm``/``_deg``/``_s`` suffixes.
+        metrics: any JSON-like mapping: one table row per leaf (nested groups as
+            ``"group / row"``), with the label in words, the value and its unit in a column of
+            its own. A :class:`~comreg_core.report.html.Quantity` value keeps its key as the
+            label and gives its unit; other keys (``RTE_mm``, ``RRE_deg``, ``CD_mm``,
+            ``runtime_s``, nested summaries, ...) are put into words and take their unit from
+            their ``_mm``/``_deg``/``_s``/``_percent`` suffix
+            (:func:`~comreg_core.report.html.metric_rows`).
         inputs: what the run used (file paths, parameters), shown as given; point counts and the
             CT mesh's file, size and space are added.
         seed, device: shown in the "Run" table.

@@ -51,8 +51,8 @@ def test_report_from_another_directory_starts_with_the_verdict(tmp_path, fibula,
     page = (out / "report.html").read_text(encoding="utf-8")
     body = page[page.index("<body>"):]
     assert body.index("Verdict: OK") < body.index("<h1>")
-    assert "success rate" not in page  # the stale metrics.json is left out
-    assert "median distance to the CT surface" in page
+    assert "success rate" not in page.lower()  # the stale metrics.json is left out
+    assert "Median distance to the CT surface" in page
 
     slid = np.eye(4)
     slid[:3, 3] = 25.0 * case.ct.vertices.std(0) / np.linalg.norm(case.ct.vertices.std(0))
@@ -69,3 +69,59 @@ def test_report_with_a_missing_transform_file_is_a_one_line_error(tmp_path, fibu
     result = CliRunner().invoke(app, ["report", str(out), "--transform",
                                       str(tmp_path / "missing.tfm")])
     assert result.exit_code == 2
+
+
+def test_metrics_are_labelled_in_words_with_units_apart(tmp_path, fibula, monkeypatch):
+    """Every row of the metrics table: a label in words (no ``_mm``/``_deg`` key, no
+    underscore), the value, and the unit in its own cell."""
+    import re
+
+    out, _ = _folder(tmp_path, fibula)
+    result = json.loads((out / "result.json").read_text(encoding="utf-8"))
+    result["timings_s"] = {"preprocess": 0.01, "completion_and_coarse_pose": 0.2,
+                           "some_new_stage": 0.05, "total": 0.5}
+    result["hypotheses"] = {"ambiguous": False, "confidence": 0.8, "chosen": "network+rot45",
+                            "runner_up": "flip", "score_mm": 0.31, "score_gap_mm": 0.6,
+                            "polish": {"moved_mm": 0.1, "iterations": 3,
+                                       "inlier_fraction": 0.95, "rmse_mm": 0.4}}
+    (out / "result.json").write_text(json.dumps(result), encoding="utf-8")
+    truth = "ICP from the recorded tracking (pseudo ground truth, as in the paper)"
+    metrics = {"registration": {
+        "T_ct_us": np.eye(4).tolist(), "truth": truth,
+        "errors_vs_truth": {"RTE_mm": 1.25, "RRE_deg": 0.5, "success": True},
+        "tracking_vs_truth": {"RTE_mm": 1.5, "RRE_deg": 0.08}},
+        "summary": {"comreg": {"trials": 2, "success_rate": 0.5, "flip_rate": 0.5,
+                               "RTE_mm": {"median": 1.75}, "RRE_deg": {"median": 45.0}}}}
+    (out / "metrics.json").write_text(json.dumps(metrics), encoding="utf-8")
+    _render_small(monkeypatch)
+    assert CliRunner().invoke(app, ["report", str(out)]).exit_code == 0
+    page = (out / "report.html").read_text(encoding="utf-8")
+    metrics_table = page[page.index("<h2>Metrics</h2>"):].split("</table>")[0]
+    rows = re.findall(r"<tr><td>(.*?)</td><td[^>]*>(.*?)</td><td>(.*?)</td></tr>",
+                      metrics_table)
+    assert len(rows) >= 20
+    for label, _, _ in rows:
+        assert "_" not in label and "_mm" not in label and "_deg" not in label, label
+    table = {label: (value, unit) for label, value, unit in rows}
+    fit = "Fit of the US points to the CT bone / "
+    assert table[fit + "Median distance to the CT surface"][1] == "mm"
+    assert table[fit + "90 % of the points within"][1] == "mm"
+    assert table[fit + "Points within 2 mm of the surface"][1] == "%"
+    assert table[fit + "Best-fitting scale of the US points"][1] == ""
+    error = "Error against the truth / "
+    assert table[error + "Truth"] == (truth, "")
+    assert table[error + "Translation error at the US centroid (RTE)"] == ("1.250", "mm")
+    assert table[error + "Rotation error (RRE)"] == ("0.500", "deg")
+    assert table[error + "Success (RTE &lt; 2 mm and RRE &lt; 2 deg)"] == ("yes", "")
+    assert table[error + "Offset of the recorded tracking from the truth (translation)"] == (
+        "1.500", "mm")
+    assert table[error + "Offset of the recorded tracking from the truth (rotation)"] == (
+        "0.080", "deg")
+    starts = "Further random starts (evaluation, against the same truth) / "
+    assert table[starts + "Success rate"] == ("50.000", "%")
+    assert table[starts + "Median rotation error (RRE)"] == ("45.000", "deg")
+    assert table["Pose check / Trimmed mean distance of the kept pose"] == ("0.310", "mm")
+    assert table["Pose check / Confidence (0-1; below 0.3 is ambiguous)"] == ("0.800", "")
+    assert table["Time / Registration in all"] == ("0.500", "s")
+    assert table["Time / Completion and coarse pose (network)"] == ("0.200", "s")
+    assert table["Time / Some new stage"] == ("0.050", "s")

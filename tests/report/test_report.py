@@ -18,11 +18,14 @@ from comreg_core import runs
 from comreg_core.report import (IMAGES_DIR, OpenGLUnavailableError, image_name,
                                 write_report)
 from comreg_core.report.cameras import VIEW_NAMES
-from comreg_core.report.html import build_html, flatten, format_value, unit_of
+from comreg_core.report.html import (Quantity, build_html, flatten, format_value, label_of,
+                                     metric_rows, unit_of)
 from comreg_core.report.scenes import SCENES
 from tests.report.support import TEST_WINDOW
 
 METRICS = {
+    "Median distance to the CT surface": Quantity(0.42, "mm"),
+    "Best-fitting scale": Quantity(1.0017),
     "RTE_mm": 3.19, "RRE_deg": 2.93, "CD_mm": 1.2712, "HD95_mm": 3.27, "runtime_s": 0.28,
     "success": False, "flips": 0, "tiny_mm": 0.00012345,
     "summary": {"RTE_mm": {"median": 1.5, "p90": 2.25}},
@@ -105,17 +108,22 @@ def test_page_has_the_metric_values_with_units(report):
     text = " ".join(page.text)
     rows = re.findall(r"<tr><td>(.*?)</td><td[^>]*>(.*?)</td><td>(.*?)</td></tr>", source)
     table = {key: (value, unit) for key, value, unit in rows}
-    assert table["RTE_mm"] == ("3.190", "mm")
-    assert table["RRE_deg"] == ("2.930", "deg")
-    assert table["CD_mm"] == ("1.271", "mm")
-    assert table["HD95_mm"] == ("3.270", "mm")
-    assert table["runtime_s"] == ("0.280", "s")
-    assert table["success"] == ("no", "")
-    assert table["flips"] == ("0", "")
-    assert table["tiny_mm"] == ("0.0001234", "mm")
-    assert table["summary / RTE_mm / median"] == ("1.500", "mm")
-    assert table["summary / RTE_mm / p90"] == ("2.250", "mm")
+    assert table["Translation error (RTE)"] == ("3.190", "mm")
+    assert table["Rotation error (RRE)"] == ("2.930", "deg")
+    assert table["Chamfer distance (CD)"] == ("1.271", "mm")
+    assert table["95th percentile Hausdorff distance (HD95)"] == ("3.270", "mm")
+    assert table["Registration time"] == ("0.280", "s")
+    assert table["Success"] == ("no", "")
+    assert table["Flips"] == ("0", "")
+    assert table["Tiny"] == ("0.0001234", "mm")
+    assert table["Summary / Translation error (RTE) / Median"] == ("1.500", "mm")
+    assert table["Summary / Translation error (RTE) / 90th percentile"] == ("2.250", "mm")
+    assert table["Median distance to the CT surface"] == ("0.420", "mm")  # a Quantity
+    assert table["Best-fitting scale"] == ("1.002", "")
     assert "a<b>c" in text  # the value, as text
+    # every label is in words: no key suffix, no underscore
+    for label in table:
+        assert "_" not in label and not label.endswith(("mm", "deg")), label
 
 
 def test_page_escapes_everything(report):
@@ -246,6 +254,18 @@ def test_units_and_flatten():
     assert [unit_of(k) for k in ("RTE_mm", "RRE_deg", "runtime_s", "rate", "a / HD95_mm / p90")] \
         == ["mm", "deg", "s", "", "mm"]
     assert flatten({"a": 1, "b": {"c": 2, "d": {}}}) == [("a", 1), ("b / c", 2), ("b / d", "")]
+
+
+def test_labels_in_words_and_units_apart():
+    assert [label_of(k) for k in ("RTE_mm", "success_rate", "initial_RRE_deg", "tiny_mm",
+                                  "summary / HD95_mm / p90", "wall_s", "a_b_c")] == [
+        "Translation error (RTE)", "Success rate", "Rotation error before registration", "Tiny",
+        "Summary / 95th percentile Hausdorff distance (HD95) / 90th percentile",
+        "Wall-clock time", "A b c"]
+    assert metric_rows({"Fit": {"Median distance to the CT surface": Quantity(0.4, "mm"),
+                                "Scale": Quantity(1.0)}, "runtime_s": 2.0}) == [
+        ("Fit / Median distance to the CT surface", 0.4, "mm"), ("Fit / Scale", 1.0, ""),
+        ("Registration time", 2.0, "s")]
 
 
 def test_build_html_without_metrics_or_images():
