@@ -78,6 +78,9 @@ points, pick the CT segmentation (or bone model), and register, either with ComR
 on the CT alone (method "search", no pretraining) or with a network pretrained on sweeps
 simulated from this CT (method "comreg", pretraining runs in the background). The result goes
 into the chosen linear transform (default "ReferenceToCT") with the US points under it.
+Optionally (section "Prior"), a rough initial pose (a transform node, US -> CT) with its
+tolerances and landmarks picked on the CT and in the US data (two point lists, paired by label)
+restrict the search to poses near them; a result at the edge of a tolerance is flagged.
 Transforms are saved as ITK .tfm/.h5 (LPS), like Slicer does.
 """
         self.parent.acknowledgementText = """

@@ -36,7 +36,7 @@ from comreg_plugin.scene_io import (addModelNode, readScene,
                                     readSlicerSegmentation, requireNode,
                                     segmentationNodeFromArrays, surfaceMeshFromModel, uniqueName,
                                     vtkMatrixFromArray, writeScene, writeTransform)
-from comreg_plugin.scene_inputs import (addSweepBrowser, arrayFromPointsNode,
+from comreg_plugin.scene_inputs import (addSweepBrowser, arrayFromPointsNode, priorFromNodes,
                                         requirePointsNode, segmentationFromNode,
                                         trackedSweepFromBrowser, volumeFromNode)
 from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModuleLogic,
@@ -382,7 +382,8 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
 
     def register(self, usPointsNode=None, method=None, *, runDirectory=None, ctModelNode=None,
                  outputTransformNode=None, completedBoneNode=None, seed: int = 0,
-                 device: Optional[str] = None) -> RegistrationSummary:
+                 device: Optional[str] = None, initialTransformNode=None,
+                 ctLandmarksNode=None, usLandmarksNode=None) -> RegistrationSummary:
         """Register the US points to the CT and show the result in the scene.
 
         Args:
@@ -400,6 +401,9 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             completedBoneNode: the model node for the completed bone (default: the parameter
                 node's ``completedBone``, else a new "ComReg completed bone").
             seed: registration seed. device: torch device for "comreg".
+            initialTransformNode, ctLandmarksNode, usLandmarksNode: the pose search's prior
+                (:func:`comreg_plugin.scene_inputs.priorFromNodes`; default: the parameter
+                node's, with its tolerances); ``info["prior"]`` says where the result lies in it.
 
         Sets ``T_ct_us`` (US points' frame = the tracking reference -> CT) as the output
         transform's to-parent matrix in RAS, places the US points under it and adds the
@@ -430,9 +434,11 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         method = method if method is not None else p.method
         seed = int(seed)
         device = device or p.device
+        prior = priorFromNodes(initialTransformNode, ctLandmarksNode, usLandmarksNode,
+                               parameters=p)
         space, run, methodName, runDirectory = self._methods.prepare(
             method, p, runDirectory=runDirectory, ctModelNode=ctModelNode, seed=seed,
-            device=device)
+            device=device, prior=prior)
         output, T, T_ras, completion_ct = runRegistration(
             run, arrayFromPointsNode(usPointsNode), space)
 

@@ -30,6 +30,13 @@ class ComRegParameterNode:
     "auto" or a volume axis ("-y", ...).
     outputTransform: the result, tracking reference -> CT (to parent, RAS; "ReferenceToCT").
     completedBone: the network's completed bone in the CT frame.
+    initialTransform: an optional rough initial pose, US -> CT, as the result is (to world,
+    RAS); initialToleranceDeg, initialToleranceMm: how far the result may be from it (its
+    rotation, and where it places the US points' centroid). ctLandmarks, usLandmarks: optional
+    landmarks picked on the CT and in the US data (the US points' own frame), paired by label;
+    landmarkToleranceMm: how far apart a pair may end (a point's "tol=5" description
+    overrides it). Together the prior of the pose search
+    (:mod:`comreg_core.registration.priors`).
     method: "comreg" (pretrained run), "search" (pose search on the CT alone, no network) or
     "ransac" (RANSAC + ICP baseline).
     runDirectory: the pretraining run folder. preset, maxMinutes, epochs (0 = preset's), seed,
@@ -46,6 +53,12 @@ class ComRegParameterNode:
     beamDirection: Annotated[str, Choice(BEAM_DIRECTIONS)] = "auto"
     outputTransform: slicer.vtkMRMLLinearTransformNode
     completedBone: slicer.vtkMRMLModelNode
+    initialTransform: slicer.vtkMRMLLinearTransformNode
+    initialToleranceDeg: Annotated[float, WithinRange(0.1, 180.0)] = 30.0
+    initialToleranceMm: Annotated[float, WithinRange(0.1, 1000.0)] = 30.0
+    ctLandmarks: slicer.vtkMRMLMarkupsFiducialNode
+    usLandmarks: slicer.vtkMRMLMarkupsFiducialNode
+    landmarkToleranceMm: Annotated[float, WithinRange(0.1, 1000.0)] = 10.0
     method: Annotated[str, Choice(METHODS)] = "comreg"
     runDirectory: str = ""
     preset: Annotated[str, Choice(PRESETS)] = "cpu"

@@ -67,6 +67,9 @@ class RegistrationSummary:
             text += f", median distance to CT {residuals['median']:.2f} mm"
         if "ambiguous" in self.info:
             text += ", AMBIGUOUS (check the pose)" if ambiguous else ""
+        prior = self.info.get("prior") or {}
+        if prior.get("reasons"):
+            text += ", CHECK: " + " ".join(prior["reasons"])
         if confidence >= 0:
             text += f", confidence {confidence:.2f}"
         if self.completedBoneNode is not None:
@@ -132,11 +135,17 @@ class RegistrationMethods:
         return self._baselines[key]
 
     def prepare(self, method, parameters, *, runDirectory, ctModelNode, seed: int,
-                device: str) -> tuple:
+                device: str, prior=None) -> tuple:
         """``(space, run, name, runDirectory)`` of ``method`` ("comreg", "ransac" or a callable,
         see :meth:`ComRegLogic.register <comreg_plugin.logic.ComRegLogic.register>`): ``run``
         takes ``(N, 3)`` points in ``space`` and returns a result with ``T_ct_us``.
-        ``runDirectory`` and ``ctModelNode`` default to the ``parameters`` node's."""
+        ``runDirectory`` and ``ctModelNode`` default to the ``parameters`` node's. ``prior``
+        (:class:`~comreg_core.registration.priors.Prior`, or None) goes to the pose search of
+        "comreg" and "search"; the other methods refuse it."""
+        if prior is not None and (callable(method) or method == "ransac"):
+            name = getattr(method, "__name__", "custom") if callable(method) else method
+            raise ComRegError(f"The '{name}' method cannot use an initial pose or landmarks.",
+                              "Use the 'comreg' or 'search' method, or clear the prior.")
         if callable(method):
             space, run = "LPS", method
             methodName = getattr(method, "name", getattr(method, "__name__", "custom"))
@@ -149,7 +158,7 @@ class RegistrationMethods:
             space, methodName = registrar.space, "comreg"
 
             def run(points):
-                return registrar.register(points, seed=seed)
+                return registrar.register(points, seed=seed, prior=prior)
         elif method in ("ransac", "search"):
             ctModelNode = ctModelNode if ctModelNode is not None else parameters.ctModel
             if ctModelNode is None:
@@ -164,7 +173,7 @@ class RegistrationMethods:
                 space, methodName = "LPS", "search"
 
                 def run(points):
-                    return registrar.register(points, seed=seed)
+                    return registrar.register(points, seed=seed, prior=prior)
         else:
             raise ComRegError(f"Unknown registration method '{method}'.",
                               f"Use one of: {', '.join(METHODS)}, or pass a callable.")

@@ -11,6 +11,8 @@
   ``.seg.nrrd`` writer (:func:`segmentationFromNode`).
 - A reconstructed 3D US volume as a scalar volume node -> :class:`comreg_core.io.volumes.Volume`
   (RAS, its IJKToRAS geometry; :func:`volumeFromNode`).
+- A prior for the pose search: an initial-pose transform node and CT / US landmarks markups
+  nodes -> :class:`comreg_core.registration.priors.Prior` (:func:`priorFromNodes`).
 
 Coordinates: frame geometry in the scene is ``T_ImageToReference (RAS) @ IJKToRAS``; a
 ``TrackedSweep`` is LPS, so ``T_ref_pixel (LPS) = T_RAS_LPS @ T_ImageToReference @ IJKToRAS``.
@@ -269,3 +271,82 @@ def volumeFromNode(volumeNode):
     volumeNode.GetIJKToRASMatrix(matrix)
     array = np.ascontiguousarray(scalars.reshape(K, J, I).transpose(2, 1, 0))
     return Volume(array, arrayFromVtkMatrix(matrix), "RAS")
+
+
+# --------------------------------------------------------------------------------------------
+# Prior: initial pose and landmarks
+# --------------------------------------------------------------------------------------------
+
+def markupsFromNode(node, what: str):
+    """The placed control points of a markups point list as
+    :class:`comreg_core.io.markups.Markups` (RAS, the node's own coordinates; labels,
+    descriptions and their ``tol=5`` tolerances), points never placed left out."""
+    from comreg_core.io.markups import Markups, description_tolerance
+
+    requireNode(node, "vtkMRMLMarkupsFiducialNode", what,
+                "Pick a markups point list with the landmarks.")
+    defined = getattr(slicer.vtkMRMLMarkupsNode, "PositionDefined", None)
+    labels, points, descriptions = [], [], []
+    for i in range(node.GetNumberOfControlPoints()):
+        if defined is not None and node.GetNthControlPointPositionStatus(i) != defined:
+            continue
+        position = np.zeros(3)
+        node.GetNthControlPointPosition(i, position)
+        labels.append(node.GetNthControlPointLabel(i).strip())
+        points.append(position)
+        descriptions.append(node.GetNthControlPointDescription(i) or "")
+    if not labels:
+        raise ComRegError(f"The {what} '{node.GetName()}' has no placed point.",
+                          "Place the landmarks first.")
+    source = f"node '{node.GetName()}'"
+    return Markups(tuple(labels), np.array(points), "RAS", tuple(descriptions),
+                   tuple(description_tolerance(d, source, lab)
+                         for d, lab in zip(descriptions, labels)), source)
+
+
+def priorFromNodes(initialTransformNode=None, ctLandmarksNode=None, usLandmarksNode=None, *,
+                   maxDeg: float = 30.0, maxMm: float = 30.0,
+                   landmarkToleranceMm: float = 10.0, parameters=None):
+    """The pose search's :class:`~comreg_core.registration.priors.Prior` (LPS) of scene nodes,
+    or None when neither an initial pose nor landmarks are given.
+
+    ``initialTransformNode``: a linear transform node holding a rough ``T_ct_us`` the way the
+    registration's output does (the US points placed under it land on the CT): its transform
+    to world, RAS. ``ctLandmarksNode`` / ``usLandmarksNode``: markups point lists on the CT and
+    in the US points' own frame (each node's coordinates without its parent transform), paired
+    by label (:func:`comreg_core.registration.priors.match_landmarks`), tolerance
+    ``landmarkToleranceMm`` unless a point's description says ``tol=5``. ``parameters``: the
+    module's parameter node: nodes not given and the tolerances are its (``initialTransform``,
+    ``ctLandmarks``, ``usLandmarks``, ``initialToleranceDeg``, ...).
+    """
+    from comreg_core.registration.priors import Prior, match_landmarks
+
+    if parameters is not None:
+        p = parameters
+        pick = lambda node, default: default if node is None else node  # noqa: E731
+        initialTransformNode = pick(initialTransformNode, p.initialTransform)
+        ctLandmarksNode = pick(ctLandmarksNode, p.ctLandmarks)
+        usLandmarksNode = pick(usLandmarksNode, p.usLandmarks)
+        maxDeg, maxMm = p.initialToleranceDeg, p.initialToleranceMm
+        landmarkToleranceMm = p.landmarkToleranceMm
+
+    if (ctLandmarksNode is None) != (usLandmarksNode is None):
+        raise ComRegError("Landmarks need both point lists: the CT's and the US data's.",
+                          "Pick the CT landmarks and the US landmarks, or neither.")
+    if initialTransformNode is None and ctLandmarksNode is None:
+        return None
+    T_init = None
+    if initialTransformNode is not None:
+        requireNode(initialTransformNode, "vtkMRMLLinearTransformNode", "initial pose",
+                    "Pick a linear transform node (US -> CT), or none.")
+        matrix = vtk.vtkMatrix4x4()
+        initialTransformNode.GetMatrixTransformToWorld(matrix)
+        T_init = T_RAS_LPS @ arrayFromVtkMatrix(matrix) @ T_RAS_LPS
+    pairs = ()
+    if ctLandmarksNode is not None:
+        pairs = match_landmarks(markupsFromNode(ctLandmarksNode, "CT landmarks"),
+                                markupsFromNode(usLandmarksNode, "US landmarks"),
+                                default_tolerance_mm=landmarkToleranceMm, space="LPS")
+    return Prior(T_init, maxDeg, maxMm, pairs, space="LPS",
+                 init_file=None if initialTransformNode is None
+                 else f"node '{initialTransformNode.GetName()}'")

@@ -9,6 +9,7 @@ writer is atomic (temporary file, then rename).
   frame folders, 3D Slicer volume sequences)
 - rigid transforms: :func:`load_transform` / :func:`save_transform` (point-mapping ``T_to_from``),
   :func:`read_itk_transform` / :func:`write_itk_transform` (the raw ITK file content)
+- 3D Slicer markups (landmarks, ``.mrk.json``, ``.fcsv``): :func:`read_markups` -> :class:`Markups`
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from comreg_core.errors import UnsupportedFormatError
 from comreg_core.io._files import file_extension, require_input_file
+from comreg_core.io.markups import MARKUPS_EXTENSIONS, Markups, read_markups
 from comreg_core.io.meshes import MESH_EXTENSIONS, SurfaceMesh, read_mesh, write_mesh
 from comreg_core.io.pointclouds import (POINT_CLOUD_EXTENSIONS, PointCloud, read_points,
                                         write_points)
@@ -32,12 +34,13 @@ from comreg_core.io.transform_files import (TRANSFORM_EXTENSIONS, ItkTransformFi
 from comreg_core.io.volumes import VOLUME_READ_EXTENSIONS, Volume, read_volume, write_volume
 
 __all__ = [
-    "MESH_EXTENSIONS", "POINT_CLOUD_EXTENSIONS", "SEGMENTATION_READ_EXTENSIONS",
-    "TRANSFORM_EXTENSIONS", "VOLUME_READ_EXTENSIONS", "ItkTransformFile", "PointCloud", "Segment",
-    "Segmentation", "SurfaceMesh", "TrackedSweep", "Volume", "describe_file", "load_transform",
-    "read_itk_transform", "read_mesh", "read_points", "read_segmentation", "read_tracked_sweep",
-    "read_volume", "save_transform",
-    "write_itk_transform", "write_mesh", "write_points", "write_segmentation", "write_volume",
+    "MARKUPS_EXTENSIONS", "MESH_EXTENSIONS", "Markups", "POINT_CLOUD_EXTENSIONS",
+    "SEGMENTATION_READ_EXTENSIONS", "TRANSFORM_EXTENSIONS", "VOLUME_READ_EXTENSIONS",
+    "ItkTransformFile", "PointCloud", "Segment", "Segmentation", "SurfaceMesh", "TrackedSweep",
+    "Volume", "describe_file", "load_transform", "read_itk_transform", "read_markups",
+    "read_mesh", "read_points", "read_segmentation", "read_tracked_sweep", "read_volume",
+    "save_transform", "write_itk_transform", "write_mesh", "write_points", "write_segmentation",
+    "write_volume",
 ]
 
 
@@ -80,6 +83,13 @@ def describe_file(path: str | Path) -> str:
                 + "\n".join(f"    {fmt(row)}" for row in content.matrix)
                 + "\n  as a point mapping (e.g. T_ct_us), LPS:\n"
                 + "\n".join(f"    {fmt(row)}" for row in load_transform(path)))
+    if ext in (".mrk.json", ".fcsv"):
+        markups = read_markups(path)
+        return (f"markups (landmarks) {path}\n  points: {len(markups.labels)}  space: "
+                f"{markups.space}\n" + "\n".join(
+                    f"  '{label}': {fmt(point)}" + ("" if tol is None else f" (tol {tol:g} mm)")
+                    for label, point, tol in zip(markups.labels, markups.points,
+                                                 markups.tolerances_mm)))
     supported = sorted({*MESH_EXTENSIONS, *POINT_CLOUD_EXTENSIONS, *SEGMENTATION_READ_EXTENSIONS,
-                        *TRANSFORM_EXTENSIONS})
+                        *TRANSFORM_EXTENSIONS, ".mrk.json", ".fcsv"})
     raise UnsupportedFormatError(path, "file", supported)

@@ -13,7 +13,8 @@ from comreg_core import runs
 from comreg_core.errors import InputFileNotFoundError, OutputPlaceError, UnsupportedFormatError
 
 # Multi-part extensions first so ".seg.nrrd" wins over ".nrrd".
-_COMPOUND_SUFFIXES = (".seg.nrrd", ".igs.nrrd", ".seq.nrrd", ".igs.mha", ".seq.mha", ".nii.gz")
+_COMPOUND_SUFFIXES = (".seg.nrrd", ".igs.nrrd", ".seq.nrrd", ".igs.mha", ".seq.mha", ".nii.gz",
+                      ".mrk.json")
 
 
 def file_extension(path: str | Path) -> str:
