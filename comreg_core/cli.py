@@ -8,17 +8,19 @@ ComRegError`, and what the operating system refuses) are printed as one line and
 
 from __future__ import annotations
 
-import contextlib
-import sys
 from enum import Enum
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import typer
 
 from comreg_core import choices, runs
 from comreg_core import __version__
+from comreg_core.cli_calibrate import calibrate as calibrate_command
 from comreg_core.cli_errors import CommandApp, set_verbose
+from comreg_core.cli_evaluate import evaluate as evaluate_command
+from comreg_core.cli_shared import Device
+from comreg_core.cli_shared import progress_bar as _progress_bar
 
 app = CommandApp(
     name="comreg",
@@ -191,7 +193,6 @@ def extract_us(
 
 
 Preset = Enum("Preset", {name: name for name in choices.PRESETS}, type=str)
-Device = Enum("Device", {name: name for name in choices.DEVICES}, type=str)
 
 
 @app.command("pretrain")
@@ -212,6 +213,10 @@ def pretrain(
     device: Device = typer.Option(Device.auto, help="Where to train."),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML overrides of the preset "
                                           "(sections model, simulation, data, training)."),
+    calibration_sweeps: int = typer.Option(0, "--calibration-sweeps", min=0, help="Then also "
+                                           "calibrate the verdict on this many simulated "
+                                           "sweeps (as 'comreg calibrate'; about 3 s each) into "
+                                           "the run folder; 0: not."),
 ) -> None:
     """Pretrain ComReg for one patient on US sweeps simulated from their CT bone.
 
@@ -243,14 +248,21 @@ def pretrain(
                                "initial_error": result.initial_error})
     if warning:
         typer.echo(f"warning: {warning}", err=True)
+    if calibration_sweeps:
+        from comreg_core.evaluation.calibrate import calibrate
+
+        path = calibrate(ct_mesh, sweeps=calibration_sweeps).save(
+            Path(result.run_dir) / runs.CALIBRATION)
+        typer.echo(f"wrote {path}: register with this run judges by p_correct")
 
 
 @app.command("register")
 def register(
     inputs: list[Path] = typer.Argument(..., help="US bone surface points (.ply, .pcd, .xyz, "
-                                        ".npy, ...), e.g. from 'comreg extract-us'. (The older "
-                                        "form RUN_DIR US_POINTS is still accepted.)",
-                                        metavar="US_POINTS"),
+                                        ".npy, ...), e.g. from 'comreg extract-us'; several "
+                                        "files (sweeps in one tracker frame) are joined and "
+                                        "registered as one. (The older form RUN_DIR US_POINTS "
+                                        "is still accepted.)", metavar="US_POINTS..."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
     ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="The CT bone mesh (mm). Alone: "
                                            "register by the pose search, no network. With "
@@ -271,9 +283,30 @@ def register(
                                           "section (the pose search's settings), e.g. the "
                                           "config.yaml of an earlier registration."),
     sweep: Optional[Path] = typer.Option(None, "--sweep", help="The tracked sweep the points "
-                                         "came from: the report shows its frames with the "
-                                         "registered CT contour."),
+                                         "came from (one US points file only): the report "
+                                         "shows its frames with the registered CT contour."),
     calibration: Optional[Path] = typer.Option(None, "--calibration", help="Its calibration."),
+    verdict_calibration: Optional[Path] = typer.Option(
+        None, "--verdict-calibration", help="calibration.json from 'comreg calibrate' (default: "
+        "the run folder's own, if pretrain wrote one): result.json then gets p_correct and the "
+        "verdict is OK only when p_correct >= 0.95."),
+    init: Optional[Path] = typer.Option(
+        None, "--init", metavar="TRANSFORM", help="A rough initial pose T_ct_us: an ITK "
+        "transform file (.tfm, .h5, .txt) as 3D Slicer saves it (or a registration's "
+        "transform.tfm). The search then tries only poses near it (--init-tolerance) and the "
+        "verdict is CHECK when the result sits at the edge of that tolerance."),
+    init_tolerance: Optional[str] = typer.Option(
+        None, "--init-tolerance", metavar="DEG,MM", help="How far the pose may be from --init: "
+        "its rotation by at most DEG degrees, and it places the US points' centroid at most MM "
+        "from where --init places it. Default 30,30."),
+    landmarks: Optional[tuple[Path, Path]] = typer.Option(
+        None, "--landmarks", metavar="CT_POINTS US_POINTS", help="Landmarks picked on the CT and "
+        "in the US data: two 3D Slicer markups files (.mrk.json or .fcsv, LPS or RAS as "
+        "stored), paired by label. Only poses that put every US landmark within its tolerance "
+        "of its CT landmark are kept; the search starts from poses that match them."),
+    landmark_tolerance: Optional[float] = typer.Option(
+        None, "--landmark-tolerance", metavar="MM", min=0.001, help="Each landmark's tolerance "
+        "(mm; default 10); a point's own 'tol=5' in its markups description overrides it."),
 ) -> None:
     """Register a US bone surface to the CT: with --ct alone by the pose search (principal axes,
     flips, turns and slides of the US cloud, refined by ICP and scored against the CT), with
@@ -286,128 +319,20 @@ def register(
     100,000 points is registered as a seeded uniform subset of 100,000 (said in a warning).
     --out must not be the run folder or inside it.
     """
-    from comreg_core.register_output import register_to_directory, summary_lines
+    from comreg_core.register_output import (load_prior, register_inputs,
+                                             register_to_directory, summary_lines)
     from comreg_core.registration.config import load_register_config
 
-    run_dir, us_points = _run_and_points(inputs, model)
+    run_dir, us_points = register_inputs(inputs, model)
+    prior = load_prior(init, init_tolerance, landmarks, landmark_tolerance)
     search = load_register_config(config, {"hypotheses": {"enabled": False}} if not hypotheses
                                   else None).hypotheses
     result = register_to_directory(run_dir, us_points, out, device=device.value, seed=seed,
                                    ct_mesh=ct_mesh, hypotheses=search, sweep=sweep,
-                                   sweep_calibration=calibration)
+                                   sweep_calibration=calibration,
+                                   calibration=verdict_calibration, prior=prior)
     for line in summary_lines(result, out, with_network=run_dir is not None):
         typer.echo(line)
-
-
-Method = Enum("Method", {name: name for name in choices.METHODS + ("all",)}, type=str)
-
-
-class Perturbation(str, Enum):
-    paper = "paper"
-    full = "full"
-
-
-@app.command("evaluate")
-def evaluate(
-    inputs: list[str] = typer.Argument(..., help="US bone points file, or the word 'simulated' "
-                                       "for fresh simulated sweeps (seeds disjoint from "
-                                       "training). (The older form RUN_DIR US_POINTS is still "
-                                       "accepted.)", metavar="US_POINTS|simulated"),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder (metrics.json)."),
-    ct_mesh: Optional[Path] = typer.Option(None, "--ct", help="The CT bone mesh (mm); default: "
-                                           "the run's own."),
-    model: Optional[Path] = typer.Option(None, "--model", help="Run folder written by 'comreg "
-                                         "pretrain' (needed by 'comreg' and 'comreg-plain')."),
-    trials: int = typer.Option(100, "--trials", min=1, help="Random initial poses."),
-    seed: int = typer.Option(0, "--seed", min=0),
-    perturbation: Perturbation = typer.Option(Perturbation.paper, help="Initial poses: 'paper' "
-                                              "(one axis, +-90 deg, +-100 mm) or 'full' (any "
-                                              "rotation up to 180 deg, up to 500 mm; a run "
-                                              "trained with data.pose: full covers it)."),
-    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth T_ct_us (.tfm/.h5); "
-                                      "identity if omitted."),
-    method: Optional[list[Method]] = typer.Option(
-        None, "--method", help="What to evaluate; repeat to compare several in one run: "
-        "'search' (the pose search alone, no network), 'comreg' (the network, then the search), "
-        "'comreg-plain' (the paper's pipeline: the network alone), 'ransac', 'icp-gt', or 'all' "
-        "(every method). Default: 'comreg' with --model, else 'search'."),
-    device: Device = typer.Option(Device.auto, help="Where to run the network."),
-    config: Optional[Path] = typer.Option(None, "--config", help="YAML with sections "
-                                          "'hypotheses:' (the pose search), 'baselines:' "
-                                          "('ransac:', 'icp_gt:') and 'simulation:' (the sweeps "
-                                          "of 'simulated')."),
-) -> None:
-    """Measure registration accuracy from random initial poses: RTE, RRE, CD, HD95, success and
-    flip rates, runtime (and, for ComReg, how often it flags its result ambiguous), for ComReg
-    with and without its hypotheses stage and the baselines (Open3D RANSAC+FPFH+ICP; ICP from
-    the ground truth), written to metrics.json."""
-    from comreg_core.evaluation.evaluate import evaluate as run_evaluation
-    from comreg_core.evaluation.evaluate import summary_line, write_metrics
-    from comreg_core.evaluation.methods import (load_evaluate_config, method_names,
-                                                registration_methods)
-    from comreg_core.registration.inputs import limit_us_points
-    from comreg_core.errors import ComRegError
-    from comreg_core.io import load_transform, read_mesh, read_points
-    from comreg_core.io._files import check_output_folder
-    from comreg_core.training import run_ct_mesh
-
-    run_dir, us_points = _run_and_points(inputs, model)
-    if run_dir is None and ct_mesh is None:
-        raise ComRegError("No CT to register to.", "Give --ct CT_MESH (and --model RUN_DIR for "
-                          "the network's methods).")
-    simulated = us_points == "simulated"
-    check_output_folder(out, inputs=[run_dir, gt, config, ct_mesh]
-                        + ([] if simulated else [us_points]))
-    settings = load_evaluate_config(config)
-    cloud = None if simulated else read_points(us_points)  # the cheap inputs first
-    ct = run_ct_mesh(run_dir) if ct_mesh is None else read_mesh(ct_mesh)
-    T_gt = load_transform(gt, space=ct.space) if gt is not None else None
-    clouds = "simulated" if simulated else limit_us_points(cloud.in_space(ct.space).points, seed)
-    chosen = [m.value for m in method] if method else ["comreg" if run_dir else "search"]
-    names = method_names(chosen)
-    methods = registration_methods(names, run_dir, ct, device=device.value, seed=seed,
-                                   hypotheses=settings.hypotheses,
-                                   baseline_config=settings.baselines)
-    if not simulated:
-        _check_us_cloud(methods, clouds)
-    with _progress_bar(trials * len(methods), "evaluating") as advance:
-        result = run_evaluation(methods, clouds, ct, trials=trials, seed=seed,
-                                perturbation=perturbation.value, T_gt=T_gt,
-                                simulation_config=settings.simulation,
-                                progress=lambda done, total, note="": advance(done))
-    failed = [row["error"] for row in result["trials"] if row["error"] is not None]
-    if result["trials"] and len(failed) == len(result["trials"]):
-        raise ComRegError(f"Every trial failed, so there is nothing to measure; the first: "
-                          f"{failed[0]}", "Fix the input above and run again.")
-    path = write_metrics(result, Path(out) / runs.METRICS)
-    typer.echo(f"wrote {path}")
-    for name, summary in result["summary"].items():
-        typer.echo(f"  {name}: {summary_line(summary)}")
-
-
-def _run_and_points(inputs: list, model: Path | None) -> tuple[Path | None, Any]:
-    """``(run folder or None, US points)`` from the positional arguments: ``US_POINTS`` (the run,
-    if any, from ``--model``) or the older ``RUN_DIR US_POINTS``."""
-    from comreg_core.errors import ComRegError
-
-    if len(inputs) == 1:
-        return model, inputs[0]
-    if len(inputs) == 2 and model is None:
-        return Path(inputs[0]), inputs[1]
-    raise ComRegError(f"Expected the US points (and --model RUN_DIR), got {len(inputs)} "
-                      "arguments" + (" and --model" if model is not None else "") + ".",
-                      "Write: US_POINTS --ct CT_MESH [--model RUN_DIR] --out OUT_DIR.")
-
-
-def _check_us_cloud(methods: dict, points) -> None:
-    """The network's checks of the US cloud before any trial (a bad cloud fails them all)."""
-    from comreg_core.inference import Registrar
-
-    for method in methods.values():
-        owner = getattr(getattr(method, "func", method), "__self__", method)  # partial/bound
-        if isinstance(owner, Registrar):
-            owner.check_points(points)
-            return
 
 
 @app.command("report")
@@ -446,17 +371,16 @@ def demo(
 ) -> None:
     """Run the whole job on the bundled sample (a cadaver fibula, CC BY 4.0): extract the CT and
     US bone surfaces, move the US points by a known misalignment, register them with the bundled
-    pretrained model, evaluate, and write an HTML report with screenshots."""
-    from comreg_core.demo import run_demo
+    pretrained model, evaluate, and write an HTML report with screenshots.
+
+    The errors are measured against ICP from the recorded tracking (the paper's pseudo ground
+    truth; the recording itself lies a little off the CT bone, and the summary says how far)."""
+    from comreg_core.demo import run_demo, summary_lines
 
     result = run_demo(out, device=device.value, train_minutes=train_minutes, trials=trials,
                       seed=seed, step=lambda line: typer.echo(f"- {line}"))
-    rates = "" if result.success_rate is None else (
-        f"; {trials} more starts: success {result.success_rate:.0%}, flips "
-        f"{result.flip_rate:.0%}")
-    typer.echo(f"registered {result.n_us_points} US points in {result.runtime_s:.2f} s: error "
-               f"{result.RTE_mm:.2f} mm, {result.RRE_deg:.2f} deg{rates}")
-    typer.echo(f"report: {result.report}")
+    for line in summary_lines(result, trials):
+        typer.echo(line)
 
 
 @app.command("info")
@@ -467,21 +391,8 @@ def info(path: Path = typer.Argument(..., help="Any file ComReg reads.")) -> Non
     typer.echo(describe_file(path))
 
 
-@contextlib.contextmanager
-def _progress_bar(total: int, label: str):
-    """A progress bar on stderr; yields ``advance(done)`` taking the number of items done. The
-    bar appears at the first progress, so an error found before the work stays one line."""
-    with contextlib.ExitStack() as stack:
-        state = {"done": 0, "bar": None}
-
-        def advance(done: int) -> None:
-            if state["bar"] is None:
-                state["bar"] = stack.enter_context(
-                    typer.progressbar(length=total, label=label, file=sys.stderr))
-            state["bar"].update(done - state["done"])
-            state["done"] = done
-
-        yield advance
+app.command("evaluate")(evaluate_command)
+app.command("calibrate")(calibrate_command)
 
 
 def main() -> None:

@@ -47,12 +47,13 @@ import numpy as np
 import torch
 
 from comreg_core import runs
-from comreg_core.errors import InvalidGeometryError
+from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
                                       as_hypothesis_config, search_hypotheses)
 from comreg_core.registration.icp import refine_on_mesh
 from comreg_core.registration.inputs import beam_origins_for, limit_us_points, subset_notice
 from comreg_core.registration.result import RegistrationResult, residual_statistics
+from comreg_core.registration.priors import Prior, prior_record
 from comreg_core.registration.search import principal_axes_pose
 from comreg_core.registration.surface import mesh_arrays
 from comreg_core.model.comreg import ComRegNet
@@ -119,7 +120,7 @@ class Registrar:
         whole registration (always on) and ties go to the best score (no network's pose)."""
         config = as_hypothesis_config(hypotheses)
         if self.model is None:
-            config = replace(config, enabled=True, tie_break="score")
+            config = replace(config, enabled=True)
         return config
 
     @classmethod
@@ -260,7 +261,8 @@ class Registrar:
 
     def register(self, points, seed: int = 0, *,
                  hypotheses: HypothesisConfig | bool | None = None,
-                 beam_origins: np.ndarray | None = None) -> RegistrationResult:
+                 beam_origins: np.ndarray | None = None,
+                 prior: Prior | None = None) -> RegistrationResult:
         """Register a US bone cloud ``(N, 3)`` (mm, in the CT's patient space) to the CT.
 
         Args:
@@ -271,9 +273,20 @@ class Registrar:
             beam_origins: ``(N, 3)`` mm, where each point's ultrasound beam started (the
                 probe's element; same frame as ``points``), or None. The pose search then
                 rules out poses under which the CT surface faces away from the probe.
+            prior: a :class:`~comreg_core.registration.priors.Prior` (an initial pose with its
+                tolerances, landmark pairs; in any space, taken to the CT's) or None. The
+                search then starts around it and keeps only poses within it (without a
+                network ``T_init`` replaces the principal-axes start); ``info["prior"]`` is
+                its record (:func:`~comreg_core.registration.priors.prior_record`: where the
+                result lies in it, ``at_edge``, ``reasons`` for the verdict).
         """
         hyp_cfg = (self.hypothesis_config if hypotheses is None
                    else self._search_config(hypotheses))
+        if prior is not None:
+            if not hyp_cfg.enabled:
+                raise ComRegError("An initial pose or landmarks need the pose search, which is "
+                                  "turned off.", "Drop --no-hypotheses (hypotheses=False).")
+            prior = prior.in_space(self.space)
         t = {}
         start = time.perf_counter()
         n_given = len(points) if hasattr(points, "__len__") else None
@@ -298,7 +311,8 @@ class Registrar:
         if n_given is not None and n_given > len(pts):
             warnings.append(subset_notice(n_given, len(pts)))
         if self.model is None:
-            T = T_coarse = principal_axes_pose(pts, target)
+            T = T_coarse = principal_axes_pose(pts, target) if getattr(
+                prior, "T_init", None) is None else prior.T_init
             dense, icp_rmse = None, float("nan")
             t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
                      icp=0.0, postprocess=0.0)
@@ -309,8 +323,9 @@ class Registrar:
             mark = time.perf_counter()
             hyp = search_hypotheses(pts, T, target, dense, hyp_cfg,
                                     T_coarse=None if self.model is None else T_coarse,
-                                    start_name="network" if self.model is not None else "pca",
-                                    beam_origins=origins, space=self.space)
+                                    start_name="network" if self.model is not None else
+                                    "pca" if getattr(prior, "T_init", None) is None else "init",
+                                    beam_origins=origins, space=self.space, prior=prior)
             T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
             if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
                 icp_rmse = hyp.polish["rmse_mm"]
@@ -329,6 +344,10 @@ class Registrar:
                 "hypotheses": None if hyp is None else hyp.to_json()}
         if hyp is not None:  # the flag where other consumers (the plugin) look for it
             info.update(ambiguous=hyp.ambiguous, confidence=hyp.confidence)
+        if prior is not None:
+            info["prior"] = prior_record(prior, T, pts.mean(axis=0), hyp,
+                                         min_confidence=hyp_cfg.min_confidence,
+                                         score_floor_mm=hyp_cfg.score_floor_mm)
         return RegistrationResult(
             T_ct_us=T, T_ct_us_coarse=T_coarse, registered_points=registered,
             completion_ct=completion_ct, timings=t, runtime_s=t["total"],

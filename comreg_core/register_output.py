@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import json
 import logging
+import re
+from dataclasses import replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -14,10 +17,15 @@ from comreg_core import runs
 from comreg_core.config import to_dict
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.inference import Registrar
-from comreg_core.io import PointCloud, read_points, write_points
+from comreg_core.io import POINT_CLOUD_EXTENSIONS, PointCloud, read_points, write_points
 from comreg_core.io._files import atomic_output, check_output_folder
 from comreg_core.io.transform_files import save_transform
 from comreg_core.registration.config import HypothesisConfig
+from comreg_core.registration.inputs import MAX_US_POINTS
+from comreg_core.registration.priors import Prior
+from comreg_core.registration.calibration import (OK_PROBABILITY, Calibration,
+                                                  result_evidence)
+from comreg_core.registration.search import ct_length_mm
 from comreg_core.registration.verdict import judge_registration
 from comreg_core.registration.result import RegistrationResult
 from comreg_core.transforms import apply_transform, check_rigid, invert_rigid
@@ -25,33 +33,87 @@ from comreg_core.transforms import apply_transform, check_rigid, invert_rigid
 log = logging.getLogger(__name__)
 
 
-def registration_verdict(result: RegistrationResult, registrar: Registrar):
+def registration_verdict(result: RegistrationResult, registrar: Registrar,
+                         calibration: Calibration | None = None, allowed=None):
     """The :class:`~comreg_core.registration.verdict.Verdict` of ``result`` on the registrar's CT
-    mesh (:attr:`Registrar.surface`); the points judged are the US points the registration
-    used (``registered_points`` moved back by ``T_ct_us``)."""
+    mesh (:attr:`Registrar.surface`) and the evidence behind it: ``{"competitor",
+    "extent_share", "p_correct"}`` (:mod:`comreg_core.registration.calibration`; ``p_correct``
+    None without a ``calibration``; all None without the pose search). The points judged are
+    the US points the registration used (``registered_points`` moved back by ``T_ct_us``);
+    ``allowed``: which poses a prior allows (the competitor is looked for among them)."""
     if registrar.surface is None:
         raise InvalidGeometryError("No CT mesh is known for this model, so the registration "
                                    "cannot be judged.", "Load the run folder with its CT mesh.")
     points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
-    return judge_registration(points, result.T_ct_us, registrar.surface,
-                              confidence=result.confidence, ambiguous=result.ambiguous)
+    evidence = {"competitor": None, "extent_share": None, "p_correct": None}
+    if result.hypotheses is not None:
+        length = (calibration.ct_length_mm if calibration is not None else
+                  ct_length_mm(registrar.hypothesis_target(
+                      registrar.hypothesis_config.target_points)))
+        competitor, extent = result_evidence(result.hypotheses, points, length, allowed)
+        evidence.update(competitor=competitor, extent_share=extent)
+        if calibration is not None:
+            evidence["p_correct"] = calibration.p_correct(competitor["margin"], extent)
+    verdict = judge_registration(
+        points, result.T_ct_us, registrar.surface, confidence=result.confidence,
+        ambiguous=result.ambiguous, p_correct=evidence["p_correct"],
+        ok_probability=OK_PROBABILITY if calibration is None else calibration.ok_probability)
+    return verdict, evidence
 
 
-def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path,
+def find_calibration(calibration: str | Path | None, run_dir: str | Path | None
+                     ) -> Calibration | None:
+    """The calibration to judge with: the file given, else the run folder's own
+    ``calibration.json`` (written by ``pretrain``), else None."""
+    if calibration is not None:
+        return Calibration.load(calibration)
+    if run_dir is not None and Path(run_dir).is_dir():
+        own = Path(run_dir) / runs.CALIBRATION
+        if own.is_file():
+            return Calibration.load(own)
+    return None
+
+
+def register_inputs(arguments: Sequence[str | Path], model: str | Path | None = None
+                    ) -> tuple[Path | None, Path | list[Path]]:
+    """``comreg register``'s positional arguments as ``(run folder or None, the US points file,
+    or a list of files when there are several)``: ``US_POINTS...`` with the run, if any, from
+    ``--model`` (``model``); or the older ``RUN_DIR US_POINTS``, taken when there are two
+    arguments, no ``model``, and the first is a folder or not a point cloud file (a run folder
+    or its checkpoint)."""
+    paths = [Path(argument) for argument in arguments]
+    first = paths[0]
+    if len(paths) == 2 and model is None and (
+            first.is_dir() or first.suffix.lower() not in POINT_CLOUD_EXTENSIONS):
+        return first, paths[1]
+    return (None if model is None else Path(model)), (paths[0] if len(paths) == 1 else paths)
+
+
+def register_to_directory(run_dir: str | Path | None,
+                          us_points_path: str | Path | Sequence[str | Path],
                           out_dir: str | Path, *, device: str = "auto", seed: int = 0,
                           ct_mesh: str | Path | None = None, icp_points: int | None = None,
                           hypotheses: HypothesisConfig | bool | None = None,
                           sweep: str | Path | None = None,
                           sweep_calibration: str | Path | None = None,
-                          T_us_ref: np.ndarray | None = None) -> RegistrationResult:
+                          T_us_ref: np.ndarray | None = None,
+                          calibration: str | Path | None = None,
+                          prior: Prior | None = None) -> RegistrationResult:
     """Register the US cloud in ``us_points_path`` with the run in ``run_dir`` (or, with
     ``run_dir`` None, by the pose search alone on the CT mesh ``ct_mesh``); write ``out_dir``.
+
+    ``us_points_path`` may be a list of files: several tracked sweeps in one tracker frame,
+    registered as one rigid body. Their points are joined into one cloud (each converted into
+    the CT's space first) and registered once; the beam origins are used only when every file
+    has them (else none are, with a warning). ``sweep``/``sweep_calibration``/``T_us_ref``
+    describe one sweep's points, so they are refused with several files.
 
     Files (each written atomically; ``result.json`` last):
 
     - ``transform.tfm``: ``T_ct_us`` as an ITK transform (LPS, ITK's resampling direction, as
       3D Slicer writes it: :func:`comreg_core.io.save_transform`).
-    - ``registered_us.ply``: the US points mapped into the CT frame (CT space tag).
+    - ``registered_us.ply``: the US points mapped into the CT frame (CT space tag); with several
+      inputs all of them, and each input's alone in ``registered_us_<k>.ply`` (k = 1, 2, ...).
     - ``completion_ct.ply``: the completed bone in the CT frame (not without a network).
     - ``config.yaml``: inputs and settings (run folder, US file, device, seed, ICP points, the
       hypotheses settings).
@@ -60,12 +122,21 @@ def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path
       ``confidence``, ``ambiguous`` and ``hypotheses`` (:meth:`RegistrationResult.to_json`;
       null with ``hypotheses=False``), ``verdict`` ("ok"/"check"), ``verdict_reasons`` and
       ``verdict_figures`` (:mod:`comreg_core.registration.verdict`), ``space``,
-      ``ct_fingerprint``, ``run_dir``, ``us_points`` and ``ct_mesh`` (absolute paths, so
-      ``comreg report`` works from any directory), ``files``, and ``sweep`` (null, or the
+      ``ct_fingerprint``, ``run_dir``, ``us_points`` (a path; a list of paths with several
+      inputs) and ``ct_mesh`` (absolute paths, so ``comreg report`` works from any directory),
+      ``us_inputs`` (per input: ``path``, ``n_points``, ``beam_origins``, ``residuals_mm`` of its
+      points after registration, ``registered_us``), ``files``, and ``sweep`` (null, or the
       tracked sweep the points came from: ``path``, ``calibration`` and ``T_us_ref``, the
       ``(4, 4)`` map from its reference frame to the US points' frame, identity for points
       straight from ``comreg extract-us``), from which the report draws B-mode frames with the
-      registered CT contour.
+      registered CT contour; ``prior`` (null, or with a ``prior``: where the result lies in it,
+      :func:`~comreg_core.registration.priors.prior_record`: ``init_file``, ``max_deg``,
+      ``max_mm``, ``landmarks``, ``rotation_from_init_deg``, ``shift_from_init_mm``,
+      ``at_edge``, ``reasons``, ...).
+
+    ``prior``: an initial pose and/or landmarks (:func:`load_prior` reads them from files):
+    the search keeps to it, and its reasons (a result at the edge of a tolerance, ...) are
+    added to the verdict's, which is then CHECK (:func:`with_prior_reasons`).
 
     The US cloud is converted into the CT's patient space first (PLY/PCD ``SPACE=`` tag).
     ``out_dir`` is checked before any work (:func:`~comreg_core.io._files.check_output_folder`:
@@ -77,9 +148,15 @@ def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path
         raise ComRegError("Nothing to register to: no CT mesh and no pretrained run.",
                           "Give the CT bone mesh (--ct CT_MESH), and a run (--model RUN_DIR) "
                           "to use the network too.")
-    out = check_output_folder(out_dir, inputs=[run_dir, us_points_path, ct_mesh])
+    paths = _input_paths(us_points_path)
+    if len(paths) > 1 and any(x is not None for x in (sweep, sweep_calibration, T_us_ref)):
+        raise ComRegError(f"--sweep and --calibration describe one sweep's points, but "
+                          f"{len(paths)} US points files were given.",
+                          "Drop --sweep/--calibration, or register one US points file.")
+    out = check_output_folder(out_dir, inputs=[run_dir, *paths, ct_mesh])
     sweep_record = _sweep_record(sweep, sweep_calibration, T_us_ref)
-    cloud = read_points(us_points_path)  # the cheap input first
+    calibration_record = find_calibration(calibration, run_dir)
+    clouds = [read_points(path) for path in paths]  # the cheap inputs first
     if run_dir is None:
         if hypotheses is False or getattr(hypotheses, "enabled", True) is False:
             raise ComRegError("Without a pretrained run the pose search is the registration; "
@@ -89,8 +166,13 @@ def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path
     else:
         registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
                                        hypotheses=hypotheses)
-    cloud = cloud.in_space(registrar.space)
-    result = registrar.register(cloud.points, seed=seed, beam_origins=cloud.beam_origins)
+    clouds = [cloud.in_space(registrar.space) for cloud in clouds]
+    points, origins, note = join_clouds(clouds)
+    result = registrar.register(points, seed=seed, beam_origins=origins, prior=prior)
+    if note:
+        result.info.setdefault("warnings", []).append(note)
+    inputs_record = _input_records(paths, clouds, result, registrar)
+    result.info["us_inputs"] = inputs_record
     out.mkdir(parents=True, exist_ok=True)
     files = {"transform": runs.TRANSFORM, "registered_us": runs.REGISTERED_US,
              "completion_ct": runs.COMPLETION_CT, "config": runs.CONFIG}
@@ -99,26 +181,45 @@ def register_to_directory(run_dir: str | Path | None, us_points_path: str | Path
     save_transform(result.T_ct_us, out / files["transform"], space=registrar.space)
     write_points(PointCloud(result.registered_points, registrar.space),
                  out / files["registered_us"])
+    if len(clouds) > 1:
+        files["registered_us_inputs"] = [record["registered_us"] for record in inputs_record]
+        for cloud, name in zip(clouds, files["registered_us_inputs"]):
+            write_points(PointCloud(apply_transform(result.T_ct_us, cloud.points),
+                                    registrar.space), out / name)
     if "completion_ct" in files:
         write_points(PointCloud(result.completion_ct, registrar.space),
                      out / files["completion_ct"])
+    given = [str(path) for path in paths]
     inputs = {"run_dir": None if run_dir is None else str(run_dir),
-              "us_points": str(us_points_path), "device": device, "seed": int(seed),
+              "us_points": given[0] if len(given) == 1 else given,
+              "device": device, "seed": int(seed),
               "icp_points": None if registrar.model is None
               else registrar.model.config.icp.num_points,
               "ct_mesh": None if ct_mesh is None else str(ct_mesh),
-              "beam_origins": cloud.beam_origins is not None}
+              "beam_origins": origins is not None,
+              "prior": None if prior is None else prior_inputs(prior)}
     settings = {"hypotheses": to_dict(registrar.hypothesis_config), "inputs": inputs}
     with atomic_output(out / files["config"]) as tmp:  # comreg register --config reads it
         tmp.write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
-    verdict = registration_verdict(result, registrar)
-    payload = {**result.to_json(), **verdict.to_json(), "space": registrar.space,
-               "beam_origins_used": cloud.beam_origins is not None,
+    allowed = None
+    if prior is not None:  # the competitor is looked for among the poses the prior allows
+        allowed = prior_allows(prior.in_space(registrar.space), result)
+    verdict, evidence = registration_verdict(result, registrar, calibration_record, allowed)
+    verdict = with_prior_reasons(verdict, result.info.get("prior"))
+    payload = {**result.to_json(), **verdict.to_json(), **evidence,
+               "calibration": None if calibration_record is None else {
+                   "sweeps": calibration_record.sweeps,
+                   "correct_share": calibration_record.correct_share,
+                   "ok_probability": calibration_record.ok_probability},
+               "space": registrar.space,
+               "beam_origins_used": origins is not None,
                "ct_fingerprint": registrar.fingerprint,
                "run_dir": None if run_dir is None else str(Path(run_dir).absolute()),
-               "us_points": str(Path(us_points_path).absolute()),
+               "us_points": inputs_record[0]["path"] if len(paths) == 1
+               else [record["path"] for record in inputs_record],
+               "us_inputs": inputs_record,
                "ct_mesh": None if ct_mesh is None else str(Path(ct_mesh).absolute()),
-               "sweep": sweep_record, "files": files}
+               "sweep": sweep_record, "prior": result.info.get("prior"), "files": files}
     with atomic_output(out / runs.RESULT) as tmp:
         tmp.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
     log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
@@ -146,12 +247,74 @@ def summary_lines(result: RegistrationResult, out_dir, *, with_network: bool) ->
         gap = "no competing pose" if h.score_gap_mm is None else \
             f"next different pose ('{h.runner_up}') {h.score_gap_mm:.3f} mm worse"
         lines.append(f"hypothesis '{h.chosen}' of {h.starts_tried} starts"
-                     + (" (a short sweep: all orientations tried)" if h.patch else "")
+                     + (" (a short sweep: all orientations tried)" if h.patch
+                        and not result.info.get("prior") else "")
                      + f", {gap}; confidence {h.confidence:.2f}"
                      + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
         if h.advice:
             lines.append(h.advice["advice"])
+    lines += prior_lines(result.info.get("prior"))
+    records = result.info.get("us_inputs") or []
+    for k, record in enumerate(records if len(records) > 1 else [], start=1):
+        lines.append(f"  input {k}: {Path(record['path']).name}: {record['n_points']} points, "
+                     f"median residual {record['residuals_mm']['median']:.2f} mm")
     return lines
+
+
+def join_clouds(clouds: list[PointCloud]) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+    """Several US clouds (one tracker frame, one space) as one: ``(points (N, 3), beam origins
+    (N, 3) or None, a warning or None)``. The beam origins are kept only when every cloud has
+    them: a point without one cannot be checked against its probe, so mixing would judge part
+    of the cloud only (the warning says which files lack them)."""
+    points = np.vstack([cloud.points for cloud in clouds])
+    lacking = [cloud for cloud in clouds if cloud.beam_origins is None]
+    if not lacking:
+        return points, np.vstack([cloud.beam_origins for cloud in clouds]), None
+    if len(lacking) == len(clouds):
+        return points, None, None
+    names = ", ".join(f"'{Path(cloud.path).name if cloud.path else '?'}'" for cloud in lacking)
+    note = (f"Beam origins were not used: {names} has none (they are used only when every US "
+            "points file has them, e.g. PLY files from 'comreg extract-us').")
+    log.warning("%s", note)
+    return points, None, note
+
+
+def _input_paths(us_points_path) -> list[Path]:
+    """The US points file(s) as a list of Paths, each given once."""
+    if isinstance(us_points_path, (str, Path)):
+        return [Path(us_points_path)]
+    paths = [Path(path) for path in us_points_path]
+    if not paths:
+        raise ComRegError("No US points file was given.", "Give at least one US points file.")
+    seen = set()
+    for path in paths:
+        if path.resolve() in seen:
+            raise ComRegError(f"The US points file '{path}' was given twice.",
+                              "Give each sweep's points once.")
+        seen.add(path.resolve())
+    return paths
+
+
+def _input_records(paths: list[Path], clouds: list[PointCloud], result: RegistrationResult,
+                   registrar: Registrar) -> list[dict]:
+    """``result.json``'s ``us_inputs``: per input file its absolute path, point count, whether
+    it has beam origins, the distance statistics of its points after registration (a single
+    input: the registration's own ``residuals_mm``; several: each file's points, at most
+    :data:`~comreg_core.registration.inputs.MAX_US_POINTS` of them, evenly strided) and the
+    file of its registered points."""
+    records = []
+    for k, (path, cloud) in enumerate(zip(paths, clouds), start=1):
+        if len(clouds) == 1:
+            residuals, name = dict(result.residuals), runs.REGISTERED_US
+        else:
+            step = -(-len(cloud.points) // MAX_US_POINTS)
+            residuals = registrar.residuals(apply_transform(result.T_ct_us,
+                                                            cloud.points[::step]))
+            name = runs.REGISTERED_US_INPUT.format(k)
+        records.append({"path": str(Path(path).absolute()), "n_points": len(cloud.points),
+                        "beam_origins": cloud.beam_origins is not None,
+                        "residuals_mm": residuals, "registered_us": name})
+    return records
 
 
 def _sweep_record(sweep, calibration, T_us_ref) -> dict | None:
@@ -172,3 +335,130 @@ def _sweep_record(sweep, calibration, T_us_ref) -> dict | None:
     return {"path": str(Path(sweep).absolute()),
             "calibration": None if calibration is None else str(Path(calibration).absolute()),
             "T_us_ref": T.tolist()}
+
+
+# ------------------------------------------------------------------------------------- priors
+
+
+def load_prior(init: str | Path | None = None, init_tolerance=None,
+               landmarks: Sequence[str | Path] | None = None,
+               landmark_tolerance_mm: float | None = None) -> Prior | None:
+    """The :class:`~comreg_core.registration.priors.Prior` of ``comreg register``'s ``--init
+    TRANSFORM``, ``--init-tolerance DEG,MM``, ``--landmarks CT_POINTS US_POINTS`` and
+    ``--landmark-tolerance MM`` (None when neither ``init`` nor ``landmarks`` is given), in LPS.
+
+    ``init``: an ITK transform file as 3D Slicer writes it (or ``comreg register`` does:
+    ``transform.tfm``), read as ``T_ct_us`` (:func:`~comreg_core.io.load_transform`; the file
+    holds ITK's resampling direction, the inverse). ``init_tolerance``: ``"DEG,MM"`` or
+    ``(deg, mm)`` (default 30 deg, 30 mm). ``landmarks``: two 3D Slicer markups files
+    (``.mrk.json``, ``.fcsv``; :func:`~comreg_core.io.markups.read_markups`), CT points then US
+    points, paired by label; a pair's tolerance: ``tol=5`` in a point's description, else
+    ``landmark_tolerance_mm`` (default 10 mm). Raises a :class:`ComRegError` (exit 2) for a
+    tolerance without what it belongs to, unreadable files, labels that do not pair up.
+    """
+    from comreg_core.errors import InvalidTransformError
+    from comreg_core.io.markups import read_markups
+    from comreg_core.io.transform_files import load_transform
+    from comreg_core.registration.priors import (DEFAULT_LANDMARK_TOLERANCE_MM,
+                                                 DEFAULT_MAX_DEG, DEFAULT_MAX_MM,
+                                                 match_landmarks)
+
+    if init is None and init_tolerance is not None:
+        raise ComRegError("--init-tolerance was given without an initial pose.",
+                          "Give the initial pose too (--init TRANSFORM), or drop "
+                          "--init-tolerance.")
+    if not landmarks and landmark_tolerance_mm is not None:
+        raise ComRegError("--landmark-tolerance was given without landmarks.",
+                          "Give --landmarks CT_POINTS US_POINTS too, or drop "
+                          "--landmark-tolerance.")
+    if init is None and not landmarks:
+        return None
+    if init_tolerance is None:
+        deg, mm = DEFAULT_MAX_DEG, DEFAULT_MAX_MM
+    elif isinstance(init_tolerance, str):
+        deg, mm = parse_tolerance(init_tolerance)
+    else:
+        deg, mm = (float(v) for v in init_tolerance)
+    T_init = None
+    if init is not None:
+        T_init = load_transform(init, space="LPS")
+        try:
+            check_rigid(T_init)
+        except InvalidTransformError:
+            raise InvalidTransformError(f"The initial pose in '{init}' is not rigid (it scales, "
+                                        "shears or mirrors).",
+                                        "Give a rigid transform (rotation and translation), "
+                                        "e.g. a registration's transform.tfm.") from None
+    pairs = ()
+    if landmarks:
+        if len(landmarks) != 2:
+            raise ComRegError(f"--landmarks takes two files (CT points, US points), not "
+                              f"{len(landmarks)}.", "Give --landmarks CT_POINTS US_POINTS.")
+        tolerance = (DEFAULT_LANDMARK_TOLERANCE_MM if landmark_tolerance_mm is None
+                     else float(landmark_tolerance_mm))
+        pairs = match_landmarks(read_markups(landmarks[0]), read_markups(landmarks[1]),
+                                default_tolerance_mm=tolerance, space="LPS")
+    return Prior(T_init, deg, mm, pairs, space="LPS",
+                 init_file=None if init is None else str(Path(init).absolute()))
+
+
+def prior_lines(record: dict | None) -> list[str]:
+    """What ``comreg register`` prints about a prior: where the result lies in it, and its
+    reasons for a CHECK."""
+    if not record:
+        return []
+    parts = []
+    if record["rotation_from_init_deg"] is not None:
+        parts.append(f"{record['rotation_from_init_deg']:.1f} of {record['max_deg']:g} deg and "
+                     f"{record['shift_from_init_mm']:.1f} of {record['max_mm']:g} mm from the "
+                     "initial pose")
+    parts += [f"landmark '{lm['label']}' {lm['error_mm']:.1f} of {lm['tolerance_mm']:g} mm"
+              for lm in record["landmarks"]]
+    return [f"prior: {'; '.join(parts)}" + ("; AT THE EDGE: check the result" if
+                                            record["at_edge"] else ""), *record["reasons"]]
+
+
+def prior_inputs(prior: Prior) -> dict:
+    """``config.yaml``'s ``inputs.prior``: the initial pose's file and tolerances, the
+    landmarks' labels and tolerances."""
+    return {"init": prior.init_file,
+            "init_tolerance": None if prior.T_init is None else [prior.max_deg, prior.max_mm],
+            "landmarks": {lm.label: lm.tolerance_mm for lm in prior.landmarks}}
+
+
+def prior_allows(prior: Prior, result: RegistrationResult):
+    """``(4, 4) T -> bool``: whether ``prior`` (in the result's space) allows a pose of
+    ``result`` (the US centroid: that of the points it registered)."""
+    points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
+    centroid = points.mean(axis=0)
+    return lambda T: bool(prior.allows(np.asarray(T)[None], centroid)[0])
+
+
+def with_prior_reasons(verdict, record: dict | None):
+    """``verdict`` (:class:`~comreg_core.registration.verdict.Verdict`) with the prior's
+    ``reasons`` (:func:`~comreg_core.registration.priors.prior_record`: a result at the edge of
+    a tolerance, a clearly better pose outside the prior, no pose within it) appended and
+    then ``"check"``; unchanged without a prior or reasons. The figures gain ``prior_at_edge``.
+    """
+    if not record:
+        return verdict
+    figures = {**verdict.figures, "prior_at_edge": bool(record.get("at_edge"))}
+    reasons = [*verdict.reasons, *record.get("reasons", [])]
+    return replace(verdict, verdict="check" if reasons else verdict.verdict, reasons=reasons,
+                   figures=figures)
+
+
+def parse_tolerance(text: str) -> tuple[float, float]:
+    """``"DEG,MM"`` (e.g. ``"30,30"``, ``"20deg,15mm"``) -> ``(deg, mm)``; a clear
+    :class:`ComRegError` otherwise."""
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        deg = float(re.sub(r"(?i)\s*deg$", "", parts[0]))
+        mm = float(re.sub(r"(?i)\s*mm$", "", parts[1]))
+    except ValueError:
+        raise ComRegError(f"The initial pose's tolerance '{text}' is not DEG,MM.",
+                          "Give two numbers, degrees then millimetres, e.g. "
+                          "--init-tolerance 30,30.") from None
+    return deg, mm

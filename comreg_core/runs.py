@@ -26,6 +26,10 @@ RESULT = "result.json"
 TRANSFORM = "transform.tfm"
 #: The US points moved into the CT frame.
 REGISTERED_US = "registered_us.ply"
+#: With several US inputs, the k-th one's points (k = 1, 2, ...) moved into the CT frame.
+REGISTERED_US_INPUT = "registered_us_{}.ply"
+#: The per-patient calibration of ``p_correct`` (``comreg calibrate``, ``pretrain``).
+CALIBRATION = "calibration.json"
 #: The network's completed bone in the CT frame.
 COMPLETION_CT = "completion_ct.ply"
 #: An evaluation's trials and summary (``comreg evaluate``, the demo).

@@ -5,6 +5,7 @@ the choice (step 6)."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -21,19 +22,28 @@ from comreg_core.transforms import apply_transform
 
 def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.ndarray,
                       scores: np.ndarray, polishes: list[dict[str, Any] | None],
-                      T_network: np.ndarray, target: SurfaceCloud,
-                      config: HypothesisConfig, *, origins: np.ndarray | None = None
+                      target: SurfaceCloud,
+                      config: HypothesisConfig, *, origins: np.ndarray | None = None,
+                      within: Callable[[np.ndarray], np.ndarray] | None = None
                       ) -> tuple[int, int | None]:
     """Steps 5-6 of the search: polish the poses tied with the best (``poses``
     ``(B, 4, 4)``, ``scores`` ``(B,)`` and ``polishes`` are updated in place; poses polished
     before are not polished again), choose, and find the runner-up. Returns ``(chosen,
-    runner-up or None)`` indices."""
+    runner-up or None)`` indices.
+
+    ``within``: ``(B, 4, 4) poses -> (B,) bool``, the poses a prior allows
+    (:meth:`~comreg_core.registration.priors.Prior.allows`), or None (all). With it only the
+    allowed poses are polished, chosen (the polished ones among them, else any) and count as
+    the runner-up; when it allows none, all are considered."""
     eligible = np.ones(len(poses), dtype=bool)
+    allowed = eligible if within is None else within(poses)
+    pool = np.flatnonzero(allowed) if allowed.any() else np.arange(len(poses))
     placed = apply_poses(poses, centroid[None])[:, 0]  # B 3
     if target.surface is not None:
         # the best pose and those tied with it, polished and re-scored exactly; only polished
         # poses can be chosen (the scores of the others are not exact, and they were not tied)
-        candidates = polish_candidates(scores, poses, placed, config)
+        candidates = [int(pool[k]) for k in polish_candidates(scores[pool], poses[pool],
+                                                               placed[pool], config)]
         quick = len(candidates) > 1  # several: a quick polish of each, then the chosen in full
         for i in candidates:
             if polishes[i] is None:
@@ -42,13 +52,20 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
                                                                origins=origins)
         placed = apply_poses(poses, centroid[None])[:, 0]
         eligible = np.array([p is not None for p in polishes])
-    best = choose(scores, poses, placed, T_network, config, eligible)
+    if within is not None:  # a polish may have moved a pose out of the prior
+        allowed = within(poses)
+        eligible = next((m for m in (eligible & allowed, allowed) if m.any()), eligible)
+    best = choose(scores, eligible)
     if polishes[best] is not None and polishes[best]["quick"]:
+        before = poses[best].copy(), scores[best], polishes[best]
         poses[best], scores[best], polishes[best] = polish_pose(
             subset_mm, centroid, poses[best], target, config, after=polishes[best],
             origins=origins)
+        if within is not None and allowed[best] and not within(poses[best][None])[0]:
+            poses[best], scores[best], polishes[best] = before  # it left the prior: undone
         placed[best] = apply_transform(poses[best], centroid[None])[0]
-    others = np.array([i for i in range(len(poses)) if i != best], dtype=np.int64)
+    others = np.array([i for i in range(len(poses)) if i != best
+                       and (allowed[i] or not allowed.any())], dtype=np.int64)
     distinct = others[~same_pose(poses, placed, best, others, config)]
     runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
     return best, runner

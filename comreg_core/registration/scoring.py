@@ -17,7 +17,6 @@ import numpy as np
 
 from comreg_core.registration.config import HypothesisConfig
 from comreg_core.registration.icp import apply_poses
-from comreg_core.registration.metrics import rotation_error_deg
 
 
 def trimmed_mean(distances: np.ndarray, trim: float) -> np.ndarray:
@@ -60,23 +59,12 @@ def confidence_over(score: float, others: np.ndarray | float, config: Hypothesis
     return np.maximum(others - score, 0.0) / np.maximum(others, config.score_floor_mm)
 
 
-def choose(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray, T_network: np.ndarray,
-            config: HypothesisConfig, eligible: np.ndarray) -> int:
-    """Index of the chosen pose among the ``eligible`` ones ``(B,)`` bool: the best score, or
-    with ``tie_break="network"`` among the poses tied with the best (confidence below
-    ``min_confidence``) the best-scoring of those rotated like the one rotated least from the
-    network's pose ``T_network`` (slides: by score). ``scores`` ``(B,)`` mm, ``poses``
-    ``(B, 4, 4)``, ``placed`` ``(B, 3)`` US centroids."""
-    masked = np.where(eligible, scores, np.inf)
-    best = int(np.argmin(masked))  # first minimum: the network's pose wins exact ties
-    if config.tie_break == "network":
-        tied = np.flatnonzero(eligible & (confidence_over(scores[best], scores, config)
-                                          < config.min_confidence))
-        nearest = tied[np.argmin([rotation_error_deg(poses[i], T_network) for i in tied])]
-        rotated_alike = tied[same_pose(poses, placed, nearest, tied, config,
-                                        rotation_only=True)]
-        best = int(rotated_alike[np.argmin(scores[rotated_alike])])
-    return best
+def choose(scores: np.ndarray, eligible: np.ndarray) -> int:
+    """Index of the chosen pose among the ``eligible`` ones ``(B,)`` bool: the best score
+    ``(B,)`` mm; the first minimum, so the network's own pose (index 0) wins exact ties. The
+    network's pose is one more start, never a narrowing: with it, the result is at least the
+    search's (docs/calibration.md)."""
+    return int(np.argmin(np.where(eligible, scores, np.inf)))
 
 
 def polish_candidates(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray,

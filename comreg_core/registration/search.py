@@ -76,10 +76,9 @@ alternatives at test time, with no extra training data:
    centroid more than ``distinct_mm`` apart. ``confidence(a over b) = max(score_b - score_a,
    0) / max(score_b, score_floor_mm)`` in [0, 1] (``score_floor_mm``, 0.05 mm: differences
    between near-perfect fits are noise, not evidence). Poses over which the best has a
-   confidence below ``min_confidence`` are *tied* with it; with ``tie_break="network"`` the
-   tied pose rotated least from the network's pose sets the rotation (among the tied poses
-   rotated like it, the best score wins, so slides are still decided by the score): a flip or
-   a spin the geometry cannot tell apart is decided by the learned prior. The *runner-up* is
+   confidence below ``min_confidence`` are *tied* with it (they get polished). The network's
+   pose is one more start and never decides a tie (on real fibula runs its tie-break lost a
+   result the search alone got, docs/results.md). The *runner-up* is
    the best-scoring pose distinct from the chosen one (converged duplicates never count);
    ``score_gap_mm = score(runner-up) - score(chosen)``; ``confidence`` = that of the chosen
    pose over the runner-up (1 without a runner-up); ``ambiguous = confidence <
@@ -97,6 +96,12 @@ alternatives at test time, with no extra training data:
    hypotheses of both rounds (poses polished in the first round are not polished again).
    ``starts_tried`` counts both rounds. Costs about one more search, only for ambiguous
    results.
+
+8. **A prior** (``prior``: an initial pose with tolerances, landmark pairs;
+   :mod:`comreg_core.registration.priors`): the starts are built around it instead
+   (:func:`round_starts`), the screening keeps the poses within it first, refined poses outside
+   it are also pulled back onto its edge (``+clamped``), and only poses within it are polished,
+   chosen or the runner-up.
 
 Use it standalone (no network needed)::
 
@@ -126,6 +131,7 @@ from comreg_core.registration.config import HypothesisConfig
 from comreg_core.registration.icp import (apply_poses, coarse_to_fine_icp, point_to_plane_icp,
                                           strided)
 from comreg_core.registration.polish import choose_and_polish
+from comreg_core.registration.priors import Prior
 from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, confidence_over,
                                               same_pose, score_poses)
 from comreg_core.registration.surface import SurfaceCloud, principal_frame
@@ -268,7 +274,8 @@ def slide_offsets_mm(target: SurfaceCloud, config: HypothesisConfig) -> np.ndarr
 
 def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceCloud,
                   config: HypothesisConfig, *, keep_first: bool = True,
-                  origins: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  origins: np.ndarray | None = None, within=None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Pick the starts worth a full ICP: ``screen_iterations`` of point-to-plane ICP on
     ``screen_points`` US points for every start at once (correspondences from the CT's
     closest-point grid, :meth:`SurfaceCloud.nearest_approx`), then a quick score (trimmed
@@ -282,6 +289,8 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
         us_points: ``(n, 3)`` mm, US points (US frame).
         starts: ``(B, 4, 4)`` mm start poses ``T_ct_us``.
         origins: ``(n, 3)`` mm, each US point's beam origin (US frame), or None.
+        within: ``(B, 4, 4) -> (B,) bool``, the poses a prior allows, or None: the screened
+            poses it allows are kept first (a prior's starts may slide out of it).
 
     Returns:
         ``(K,)`` indices of the kept starts and their ``(K, 4, 4)`` screened poses.
@@ -298,7 +307,10 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
                          else strided(origins, config.screen_score_points))
     centroids = apply_poses(poses, us_points.mean(axis=0)[None])[:, 0]  # B 3
     chosen = [0] if keep_first else []
-    for i in np.argsort(scores, kind="stable"):
+    order = np.argsort(scores, kind="stable")
+    if within is not None:
+        order = order[np.argsort(~within(poses)[order], kind="stable")]
+    for i in order:
         if len(chosen) == config.refine_top:
             break
         if not chosen or not same_pose(poses, centroids, i, np.array(chosen), config).any():
@@ -329,7 +341,7 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                       T_coarse: np.ndarray | None = None,
                       start_name: str = "network",
                       beam_origins: np.ndarray | None = None,
-                      space: str = "LPS") -> HypothesisResult:
+                      space: str = "LPS", prior: Prior | None = None) -> HypothesisResult:
     """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
 
     An ambiguous result gets a second round from the grid of starts
@@ -349,6 +361,9 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
         beam_origins: ``(N, 3)`` mm, where each US point's beam started (the probe's
             transducer element, US frame), or None. With them every score penalises poses
             under which the CT surface faces away from the probe (``facing_penalty_mm``).
+        prior: a :class:`~comreg_core.registration.priors.Prior` (initial pose, landmarks; in
+            the CT's space) or None: the starts are built around it and only poses within it
+            can be chosen (:mod:`comreg_core.registration.priors`).
         space: the CT's patient space, for naming the bone's ends in the advice of an
             ambiguous result.
 
@@ -384,13 +399,20 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
     scores, rmse = np.zeros(0), np.zeros(0)
     polishes: list[dict[str, Any] | None] = []
     tried = 0
+    within = None if prior is None else (lambda T: prior.allows(T, centroid))
     for offset in (0.0, 0.5):  # the second round only for an ambiguous result (step 7)
-        grid = build_hypotheses(T_network, target, completion, cfg, T_coarse=T_coarse,
-                                grid_offset=offset, start_name=start_name)
-        grid.update(patch_orientation_starts(pts, target, cfg, offset))
+        grid = round_starts(pts, T_network, target, completion, cfg, T_coarse=T_coarse,
+                            grid_offset=offset, start_name=start_name, prior=prior)
         tried += len(grid)
         new_names, new_starts, new_poses, new_rmse = refine_starts(
-            subset_mm, grid, target, cfg, keep_first=offset == 0.0, origins=origins)
+            subset_mm, grid, target, cfg, keep_first=offset == 0.0, origins=origins,
+            within=within)
+        if within is not None:  # the refined poses outside the prior, pulled back into it
+            out = np.flatnonzero(~within(new_poses))
+            new_names += [new_names[i] + "+clamped" for i in out]
+            new_starts += [new_starts[i] for i in out]
+            new_poses = np.concatenate([new_poses, prior.clamp(new_poses[out], centroid)])
+            new_rmse = np.concatenate([new_rmse, np.full(len(out), np.nan)])
         names += new_names
         starts += new_starts
         poses = np.concatenate([poses, new_poses])
@@ -399,7 +421,7 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                                                      origins=origins)])
         polishes += [None] * len(new_names)
         best, runner = choose_and_polish(subset_mm, centroid, poses, scores, polishes,
-                                         T_network, target, cfg, origins=origins)
+                                         target, cfg, origins=origins, within=within)
         confidence = 1.0 if runner is None else float(
             confidence_over(scores[best], scores[runner], cfg))
         if confidence >= cfg.min_confidence:
@@ -420,17 +442,40 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
                             patch=patch)
 
 
+def round_starts(pts: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
+                 completion: np.ndarray | None, config: HypothesisConfig, *,
+                 T_coarse: np.ndarray | None, grid_offset: float, start_name: str,
+                 prior: Prior | None = None) -> dict[str, np.ndarray]:
+    """The start poses ``{name: T_ct_us (4, 4) mm}`` of one round (``grid_offset`` 0, then
+    0.5): :func:`build_hypotheses` and :func:`patch_orientation_starts`; with a ``prior``, its
+    starts (:mod:`comreg_core.registration.priors`, step 1): around ``T_init``, or the usual
+    rotations unslid, moved onto the landmarks; ``T_start`` first unmoved (the network's pose,
+    or ``T_init`` without a network)."""
+    if prior is not None and prior.T_init is not None:
+        rotations = prior.init_rotations(pts.mean(axis=0), grid_offset)
+    else:
+        cfg = config if prior is None else replace(config, slide_step_mm=0.0)
+        rotations = build_hypotheses(T_start, target, completion, cfg, T_coarse=T_coarse,
+                                     grid_offset=grid_offset, start_name=start_name)
+        rotations.update(patch_orientation_starts(pts, target, cfg, grid_offset))
+        if prior is None:
+            return rotations
+    first = {} if grid_offset or start_name == "pca" else {start_name: T_start}
+    return {**first, **prior.starts(rotations, pts.mean(axis=0), target.centre, target.axes,
+                                    config.slide_step_mm, grid_offset)}
+
+
 def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: SurfaceCloud,
                   config: HypothesisConfig, *, keep_first: bool,
-                  origins: np.ndarray | None = None
+                  origins: np.ndarray | None = None, within=None
                   ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
     """Steps 2-3 of the module docstring for the start poses ``grid`` ``{name: (4, 4)}``:
     screen them (``keep_first``: the first one, the network's own pose, always goes on), refine
-    the kept ones. Returns their names, start poses, ``(K, 4, 4)`` refined poses (mm) and
-    ``(K,)`` ICP residuals (mm)."""
+    the kept ones (``within``: see :func:`screen_starts`). Returns their names, start poses,
+    ``(K, 4, 4)`` refined poses (mm) and ``(K,)`` ICP residuals (mm)."""
     all_names = list(grid)
     kept, screened = screen_starts(subset_mm, np.stack(list(grid.values())), target, config,
-                                   keep_first=keep_first, origins=origins)
+                                   keep_first=keep_first, origins=origins, within=within)
     names = [all_names[i] for i in kept]
     refined, rmse = coarse_to_fine_icp(subset_mm, screened, target.match,
                                        iterations=config.icp_iterations,

@@ -16,7 +16,10 @@ point-to-triangle distances of :class:`~comreg_core.registration.surface.CTSurfa
   surface (small residuals) but is not where they fit best: the refit moves them back. A US
   calibration with a wrong scale fits best with a scale far from 1. These two catch what the
   residuals of a long, smooth bone cannot;
-- **ambiguity**: the pose check's ``confidence`` (< 0.3 = ``ambiguous``), when given.
+- **ambiguity**: with a per-patient calibration, ``p_correct``, the estimated probability that
+  the pose is within 4 mm / 5 deg of the truth (:mod:`comreg_core.registration.calibration`;
+  ``CHECK`` below its ``ok_probability``, 0.95); without one, the pose check's ``confidence``
+  (< 0.3 = ``ambiguous``), when given.
 
 ``CHECK`` when any figure is beyond its threshold (:class:`VerdictThresholds`), else ``OK``.
 
@@ -122,13 +125,17 @@ class Verdict:
 
 
 def judge_registration(us_points, T_ct_us, ct_surface, *, confidence: float | None = None,
-                       ambiguous: bool | None = None,
+                       ambiguous: bool | None = None, p_correct: float | None = None,
+                       ok_probability: float = 0.95,
                        thresholds: VerdictThresholds = DEFAULT_THRESHOLDS,
                        distances: np.ndarray | None = None) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` rigid, mm) for ``us_points`` (``(N, 3)`` mm, as
     received) on ``ct_surface`` (anything :func:`~comreg_core.registration.surface.as_surface`
     takes). ``confidence``/``ambiguous``: the pose check's, None when it did not run.
-    ``distances``: the registered points' distances to the CT if already computed (mm)."""
+    ``p_correct``: the calibrated probability that the pose is correct, None without a
+    calibration; given, it replaces ``confidence``/``ambiguous`` (``CHECK`` below
+    ``ok_probability``). ``distances``: the registered points' distances to the CT if already
+    computed (mm)."""
     surface = as_surface(ct_surface)
     points = apply_transform(check_rigid(T_ct_us), as_points(us_points, "US points"))
     d = surface.distance(points) if distances is None else np.asarray(distances, np.float64)
@@ -136,12 +143,14 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, confidence: float | No
     figures = {"median_mm": float(np.median(d)), "p90_mm": float(np.percentile(d, 90)),
                "within_2mm": float(np.mean(d <= NEAR_MM)), "coverage": coverage(points, surface),
                "refit_shift_mm": shift, "refit_scale": scale, "refit_scale_gain": gain,
-               "confidence": None if confidence is None else float(confidence)}
-    reasons = _reasons(figures, bool(ambiguous), thresholds)
+               "confidence": None if confidence is None else float(confidence),
+               "p_correct": None if p_correct is None else float(p_correct)}
+    reasons = _reasons(figures, bool(ambiguous), thresholds, ok_probability)
     return Verdict("check" if reasons else "ok", reasons, figures)
 
 
-def _reasons(f: dict, ambiguous: bool, th: VerdictThresholds) -> list[str]:
+def _reasons(f: dict, ambiguous: bool, th: VerdictThresholds, ok_probability: float
+             ) -> list[str]:
     out = []
     if f["median_mm"] > th.max_median_mm or f["p90_mm"] > th.max_p90_mm:
         out.append(f"The US points lie off the CT bone: median {f['median_mm']:.1f} mm, 90 % "
@@ -162,7 +171,13 @@ def _reasons(f: dict, ambiguous: bool, th: VerdictThresholds) -> list[str]:
         out.append(f"The US points fit the CT {100 * f['refit_scale_gain']:.0f} % closer when "
                    f"scaled by {f['refit_scale']:.2f}: check the US probe calibration (image "
                    "spacing, speed of sound).")
-    if ambiguous or (f["confidence"] is not None and f["confidence"] < th.min_confidence):
+    if f["p_correct"] is not None:
+        if f["p_correct"] < ok_probability:
+            out.append(f"The pose is within 4 mm / 5 deg of the truth with an estimated "
+                       f"probability of only {f['p_correct']:.2f} (OK needs "
+                       f"{ok_probability:g}): a clinically different pose fits the US points "
+                       "nearly as well.")
+    elif ambiguous or (f["confidence"] is not None and f["confidence"] < th.min_confidence):
         out.append("Ambiguous pose: another, clearly different pose fits the US points nearly as "
                    f"well (confidence {f['confidence'] if f['confidence'] is not None else 0:.2f}"
                    f", below {th.min_confidence:g}).")

@@ -14,6 +14,7 @@ from comreg_core.progress import Progress
 from comreg_core import runs
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import check_output_folder, require_input_file
+from comreg_core.report.html import Quantity
 from comreg_core.report.report import write_report
 
 
@@ -63,7 +64,8 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     require_input_file(out_dir / runs.RESULT, "registration result")
     check_output_folder(out_dir, what="report folder")  # before reading and rendering
     result = read_registration_result(out_dir)
-    run_dir, us_path = result.get("run_dir"), Path(result["us_points"])
+    run_dir, us_paths = result.get("run_dir"), result["us_points"]
+    us_paths = [Path(path) for path in (us_paths if isinstance(us_paths, list) else [us_paths])]
     ct_path = ct_mesh or result.get("ct_mesh")
     if ct_path is None:
         from comreg_core.training import run_ct_mesh
@@ -71,7 +73,8 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
         ct = run_ct_mesh(run_dir)
     else:
         ct = read_mesh(ct_path)
-    us_points = read_points(us_path).in_space(ct.space).points
+    parts = [read_points(path).in_space(ct.space).points for path in us_paths]
+    us_points = np.concatenate(parts)  # several sweeps in one tracker frame: joined
     T_ct_us = np.asarray(result["T_ct_us"], dtype=np.float64)
     completion_path = out_dir / runs.COMPLETION_CT
     completion = read_points(completion_path).in_space(ct.space).points \
@@ -84,21 +87,43 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     hypotheses = result.get("hypotheses") or {}
     verdict = judge_registration(us_points, T_ct_us, (ct.vertices, ct.faces),
                                  confidence=hypotheses.get("confidence"),
-                                 ambiguous=hypotheses.get("ambiguous"))
+                                 ambiguous=hypotheses.get("ambiguous"),
+                                 p_correct=None if transform is not None
+                                 else result.get("p_correct"))
+    if transform is None:  # an initial pose or landmarks the result sits at the edge of
+        from comreg_core.register_output import with_prior_reasons
+
+        verdict = with_prior_reasons(verdict, result.get("prior"))
     metrics = registration_metrics_table(result, verdict.figures, judged_file=transform)
     evaluation = _metrics_for(out_dir / runs.METRICS, T_ct_us)
     if evaluation is not None:
         metrics.update(evaluation)
+    if len(parts) > 1:
+        metrics["US inputs (sweeps registered together)"] = _input_rows(us_paths, parts,
+                                                                        T_ct_us, ct)
     return write_report(
         out_dir, ct_mesh=ct, us_before=us_points, us_after=apply_transform(T_ct_us, us_points),
         completion=completion, metrics=metrics, verdict=verdict,
         inputs={"run folder": str(run_dir or "none (the pose search alone)"),
-                "US points": str(us_path),
+                "US points": "; ".join(str(path) for path in us_paths),
                 "CT mesh": str(ct_path or f"stored in {run_dir}"),
                 "transform": str(transform or "result.json (the registration's)")},
         seed=result.get("seed"), device=result.get("device"), embed_images=embed_images,
         progress=progress, sweep=tracked,
         T_ct_ref=None if tracked is None else T_ct_us @ T_us_ref)
+
+
+def _input_rows(paths: list[Path], parts: list[np.ndarray], T_ct_us: np.ndarray, ct
+                ) -> dict[str, str]:
+    """Several US inputs: each one's point count and median distance to the CT under
+    ``T_ct_us``, in words."""
+    from comreg_core.registration.surface import CTSurface
+    from comreg_core.transforms import apply_transform
+
+    surface = CTSurface((ct.vertices, ct.faces))
+    return {f"Input {k}: {path.name}": f"{len(points)} points, median distance to the CT "
+            f"{float(np.median(surface.distance(apply_transform(T_ct_us, points)))):.2f} mm"
+            for k, (path, points) in enumerate(zip(paths, parts), start=1)}
 
 
 def _sweep_for(result: dict[str, Any], sweep, calibration):
@@ -130,20 +155,33 @@ def _metrics_for(path: Path, T_ct_us: np.ndarray) -> dict[str, Any] | None:
     if made_for.shape != (4, 4) or not np.allclose(made_for, T_ct_us, rtol=0, atol=1e-6):
         return None
     rows: dict[str, Any] = {}
-    truth = data["registration"].get("errors_vs_truth")
-    if truth:
-        rows["Error against the known truth"] = {
-            "translation at the US centroid (RTE)_mm": truth.get("RTE_mm"),
-            "rotation (RRE)_deg": truth.get("RRE_deg"),
-            "success (RTE < 2 mm and RRE < 2 deg)": truth.get("success")}
+    record = data["registration"]
+    errors = record.get("errors_vs_truth")
+    if errors:
+        group: dict[str, Any] = {}
+        if record.get("truth"):
+            group["Truth"] = record["truth"]
+        group.update({
+            "Translation error at the US centroid (RTE)": Quantity(errors.get("RTE_mm"), "mm"),
+            "Rotation error (RRE)": Quantity(errors.get("RRE_deg"), "deg"),
+            "Success (RTE < 2 mm and RRE < 2 deg)": errors.get("success")})
+        tracking = record.get("tracking_vs_truth")
+        if tracking:
+            group["Offset of the recorded tracking from the truth (translation)"] = Quantity(
+                tracking.get("RTE_mm"), "mm")
+            group["Offset of the recorded tracking from the truth (rotation)"] = Quantity(
+                tracking.get("RRE_deg"), "deg")
+        rows["Error against the truth"] = group
     summary = (data.get("summary") or {}).get("comreg")
     if summary:
-        rows["Further random starts (evaluation)"] = {
-            "starts": summary.get("trials", summary.get("n")),
-            "success rate_percent": _percent(summary.get("success_rate")),
-            "flip rate_percent": _percent(summary.get("flip_rate")),
-            "median RTE_mm": (summary.get("RTE_mm") or {}).get("median"),
-            "median RRE_deg": (summary.get("RRE_deg") or {}).get("median")}
+        rows["Further random starts (evaluation, against the same truth)"] = {
+            "Starts": summary.get("trials", summary.get("n")),
+            "Success rate": Quantity(_percent(summary.get("success_rate")), "%"),
+            "Flip rate": Quantity(_percent(summary.get("flip_rate")), "%"),
+            "Median translation error (RTE)": Quantity((summary.get("RTE_mm") or {})
+                                                       .get("median"), "mm"),
+            "Median rotation error (RRE)": Quantity((summary.get("RRE_deg") or {})
+                                                    .get("median"), "deg")}
     return rows
 
 
@@ -153,49 +191,68 @@ def _percent(rate) -> float | None:
 
 def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], *,
                                judged_file=None) -> dict[str, Any]:
-    """The report's metrics as rows in words; a key's ``_mm``/``_deg``/``_s``/``_percent``
-    suffix is its unit column (:func:`comreg_core.report.html.unit_of`)."""
+    """The report's metrics: groups of rows labelled in words, each value a
+    :class:`~comreg_core.report.html.Quantity` with its unit (shown in its own column) or a
+    word."""
     rows: dict[str, Any] = {
         "Fit of the US points to the CT bone": {
-            "median distance to the CT surface_mm": figures["median_mm"],
-            "90 % of the points within_mm": figures["p90_mm"],
-            "points within 2 mm of the surface_percent": 100 * figures["within_2mm"],
-            "CT surface touched by the sweep (within 2 mm)_percent": 100 * figures["coverage"],
-            "a rigid refit moves the points by (RMS)_mm": figures["refit_shift_mm"],
-            "best-fitting scale of the US points": figures["refit_scale"]}}
+            "Median distance to the CT surface": Quantity(figures["median_mm"], "mm"),
+            "90 % of the points within": Quantity(figures["p90_mm"], "mm"),
+            "Points within 2 mm of the surface": Quantity(_percent(figures["within_2mm"]), "%"),
+            "CT surface touched by the sweep (within 2 mm)":
+                Quantity(_percent(figures["coverage"]), "%"),
+            "A rigid refit moves the points by (RMS)": Quantity(figures["refit_shift_mm"], "mm"),
+            "Best-fitting scale of the US points": Quantity(figures["refit_scale"])}}
     if judged_file is not None:
-        rows["Fit of the US points to the CT bone"]["transform judged"] = str(judged_file)
+        rows["Fit of the US points to the CT bone"]["Transform judged"] = str(judged_file)
     hypotheses = result.get("hypotheses")
     if hypotheses:  # the pose check of the hypotheses stage (comreg_core.registration.search)
-        pose = {"another pose fits nearly as well (ambiguous)":
+        pose = {"Another pose fits nearly as well (ambiguous)":
                 "YES: check the images" if hypotheses.get("ambiguous") else "no",
-                "confidence (0-1; below 0.3 is ambiguous)": hypotheses.get("confidence"),
-                "pose kept": _hypothesis_words(hypotheses.get("chosen")),
-                "next best pose": _hypothesis_words(hypotheses.get("runner_up")),
-                "trimmed mean distance of the kept pose_mm": hypotheses.get("score_mm"),
-                "next best pose is worse by_mm": hypotheses.get("score_gap_mm")}
+                "Confidence (0-1; below 0.3 is ambiguous)": Quantity(hypotheses.get("confidence")),
+                "Pose kept": _hypothesis_words(hypotheses.get("chosen")),
+                "Next best pose": _hypothesis_words(hypotheses.get("runner_up")),
+                "Trimmed mean distance of the kept pose": Quantity(hypotheses.get("score_mm"),
+                                                                   "mm"),
+                "Next best pose is worse by": Quantity(hypotheses.get("score_gap_mm"), "mm")}
+        if result.get("p_correct") is not None:
+            pose["Estimated probability that the pose is within 4 mm / 5 deg"] = Quantity(
+                result["p_correct"])
+        competitor = result.get("competitor") or {}
+        if competitor.get("name"):
+            where = ", ".join(f"{x:.0f}" for x in competitor["centroid_ct"])
+            pose["Best clinically different pose"] = (
+                f"{_hypothesis_words(competitor['name'])}: {competitor['distance_mm']:.0f} mm and "
+                f"{competitor['rotation_deg']:.0f} deg from the kept pose, its sweep centred at "
+                f"({where}) mm on the CT; margin {competitor['margin']:.2f}")
         if hypotheses.get("advice"):  # an ambiguous result: what would tell the poses apart
-            pose["what would resolve it"] = hypotheses["advice"]["advice"]
+            pose["What would resolve it"] = hypotheses["advice"]["advice"]
         polish = hypotheses.get("polish")
         if polish:
-            pose["final polish"] = (
+            pose["Final polish"] = (
                 f"moved {polish['moved_mm']:.2f} mm in {polish['iterations']} iterations, "
                 f"{100 * polish['inlier_fraction']:.0f} % of the points matched, "
                 f"RMS {polish['rmse_mm']:.2f} mm")
         rows["Pose check"] = pose
     timings = result.get("timings_s") or {}
-    rows["Time"] = {"registration in all_s": result.get("runtime_s"),
-                    **{f"{_STAGE_WORDS.get(k, k.replace('_', ' '))}_s": v
-                       for k, v in timings.items() if k != "total"}}
+    rows["Time"] = {"Registration in all": Quantity(result.get("runtime_s"), "s"),
+                    **{_stage_words(k): Quantity(v, "s") for k, v in timings.items()
+                       if k != "total"}}
     if result.get("warnings"):
         rows["Warnings"] = " ".join(result["warnings"])
     return rows
 
 
-_STAGE_WORDS = {"preprocess": "checks and normalisation",
-                "completion_and_coarse_pose": "completion and coarse pose (network)",
-                "icp": "network ICP", "hypotheses": "pose check",
-                "postprocess": "back to millimetres", "residuals": "distances to the CT"}
+_STAGE_WORDS = {"preprocess": "Checks and normalisation",
+                "completion_and_coarse_pose": "Completion and coarse pose (network)",
+                "icp": "Network ICP", "hypotheses": "Pose check",
+                "postprocess": "Back to millimetres", "residuals": "Distances to the CT"}
+
+
+def _stage_words(key: str) -> str:
+    """A ``timings_s`` key in words (an unknown stage: its name, spaced and capitalised)."""
+    words = _STAGE_WORDS.get(key) or str(key).replace("_", " ").strip()
+    return words[:1].upper() + words[1:]
 
 
 def _hypothesis_words(name: str | None) -> str | None:

@@ -281,6 +281,6 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     assert "Verdict: OK" in html or "Verdict: CHECK" in html
     # the pose check of the hypotheses stage is in the report
     hypotheses = json.loads((out / "result.json").read_text())["hypotheses"]
-    assert "Pose check / confidence (0-1; below 0.3 is ambiguous)" in html
+    assert "Pose check / Confidence (0-1; below 0.3 is ambiguous)" in html
     assert f"in {hypotheses['polish']['iterations']} iterations" in html
     assert ("YES: check the images" in html) == hypotheses["ambiguous"]

@@ -132,6 +132,7 @@ def _command_args(name: str, out: Path, run: Path, us: Path) -> list:
         "evaluate": ["evaluate", run, us, "--out", out, "--trials", "1"],
         "demo": ["demo", "--out", out],
         "report": ["report", out],
+        "calibrate": ["calibrate", FIBULA_STL, "--out", out, "--sweeps", "4"],
     }[name]
 
 

@@ -132,7 +132,7 @@ def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_pa
 
 def test_score_and_confidence_follow_their_definitions(fibula_target, distal_patch):
     us, truth, ct_patch = distal_patch
-    config = HypothesisConfig(icp_points=1024, tie_break="score")
+    config = HypothesisConfig(icp_points=1024)
     start = _perturb(truth, ct_patch.mean(axis=0), degrees=3.0, mm=2.0, seed=3)
     result = search_hypotheses(us, start, fibula_target, config=config)
     # the score: trimmed mean distance to the tangent plane of the nearest CT point (scipy's
@@ -304,9 +304,9 @@ def test_closest_point_grid_agrees_with_the_kd_tree(fibula_target):
     assert fibula_target.nearest_approx(far).shape == (1,)
 
 
-def test_tie_break_by_the_network_pose_on_a_symmetric_cylinder():
-    """On a cylinder every turn fits: ``network`` tie-breaking keeps the network's rotation,
-    ``score`` the lowest score, and both are flagged ambiguous."""
+def test_on_a_symmetric_cylinder_every_turn_ties_and_the_lowest_score_wins():
+    """On a cylinder every turn fits: the result is flagged ambiguous and the lowest score is
+    kept (the network's pose is one more start, not a tie-break)."""
     mesh = trimesh.creation.cylinder(radius=12.0, height=240.0, sections=128)
     target = CTSurface((np.asarray(mesh.vertices), np.asarray(mesh.faces))).cloud(20_000)
     rng = np.random.default_rng(7)
@@ -315,13 +315,10 @@ def test_tie_break_by_the_network_pose_on_a_symmetric_cylinder():
     truth = invert_rigid(_rigid([-40.0, 10.0, 75.0], [100.0, 20.0, -50.0]))
     start = rotation_about(np.zeros(3), [0.0, 0.0, 1.0], math.radians(40.0)) @ truth
     us = apply_transform(invert_rigid(truth), patch)
-    network = search_hypotheses(us, start, target)
-    assert network.ambiguous
-    assert _errors(network.T_ct_us, start, us)[1] < 5.0  # the network's turn is kept
-    by_score = search_hypotheses(us, start, target, config=HypothesisConfig(tie_break="score"))
-    assert by_score.ambiguous
+    result = search_hypotheses(us, start, target)
+    assert result.ambiguous
     # the lowest score (chosen on the quick polish's scores; all fit the cylinder to ~0.01 mm)
-    assert by_score.scores[by_score.chosen] <= min(by_score.scores.values()) + 0.01
+    assert result.scores[result.chosen] <= min(result.scores.values()) + 0.01
 
 
 def test_point_to_plane_batch_converges_from_several_starts(fibula_target, distal_patch):
@@ -420,7 +417,7 @@ def test_target_from_points_estimates_normals():
     ("min_confidence", 1.0), ("icp_schedule", ((3, 10),)), ("icp_schedule", ((128, -1),)),
     ("icp_margin_mm", 0.0), ("slide_step_mm", -1.0), ("slide_range_mm", -5.0),
     ("screen_points", 2), ("screen_iterations", -1), ("screen_score_points", 0),
-    ("refine_top", -1), ("tie_break", "random"),
+    ("refine_top", -1),
     ("polish_max_distance_mm", 0.0), ("polish_iterations", 0), ("polish_top", 0),
     ("score_floor_mm", 0.0), ("patch_max_share", 0.0), ("patch_max_share", 1.5),
     ("patch_min_confidence", 1.0),

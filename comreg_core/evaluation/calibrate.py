@@ -1,0 +1,108 @@
+"""Per-patient calibration of ``p_correct`` (``comreg calibrate``; the end of ``pretrain``).
+
+Simulates short sweeps of the CT (the lengths the user expects; one face, transverse, as the
+partial-sweep benchmark's), adds the real sweeps' point noise, moves each by one of the paper's
+random initial poses, registers it with the pose search alone (no network needed: the verdict
+judges the search's evidence, which is the same with a network), and fits
+:class:`~comreg_core.registration.calibration.Calibration` to how the margin and extent of each
+result map to its correctness (within 4 mm / 5 deg of the truth). See
+:mod:`comreg_core.registration.calibration` for the definitions and ``docs/calibration.md``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from comreg_core import runs
+from comreg_core.progress import Progress
+from comreg_core.registration.calibration import (Calibration, fit_calibration,
+                                                  result_evidence)
+
+log = logging.getLogger(__name__)
+
+#: Seed namespace of calibration sweeps (disjoint from training and evaluation streams).
+CALIBRATION_SEED_NAMESPACE = 0x43414C49
+#: Default noise (mm, per coordinate, Gaussian) added to simulated points: the real fibula
+#: sweep's points lie a median 0.29 mm from the CT after ICP from their recorded pose, what
+#: 0.43 mm of isotropic noise gives (a plane distance's median is 0.674 sigma).
+NOISE_MM = 0.43
+
+
+def calibration_sweep_config(lengths_mm: tuple[float, float]):
+    """The simulator's settings for calibration sweeps ``lengths_mm`` long: transverse, over one
+    face (the probe's side drifts at most 20 deg), never past the bone's ends."""
+    from comreg_core.config import from_dict
+    from comreg_core.simulation.config import SimulationConfig
+
+    return from_dict(SimulationConfig, {"trajectory": {
+        "length_mm": [float(lengths_mm[0]), float(lengths_mm[1])], "side_drift_deg": 20.0,
+        "longitudinal_probability": 0.0, "end_margin_mm": 0.0, "n_slices": [100, 250]}},
+        "simulation")
+
+
+def calibrate(ct_mesh, *, sweeps: int = 60, lengths_mm: tuple[float, float] = (30.0, 80.0),
+              noise_mm: float = NOISE_MM, seed: int = 0,
+              progress: Progress | None = None) -> Calibration:
+    """Register ``sweeps`` simulated sweeps of ``ct_mesh`` (a path or ``(vertices, faces)``)
+    and fit the calibration (module docstring). Deterministic for a given seed."""
+    from comreg_core.errors import ComRegError
+    from comreg_core.inference import Registrar
+    from comreg_core.registration.metrics import registration_metrics
+    from comreg_core.registration.search import ct_length_mm
+    from comreg_core.simulation import BoneModel, sample_initial_pose, simulate_sweep
+    from comreg_core.surfaces.us_points import beam_origins
+    from comreg_core.training.checkpoint import ct_fingerprint
+    from comreg_core.transforms import apply_transform, invert_rigid
+
+    if sweeps < 4:
+        raise ComRegError(f"A calibration needs at least 4 sweeps, got {sweeps}.", "")
+    if not 0 < lengths_mm[0] <= lengths_mm[1]:
+        raise ComRegError(f"Sweep lengths {lengths_mm} must be two increasing positive mm.", "")
+    registrar = Registrar.from_ct(ct_mesh)
+    surface = registrar.surface
+    length = ct_length_mm(registrar.hypothesis_target(registrar.hypothesis_config.target_points))
+    bone = BoneModel((surface.vertices, surface.faces))
+    config = calibration_sweep_config(lengths_mm)
+    margins, extents, correct, rows = [], [], [], []
+    for i in range(sweeps):
+        rng = np.random.default_rng([CALIBRATION_SEED_NAMESPACE, seed, i])
+        sweep = simulate_sweep(bone, config, rng)
+        points = sweep.points + rng.normal(0.0, noise_mm, sweep.points.shape)
+        origins = beam_origins(sweep.points, sweep.trajectory.T_ct_image[sweep.slice_index])
+        T_p = sample_initial_pose(rng, "paper", surface.bbox_centre)
+        moved = apply_transform(T_p, points)
+        result = registrar.register(moved, beam_origins=apply_transform(T_p, origins))
+        errors = registration_metrics(result.T_ct_us, invert_rigid(T_p), moved, surface)
+        ok = errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0
+        competitor, extent = result_evidence(result.hypotheses, moved, length)
+        margins.append(competitor["margin"])
+        extents.append(extent)
+        correct.append(ok)
+        rows.append({"margin": competitor["margin"], "extent_share": extent, "correct": ok,
+                     "RTE_mm": errors["RTE_mm"], "RRE_deg": errors["RRE_deg"]})
+        if progress is not None:
+            progress(i + 1, sweeps, f"calibration sweep {i + 1}/{sweeps}: "
+                                    f"{'correct' if ok else 'wrong'}, margin "
+                                    f"{competitor['margin']:.2f}")
+    settings: dict[str, Any] = {"lengths_mm": list(lengths_mm), "noise_mm": noise_mm,
+                                "seed": seed, "perturbation": "paper", "method": "search"}
+    calibration = fit_calibration(np.array(margins), np.array(extents), np.array(correct),
+                                  ct_length_mm=length, settings={**settings, "trials": rows},
+                                  ct_fingerprint=ct_fingerprint(surface.vertices, surface.faces))
+    log.info("Calibrated on %d simulated sweeps (%.0f %% correct): weights %s", sweeps,
+             100 * calibration.correct_share, calibration.weights)
+    return calibration
+
+
+def calibrate_to_directory(ct_mesh, out_dir, **kwargs) -> Path:
+    """:func:`calibrate` and write ``out_dir/calibration.json`` (the folder checked first)."""
+    from comreg_core.io._files import check_output_folder
+
+    out = check_output_folder(out_dir, inputs=[ct_mesh])
+    calibration = calibrate(ct_mesh, **kwargs)
+    out.mkdir(parents=True, exist_ok=True)
+    return calibration.save(out / runs.CALIBRATION)

@@ -1,0 +1,134 @@
+"""The verdict's calibration: clinical sameness, the competitor, p_correct's fit and its
+monotonicity, the calibration file, and the verdict that uses it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from comreg_core.errors import ComRegError
+from comreg_core.registration.calibration import (Calibration, clinical_competitor,
+                                                  extent_share, fit_calibration,
+                                                  pose_difference, reliability_table,
+                                                  same_answer)
+from comreg_core.registration.scoring import Hypothesis, HypothesisResult
+from comreg_core.registration.verdict import judge_registration
+
+
+def _pose(rotvec_deg=(0.0, 0.0, 0.0), shift=(0.0, 0.0, 0.0)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    T[:3, 3] = shift
+    return T
+
+
+@pytest.fixture()
+def strip() -> np.ndarray:
+    """A 50 mm strip of US points along x (mm)."""
+    rng = np.random.default_rng(0)
+    return np.column_stack([rng.uniform(-25, 25, 400), rng.uniform(-5, 5, 400),
+                            rng.normal(0, 0.2, 400)])
+
+
+def test_pose_difference_and_clinical_sameness_against_known_transforms(strip):
+    distance, angle = pose_difference(np.eye(4), _pose(shift=(3.0, 0.0, 0.0)), strip)
+    assert distance == pytest.approx(3.0, abs=1e-9) and angle == pytest.approx(0.0, abs=1e-6)
+    assert same_answer(np.eye(4), _pose(shift=(0.0, 3.0, 2.0)), strip)  # 3.6 mm
+    assert not same_answer(np.eye(4), _pose(shift=(5.0, 0.0, 0.0)), strip)
+    # 4 deg about z moves the strip's ends (25 mm out) by 25 * 2 sin(2 deg) = 1.7 mm: same
+    distance, angle = pose_difference(np.eye(4), _pose((0, 0, 4.0)), strip)
+    assert angle == pytest.approx(4.0, abs=1e-6)
+    radius = np.linalg.norm(strip[:, :2], axis=1).max()  # about z, only x and y count
+    assert distance == pytest.approx(2 * np.sin(np.radians(2.0)) * radius, rel=0.02)
+    assert same_answer(np.eye(4), _pose((0, 0, 4.0)), strip)
+    assert not same_answer(np.eye(4), _pose((0, 0, 6.0)), strip)  # beyond 5 deg, though 2.6 mm
+
+
+def _result(strip, entries) -> HypothesisResult:
+    hypotheses = tuple(Hypothesis(name, np.eye(4), T, score, 0.0) for name, T, score in entries)
+    return HypothesisResult(T_ct_us=entries[0][1], chosen=entries[0][0], runner_up=None,
+                            score_gap_mm=None, confidence=1.0, ambiguous=False,
+                            hypotheses=hypotheses)
+
+
+def test_the_competitor_is_the_best_clinically_different_pose(strip):
+    result = _result(strip, [("chosen", np.eye(4), 0.10),
+                             ("near", _pose(shift=(2.0, 0, 0)), 0.11),  # the same answer
+                             ("far", _pose(shift=(0, 0, 30.0)), 0.40),
+                             ("slid", _pose(shift=(12.0, 0, 0)), 0.20)])
+    competitor = clinical_competitor(result, strip)
+    assert competitor["name"] == "slid"
+    assert competitor["margin"] == pytest.approx((0.20 - 0.10) / 0.20)
+    assert competitor["distance_mm"] == pytest.approx(12.0)
+    assert np.allclose(competitor["centroid_ct"], strip.mean(axis=0) + [12.0, 0, 0])
+    # a prior that rules the slide out leaves the far pose
+    allowed = clinical_competitor(result, strip, allowed=lambda T: T[0, 3] < 5.0)
+    assert allowed["name"] == "far" and allowed["margin"] == pytest.approx(0.75)
+    alone = clinical_competitor(_result(strip, [("chosen", np.eye(4), 0.1)]), strip)
+    assert alone["name"] is None and alone["margin"] == 1.0
+
+
+def test_extent_share_is_the_sweeps_spread_over_the_ct_length(strip):
+    assert extent_share(strip, 400.0) == pytest.approx(45.0 / 400.0, rel=0.05)  # p5-p95 of 50
+    assert extent_share(strip, 10.0) == 1.0
+
+
+def test_fit_is_monotone_separates_what_the_data_separates_and_treats_a_tie_as_a_coin_flip():
+    rng = np.random.default_rng(1)
+    margins = rng.uniform(0, 1, 200)
+    extents = rng.uniform(0.05, 0.3, 200)
+    correct = margins > 0.3
+    cal = fit_calibration(margins, extents, correct, ct_length_mm=400.0)
+    assert cal.weights[1] > 0 and cal.weights[2] >= 0
+    grid = np.linspace(0, 1, 21)
+    p = [cal.p_correct(m, 0.1) for m in grid]
+    assert np.all(np.diff(p) >= 0)  # never lower with more margin
+    assert np.all(np.diff([cal.p_correct(0.2, e) for e in grid]) >= 0)  # nor with more extent
+    assert cal.p_correct(0.8, 0.1) > 0.95 and cal.p_correct(0.05, 0.1) < 0.2
+    # a search that was always right cannot teach that a tie is safe
+    always = fit_calibration(margins, extents, np.ones(200, bool), ct_length_mm=400.0)
+    assert 0.3 < always.p_correct(0.0, 0.15) < 0.85
+    assert always.p_correct(1.0, 0.15) > always.p_correct(0.0, 0.15)
+    # deterministic
+    assert fit_calibration(margins, extents, correct, ct_length_mm=400.0).weights == cal.weights
+
+
+def test_reliability_table_counts_and_rates():
+    p = np.array([0.1, 0.2, 0.85, 0.97, 0.99, 1.0])
+    correct = np.array([False, True, True, True, True, False])
+    rows = reliability_table(p, correct)
+    assert [r["count"] for r in rows] == [2, 1, 3]
+    assert rows[0]["observed"] == 0.5 and rows[2]["observed"] == pytest.approx(2 / 3)
+    assert rows[2]["predicted"] == pytest.approx(np.mean([0.97, 0.99, 1.0]))
+
+
+def test_calibration_file_round_trip_and_bad_files(tmp_path):
+    cal = fit_calibration([0.1, 0.9, 0.5, 0.7], [0.1, 0.2, 0.1, 0.2], [False, True, True, True],
+                          ct_length_mm=380.0, settings={"seed": 3})
+    path = cal.save(tmp_path / "calibration.json")
+    again = Calibration.load(path)
+    assert again.weights == cal.weights and again.p_correct(0.4, 0.1) == cal.p_correct(0.4, 0.1)
+    assert again.settings == {"seed": 3} and again.ct_length_mm == 380.0
+    (tmp_path / "bad.json").write_text(json.dumps({"weights": [1, 2]}))
+    with pytest.raises(ComRegError, match="not a ComReg calibration"):
+        Calibration.load(tmp_path / "bad.json")
+    with pytest.raises(ComRegError):
+        Calibration.load(tmp_path / "missing.json")
+
+
+def test_verdict_judges_by_p_correct_when_calibrated(shared_data):
+    from tests.helpers import FIBULA_STL
+    from comreg_core.registration.surface import CTSurface
+
+    surface = CTSurface(FIBULA_STL)
+    points, _ = surface.samples(3000)  # on the bone: residuals, coverage and refit all pass
+    low = judge_registration(points, np.eye(4), surface, confidence=0.9, p_correct=0.6)
+    assert not low.ok and any("0.60" in r and "0.95" in r for r in low.reasons)
+    high = judge_registration(points, np.eye(4), surface, confidence=0.1, ambiguous=True,
+                              p_correct=0.97)
+    assert high.ok and high.figures["p_correct"] == pytest.approx(0.97)
+    plain = judge_registration(points, np.eye(4), surface, confidence=0.1, ambiguous=True)
+    assert not plain.ok and plain.figures["p_correct"] is None
