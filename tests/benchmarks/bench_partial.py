@@ -3,7 +3,9 @@ alone and, given pretrained runs, by ComReg and its plain pipeline.
 
 ``.venv/bin/python -m tests.benchmarks.bench_partial [--trials 100] [--seed 0]
 [--set simulated-fibula,simulated-tibia,real-fibula] [--perturbation paper,full]
-[--model fibula=RUN --untrained fibula=RUN0 --model tibia=RUN ...]``
+[--model fibula=RUN --untrained fibula=RUN0 --model tibia=RUN ...]``; with ``--trust`` the
+rows of issue 33 instead (priors, unions of real runs, the verdict with ``p_correct``: see
+:mod:`tests.benchmarks.partial_trust`).
 
 Sets:
 
@@ -132,7 +134,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--model", action="append", default=[], help="BONE=RUN trained on that CT")
     p.add_argument("--untrained", action="append", default=[],
                    help="BONE=RUN of the same network at 0 epochs")
+    p.add_argument("--trust", action="store_true", help="the trust rows instead (priors, "
+                   "unions, verdict with p_correct: tests/benchmarks/partial_trust.py)")
+    p.add_argument("--prior", default="none,init,landmark", help="with --trust")
+    p.add_argument("--calibration-sweeps", type=int, default=40, help="with --trust")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.trust:
+        from tests.benchmarks.partial_trust import run_trust
+
+        default = "real-fibula,real-fibula-union,simulated-fibula,simulated-tibia-anatomical"
+        run_trust(args, (default if args.set == ",".join(SETS) else args.set).split(","))
+        return
 
     config = from_dict(SimulationConfig, PARTIAL_SWEEPS, "simulation")
     print(f"success: RTE < 4 mm and RRE < 5 deg; {args.trials} trials per set and perturbation; "

@@ -1,0 +1,189 @@
+"""Trust rows of ``bench_partial`` (issue 33): priors, unions of real runs, and the verdict.
+
+``.venv/bin/python -m tests.benchmarks.bench_partial --trust [--trials 22] [--seed 0]
+[--set real-fibula,real-fibula-union,simulated-fibula,simulated-tibia-anatomical]
+[--prior none,init,landmark] [--calibration-sweeps 40] [--model fibula=RUN --untrained
+fibula=RUN0]``
+
+Per set and prior, every method (``search``: the pose search alone; ``comreg``: a run trained on
+that CT, then the search; ``untrained``: the same network at 0 epochs, the control) registers
+``--trials`` sweeps moved by the paper's random poses, with beam origins, and is judged as
+``comreg register`` judges: the verdict with the per-patient calibration of ``p_correct``
+(``comreg calibrate``; ``--calibration-sweeps`` simulated sweeps of that CT, cached in
+``out/bench_partial/``) and the prior's reasons. Columns: success (RTE < 4 mm and RRE < 5 deg),
+unflagged wrong (share of all trials: wrong and verdict OK), correct unflagged (share of the
+correct ones with verdict OK), median ``p_correct``, latency (median, p90; the registration
+only). Then ``p_correct``'s reliability over every row of the set (predicted vs observed).
+
+Priors: ``init``: an initial pose drawn uniformly within 30 deg (a random axis, angle uniform
+in [0, 30]) and 30 mm (a random direction, length uniform in [0, 30], of the US centroid) of
+the truth, searched with ``--init-tolerance 30,30``; ``landmark``: one landmark pair, a US point
+and the truth's CT point moved 10 mm in a random direction, tolerance 15 mm (the truth inside
+it). ``real-fibula-union``: two real runs whose centroids lie at least 150 mm apart, joined.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+CACHE = Path("out/bench_partial")
+INIT_DEG, INIT_MM = 30.0, 30.0
+LANDMARK_OFF_MM, LANDMARK_TOLERANCE_MM = 10.0, 15.0
+UNION_MIN_MM = 150.0
+
+
+def union_runs(runs: list) -> list:
+    """Pairs of runs whose centroids lie at least :data:`UNION_MIN_MM` apart, joined."""
+    joined = []
+    for (a, oa), (b, ob) in itertools.combinations(runs, 2):
+        if np.linalg.norm(a.mean(0) - b.mean(0)) >= UNION_MIN_MM:
+            joined.append((np.vstack([a, b]), np.vstack([oa, ob])))
+    return joined
+
+
+def sample_prior(rng, kind: str, T_true: np.ndarray, moved: np.ndarray, space: str):
+    """A :class:`~comreg_core.registration.priors.Prior` of ``kind`` around ``T_true`` (module
+    docstring), or None for ``none``."""
+    from scipy.spatial.transform import Rotation
+
+    from comreg_core.registration.priors import Landmark, Prior
+    from comreg_core.transforms import apply_transform
+
+    if kind == "none":
+        return None
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    if kind == "landmark":
+        us_point = moved[rng.integers(len(moved))]
+        ct_point = apply_transform(T_true, us_point[None])[0] + LANDMARK_OFF_MM * direction
+        return Prior(landmarks=(Landmark("L1", ct_point, us_point, LANDMARK_TOLERANCE_MM),),
+                     space=space)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    R = Rotation.from_rotvec(axis * math.radians(rng.uniform(0.0, INIT_DEG))).as_matrix()
+    centre = apply_transform(T_true, moved.mean(axis=0)[None])[0]
+    D = np.eye(4)
+    D[:3, :3] = R
+    D[:3, 3] = centre - R @ centre + direction * rng.uniform(0.0, INIT_MM)
+    return Prior(T_init=D @ T_true, max_deg=INIT_DEG, max_mm=INIT_MM, space=space)
+
+
+def calibration_for(bone: str, ct, sweeps: int):
+    """The CT's calibration (made once, then read from :data:`CACHE`)."""
+    from comreg_core.evaluation.calibrate import calibrate
+    from comreg_core.registration.calibration import Calibration
+
+    path = CACHE / f"calibration_{bone}_{sweeps}.json"
+    if path.is_file():
+        return Calibration.load(path)
+    start = time.perf_counter()
+    calibration = calibrate(ct, sweeps=sweeps)
+    CACHE.mkdir(parents=True, exist_ok=True)
+    calibration.save(path)
+    print(f"calibrated {bone} on {sweeps} sweeps in {time.perf_counter() - start:.0f} s: "
+          f"{100 * calibration.correct_share:.0f} % correct, weights "
+          f"{', '.join(f'{w:.2f}' for w in calibration.weights)}", flush=True)
+    return calibration
+
+
+def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, trials: int,
+                 seed: int) -> dict[str, list[dict]]:
+    """Every method on ``trials`` paper poses of the runs (trial ``k``: run ``k % len(runs)``),
+    judged as ``comreg register`` judges (module docstring)."""
+    from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
+    from comreg_core.register_output import (prior_allows, registration_verdict,
+                                             with_prior_reasons)
+    from comreg_core.registration.metrics import registration_metrics
+    from comreg_core.registration.surface import CTSurface
+    from comreg_core.simulation import sample_initial_pose
+    from comreg_core.transforms import apply_transform, invert_rigid
+
+    surface = CTSurface(ct)
+    rows: dict[str, list] = {name: [] for name in methods}
+    for k in range(trials):
+        points, origins = runs[k % len(runs)]
+        rng = evaluation_rng(seed, STREAM_POSES, k)
+        T_p = sample_initial_pose(rng, "paper", surface.bbox_centre)
+        moved, moved_origins = apply_transform(T_p, points), apply_transform(T_p, origins)
+        for name, registrar in methods.items():
+            prior = sample_prior(np.random.default_rng([seed, k, 7]), prior_kind,
+                                 invert_rigid(T_p), moved, registrar.space)
+            start = time.perf_counter()
+            result = registrar.register(moved, beam_origins=moved_origins, prior=prior)
+            seconds = time.perf_counter() - start
+            allowed = None if prior is None else prior_allows(prior, result)
+            verdict, evidence = registration_verdict(result, registrar, calibration, allowed)
+            verdict = with_prior_reasons(verdict, result.info.get("prior"))
+            errors = registration_metrics(result.T_ct_us, invert_rigid(T_p), moved, surface)
+            rows[name].append({"correct": errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0,
+                               "ok": verdict.ok, "p_correct": evidence["p_correct"],
+                               "runtime_s": seconds})
+    return rows
+
+
+HEADER = (f"{'method':>10} {'success':>8} {'unflagged wrong':>16} {'correct unflagged':>18} "
+          f"{'p_correct med':>14} {'median s':>9} {'p90 s':>6}")
+
+
+def trust_row(name: str, rows: list[dict]) -> str:
+    correct = np.array([r["correct"] for r in rows])
+    ok = np.array([r["ok"] for r in rows])
+    p = np.array([np.nan if r["p_correct"] is None else r["p_correct"] for r in rows])
+    secs = np.array([r["runtime_s"] for r in rows])
+    kept = f"{(ok & correct).sum() / correct.sum():.0%}" if correct.any() else "-"
+    return (f"{name:>10} {correct.mean():8.0%} {(~correct & ok).mean():16.0%} {kept:>18} "
+            f"{np.nanmedian(p):14.2f} {np.median(secs):9.2f} {np.percentile(secs, 90):6.2f}")
+
+
+def reliability_line(rows: list[dict]) -> str:
+    from comreg_core.registration.calibration import reliability_table
+
+    p = np.array([r["p_correct"] for r in rows], dtype=float)
+    correct = np.array([r["correct"] for r in rows])
+    cells = [f"[{r['p_low']:.2f}, {r['p_high']:.2f}{']' if r['p_high'] == 1 else ')'}: "
+             f"n {r['count']}, predicted {r['predicted']:.2f}, observed {r['observed']:.2f}"
+             for r in reliability_table(p, correct)]
+    return "   p_correct reliability: " + "; ".join(cells)
+
+
+def run_trust(args, sets: list[str]) -> None:
+    """The ``--trust`` rows (module docstring)."""
+    from comreg_core.inference import Registrar
+    from tests.benchmarks.bench_partial import (PARTIAL_SWEEPS, real_runs, simulated_runs)
+    from comreg_core.config import from_dict
+    from comreg_core.simulation.config import SimulationConfig
+    from tests.helpers import FIBULA_STL, SHARED_DATA, tibia_like_mesh
+
+    config = from_dict(SimulationConfig, PARTIAL_SWEEPS, "simulation")
+    print(f"success: RTE < 4 mm and RRE < 5 deg; {args.trials} trials per set and prior, paper "
+          f"poses, seed {args.seed}; verdict with p_correct ({args.calibration_sweeps} "
+          "calibration sweeps per CT) and the prior's reasons")
+    for name in sets:
+        bone = name.split("-", 1)[1].removesuffix("-union")
+        ct = FIBULA_STL if bone == "fibula" else tibia_like_mesh(
+            anatomical=bone == "tibia-anatomical")
+        if name.startswith("simulated"):
+            runs = simulated_runs(ct, args.trials, args.seed, config)
+        else:
+            runs = real_runs(SHARED_DATA)
+            if name.endswith("-union"):
+                runs = union_runs(runs)
+        calibration = calibration_for(bone, ct, args.calibration_sweeps)
+        methods = {"search": Registrar.from_ct(ct)}
+        for label, given in (("comreg", args.model), ("untrained", args.untrained)):
+            by_bone = dict(a.split("=", 1) for a in given)
+            if bone in by_bone:
+                methods[label] = Registrar.from_run(by_bone[bone], "cpu")
+        for prior in (["none"] if name.endswith("-union") else args.prior.split(",")):
+            start = time.perf_counter()
+            rows = trust_trials(methods, runs, ct, calibration, prior, args.trials, args.seed)
+            print(f"-- {name} ({len(runs)} sweeps), prior {prior} "
+                  f"({time.perf_counter() - start:.0f} s)\n{HEADER}")
+            for method, method_rows in rows.items():
+                print(trust_row(method, method_rows), flush=True)
+            print(reliability_line([r for rs in rows.values() for r in rs]), flush=True)
