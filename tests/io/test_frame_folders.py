@@ -61,16 +61,22 @@ def test_frame_folder_follows_the_documented_chain(fibula):
         assert_close(fibula.timestamps[f], row["timestamp"] / 1000.0, atol=1e-12)
 
 
-def copy_folder(tmp_path: Path, n: int) -> Path:
-    """A frame folder with the first ``n`` frames of the fibula sweep."""
+def copy_folder(tmp_path: Path, n: int, source: Path = FIBULA_DIR, ext: str = ".png") -> Path:
+    """A frame folder with the first ``n`` frames of the sweep in ``source`` (default: the
+    fibula sweep), its PNG frames saved as ``ext`` images."""
+    from PIL import Image
+
     folder = tmp_path / "sweep"
     (folder / "frames").mkdir(parents=True)
-    lines = (FIBULA_DIR / "tracking.csv").read_text().splitlines()
+    lines = (source / "tracking.csv").read_text().splitlines()
     (folder / "tracking.csv").write_text("\n".join(lines[:n + 1]) + "\n")
-    shutil.copy(FIBULA_DIR / "calibration.json", folder)
+    shutil.copy(source / "calibration.json", folder)
     for line in lines[1:n + 1]:
         name = line.split(",")[0]
-        shutil.copy(FIBULA_DIR / "frames" / f"{name}.png", folder / "frames")
+        if ext == ".png":
+            shutil.copy(source / "frames" / f"{name}.png", folder / "frames")
+        else:
+            Image.open(source / "frames" / f"{name}.png").save(folder / "frames" / f"{name}{ext}")
     return folder
 
 
@@ -133,21 +139,7 @@ SAMPLE_SWEEP = Path(__file__).resolve().parents[2] / "resources" / "sample" / "s
 def sample_folder(tmp_path: Path, n: int = 3, ext: str = ".png") -> Path:
     """A frame folder with the first ``n`` frames of the bundled sample sweep (475 x 405 px
     grey PNGs), saved as ``ext`` images."""
-    from PIL import Image
-
-    folder = tmp_path / "sweep"
-    (folder / "frames").mkdir(parents=True)
-    lines = (SAMPLE_SWEEP / "tracking.csv").read_text().splitlines()
-    (folder / "tracking.csv").write_text("\n".join(lines[:n + 1]) + "\n")
-    shutil.copy(SAMPLE_SWEEP / "calibration.json", folder)
-    for line in lines[1:n + 1]:
-        name = line.split(",")[0]
-        if ext == ".png":
-            shutil.copy(SAMPLE_SWEEP / "frames" / f"{name}.png", folder / "frames")
-        else:
-            Image.open(SAMPLE_SWEEP / "frames" / f"{name}.png").save(
-                folder / "frames" / f"{name}{ext}")
-    return folder
+    return copy_folder(tmp_path, n, SAMPLE_SWEEP, ext)
 
 
 def cut_in_half(path: Path) -> Path:
