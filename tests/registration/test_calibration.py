@@ -132,3 +132,25 @@ def test_verdict_judges_by_p_correct_when_calibrated(shared_data):
     assert high.ok and high.figures["p_correct"] == pytest.approx(0.97)
     plain = judge_registration(points, np.eye(4), surface, confidence=0.1, ambiguous=True)
     assert not plain.ok and plain.figures["p_correct"] is None
+
+
+def test_tracking_drift_moves_each_slice_rigidly_by_the_rms_asked():
+    from comreg_core.evaluation.calibrate import tracking_drift
+
+    rng = np.random.default_rng(3)
+    slices = np.repeat(np.arange(200), 20)
+    points = rng.uniform(-20, 20, (len(slices), 3))
+    assert np.allclose(tracking_drift(points, slices, rng, 0.0, 0.0), points, atol=1e-12)
+    moved = tracking_drift(points, slices, np.random.default_rng(4), 0.0, 1.5)
+    shifts = (moved - points).reshape(200, 20, 3)
+    assert np.allclose(shifts, shifts[:, :1], atol=1e-9)  # one translation per slice
+    assert np.sqrt((shifts[:, 0] ** 2).sum(axis=1).mean()) == pytest.approx(1.5, rel=1e-6)
+    turned = tracking_drift(points, slices, np.random.default_rng(5), 1.5, 0.0)
+    centre = points.mean(axis=0)
+    angles = []
+    for s in range(0, 200, 20):  # each slice turned rigidly about the sweep's centre
+        a, b = points[slices == s] - centre, turned[slices == s] - centre
+        R = Rotation.align_vectors(b, a)[0]
+        assert np.allclose(R.apply(a), b, atol=1e-9)
+        angles.append(R.magnitude())
+    assert 0.3 < np.degrees(np.sqrt(np.mean(np.square(angles)))) < 4.0
