@@ -57,6 +57,7 @@ def registration_verdict(result: RegistrationResult, registrar: Registrar,
     verdict = judge_registration(
         points, result.T_ct_us, registrar.surface, confidence=result.confidence,
         ambiguous=result.ambiguous, p_correct=evidence["p_correct"],
+        short_sweep=evidence["extent_share"] is not None and evidence["extent_share"] < 0.5,
         ok_probability=OK_PROBABILITY if calibration is None else calibration.ok_probability)
     return verdict, evidence
 

@@ -89,7 +89,8 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
                                  confidence=hypotheses.get("confidence"),
                                  ambiguous=hypotheses.get("ambiguous"),
                                  p_correct=None if transform is not None
-                                 else result.get("p_correct"))
+                                 else result.get("p_correct"),
+                                 short_sweep=(result.get("extent_share") or 1.0) < 0.5)
     if transform is None:  # an initial pose or landmarks the result sits at the edge of
         from comreg_core.register_output import with_prior_reasons
 

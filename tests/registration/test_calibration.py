@@ -154,3 +154,27 @@ def test_tracking_drift_moves_each_slice_rigidly_by_the_rms_asked():
         assert np.allclose(R.apply(a), b, atol=1e-9)
         angles.append(R.magnitude())
     assert 0.3 < np.degrees(np.sqrt(np.mean(np.square(angles)))) < 4.0
+
+
+def test_a_calibrated_verdict_leaves_coverage_to_p_correct_and_a_short_sweep_its_scale(
+        shared_data):
+    from tests.helpers import FIBULA_STL
+    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.verdict import DEFAULT_THRESHOLDS, _reasons
+
+    surface = CTSurface(FIBULA_STL)
+    points, _ = surface.samples(20000)
+    axes = np.linalg.svd(points - points.mean(0), full_matrices=False)[2]
+    along, across = (points - points.mean(0)) @ axes[0], (points - points.mean(0)) @ axes[1]
+    stretch = points[(np.abs(along) < 4.0) & (across > 0)]  # one face of an 8 mm band
+    plain = judge_registration(stretch, np.eye(4), surface)
+    assert plain.figures["coverage"] < DEFAULT_THRESHOLDS.min_coverage
+    assert any("touches only" in r for r in plain.reasons)
+    calibrated = judge_registration(stretch, np.eye(4), surface, p_correct=0.99)
+    assert not any("touches only" in r for r in calibrated.reasons)
+    figures = {"median_mm": 0.2, "p90_mm": 0.5, "within_2mm": 1.0, "coverage": 0.01,
+               "refit_shift_mm": 0.5, "refit_scale": 0.84, "refit_scale_gain": 0.3,
+               "confidence": None, "p_correct": 0.99}
+    assert any("scaled by 0.84" in r for r in _reasons(figures, False, DEFAULT_THRESHOLDS, 0.95,
+                                                        short_sweep=False))
+    assert _reasons(figures, False, DEFAULT_THRESHOLDS, 0.95, short_sweep=True) == []
