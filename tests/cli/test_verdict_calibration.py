@@ -1,0 +1,68 @@
+"""`comreg register --verdict-calibration FILE`: result.json gets p_correct (the calibration's
+figure for the result's own margin and extent), the competitor and the calibration's record;
+a file that is not a calibration is refused before any work."""
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from comreg_core.cli import app
+from comreg_core.io import PointCloud, write_points
+from comreg_core.registration.calibration import Calibration, fit_calibration
+from comreg_core.transforms import apply_transform
+from tests.helpers import FIBULA_STL
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def short_sweep(tmp_path_factory, shared_data):
+    """A 40-50 mm simulated one-face sweep of the fibula, moved by a known pose."""
+    from comreg_core.config import from_dict
+    from comreg_core.simulation.config import SimulationConfig
+    from tests.benchmarks.bench_partial import PARTIAL_SWEEPS, simulated_runs
+
+    config = from_dict(SimulationConfig, PARTIAL_SWEEPS, "simulation")
+    points, origins = simulated_runs(FIBULA_STL, 1, 11, config)[0]
+    T = np.eye(4)
+    T[:3, 3] = [20.0, -10.0, 5.0]
+    folder = tmp_path_factory.mktemp("calibrated")
+    path = write_points(PointCloud(apply_transform(T, points), "LPS",
+                                   beam_origins=apply_transform(T, origins)), folder / "us.ply")
+    return folder, path
+
+
+def test_register_reports_p_correct_from_the_calibration_given(short_sweep):
+    folder, us = short_sweep
+    rng = np.random.default_rng(0)
+    margins = rng.uniform(0, 1, 60)
+    calibration = fit_calibration(margins, rng.uniform(0.05, 0.3, 60), margins > 0.2,
+                                  ct_length_mm=404.0)
+    path = calibration.save(folder / "calibration.json")
+    out = folder / "reg"
+    result = runner.invoke(app, ["register", str(us), "--ct", str(FIBULA_STL), "--out", str(out),
+                                 "--verdict-calibration", str(path)])
+    assert result.exit_code == 0, result.output
+    saved = json.loads((out / "result.json").read_text())
+    competitor = saved["competitor"]
+    assert 0.0 <= competitor["margin"] <= 1.0 and 0.0 < saved["extent_share"] < 0.5
+    expected = Calibration.load(path).p_correct(competitor["margin"], saved["extent_share"])
+    assert saved["p_correct"] == pytest.approx(expected, abs=1e-12)
+    assert saved["verdict_figures"]["p_correct"] == pytest.approx(expected, abs=1e-12)
+    assert saved["calibration"]["sweeps"] == 60
+    assert (saved["verdict"] == "ok") == (expected >= 0.95 and not saved["verdict_reasons"])
+    if competitor["name"] is not None:  # a clinically different pose: beyond 4 mm or 5 deg
+        assert competitor["distance_mm"] > 4.0 or competitor["rotation_deg"] > 5.0
+
+
+def test_a_file_that_is_not_a_calibration_is_refused_before_any_work(short_sweep):
+    folder, us = short_sweep
+    bad = folder / "not_a_calibration.json"
+    bad.write_text(json.dumps({"weights": [0, 1]}))
+    out = folder / "refused"
+    result = runner.invoke(app, ["register", str(us), "--ct", str(FIBULA_STL), "--out", str(out),
+                                 "--verdict-calibration", str(bad)])
+    assert result.exit_code == 2
+    assert "not a ComReg calibration" in result.output and not out.exists()
