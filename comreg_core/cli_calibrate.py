@@ -36,11 +36,9 @@ def calibrate(
     def progress(done: int, total: int, message: str) -> None:
         typer.echo(message, err=True)
 
-    path = calibrate_to_directory(ct_mesh, out, sweeps=sweeps, lengths_mm=(low, high),
-                                  seed=seed, progress=progress)
-    from comreg_core.registration.calibration import Calibration
-
-    calibration = Calibration.load(path)
+    path, calibration = calibrate_to_directory(ct_mesh, out, sweeps=sweeps,
+                                               lengths_mm=(low, high), seed=seed,
+                                               progress=progress)
     typer.echo(f"Wrote {path}: {calibration.sweeps} simulated sweeps, "
                f"{100 * calibration.correct_share:.0f} % registered within 4 mm / 5 deg.")
     for row in calibration.reliability:

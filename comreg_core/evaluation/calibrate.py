@@ -127,11 +127,12 @@ def calibrate(ct_mesh, *, sweeps: int = 60, lengths_mm: tuple[float, float] = (3
     return calibration
 
 
-def calibrate_to_directory(ct_mesh, out_dir, **kwargs) -> Path:
-    """:func:`calibrate` and write ``out_dir/calibration.json`` (the folder checked first)."""
+def calibrate_to_directory(ct_mesh, out_dir, **kwargs) -> tuple[Path, Calibration]:
+    """:func:`calibrate` and write ``out_dir/calibration.json`` (the folder checked first);
+    returns its path and the calibration."""
     from comreg_core.io._files import check_output_folder
 
     out = check_output_folder(out_dir, inputs=[ct_mesh])
     calibration = calibrate(ct_mesh, **kwargs)
     out.mkdir(parents=True, exist_ok=True)
-    return calibration.save(out / runs.CALIBRATION)
+    return calibration.save(out / runs.CALIBRATION), calibration

@@ -26,13 +26,15 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from comreg_core.errors import ComRegError
+from comreg_core.registration.metrics import rotation_error_deg
+from comreg_core.registration.surface import principal_frame
 from comreg_core.transforms import apply_transform
 
 #: Clinical tolerance: target error over the sweep (mm) and rotation (deg).
@@ -58,9 +60,7 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray, points_us: np.ndarray
     sub = points_us[::step]
     distance = float(np.linalg.norm(apply_transform(T_a, sub) - apply_transform(T_b, sub),
                                     axis=1).max())
-    R = T_a[:3, :3].T @ T_b[:3, :3]
-    angle = math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-    return distance, angle
+    return distance, rotation_error_deg(T_a, T_b)
 
 
 def same_answer(T_a: np.ndarray, T_b: np.ndarray, points_us: np.ndarray) -> bool:
@@ -105,9 +105,8 @@ def clinical_competitor(hypotheses, points_us: np.ndarray,
 def extent_share(points_us: np.ndarray, ct_length_mm: float) -> float:
     """The sweep's spread along its largest principal axis (5th-95th percentile, mm) over the
     CT's length, clipped to [0, 1]."""
-    centred = points_us - points_us.mean(axis=0)
-    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
-    along = centred @ axis
+    centre, axes = principal_frame(points_us)
+    along = (points_us - centre) @ axes[:, 0]
     spread = float(np.percentile(along, 95) - np.percentile(along, 5))
     return float(np.clip(spread / max(ct_length_mm, 1e-9), 0.0, 1.0))
 
@@ -210,7 +209,7 @@ def fit_calibration(margins: np.ndarray, extents: np.ndarray, correct: np.ndarra
                               correct_share=float(np.mean(correct)), ct_length_mm=ct_length_mm,
                               settings=dict(settings or {}), ct_fingerprint=ct_fingerprint)
     p = np.array([calibration.p_correct(a, b) for a, b in zip(margins, extents)])
-    return _with_reliability(calibration, p, np.asarray(correct, bool))
+    return replace(calibration, reliability=reliability_table(p, np.asarray(correct, bool)))
 
 
 def reliability_table(p: np.ndarray, correct: np.ndarray,
@@ -224,13 +223,6 @@ def reliability_table(p: np.ndarray, correct: np.ndarray,
                          "predicted": float(p[inside].mean()),
                          "observed": float(correct[inside].mean())})
     return rows
-
-
-def _with_reliability(calibration: Calibration, p: np.ndarray, correct: np.ndarray
-                      ) -> Calibration:
-    from dataclasses import replace
-
-    return replace(calibration, reliability=reliability_table(p, correct))
 
 
 def result_evidence(hypotheses, points_us: np.ndarray, ct_length_mm: float,
