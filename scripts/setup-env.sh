@@ -17,4 +17,7 @@ else
   .venv/bin/python -m pip install --quiet "torch==2.13.0"
 fi
 .venv/bin/python -m pip install --quiet -e ".[test]"
+# Compile the pose search's kernels once (numba caches them beside the code: ~30 s here
+# instead of in the first registration).
+.venv/bin/python -c "from comreg_core.registration.kernels import compile_kernels; compile_kernels()"
 .venv/bin/comreg --version

@@ -128,6 +128,7 @@ import numpy as np
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration.advice import ambiguity_advice
 from comreg_core.registration.config import HypothesisConfig
+from comreg_core.registration import kernels
 from comreg_core.registration.icp import (apply_poses, coarse_to_fine_icp, point_to_plane_icp,
                                           strided)
 from comreg_core.registration.polish import choose_and_polish
@@ -298,13 +299,15 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
     if config.refine_top == 0 or len(starts) <= config.refine_top:
         return np.arange(len(starts)), starts
 
-    poses = point_to_plane_icp(strided(us_points, config.screen_points), starts,
-                               target.match_approx, iterations=config.screen_iterations,
-                               trim_fraction=config.icp_trim, tolerance_mm=0.1).T
     sub = strided(us_points, config.screen_score_points)
-    scores = score_poses(poses, sub, target, config, approximate=True,
-                         origins=None if origins is None
-                         else strided(origins, config.screen_score_points))
+    sub_origins = None if origins is None else strided(origins, config.screen_score_points)
+    if kernels.COMPILED:
+        poses, scores = _screen_compiled(us_points, starts, target, config, sub, sub_origins)
+    else:
+        poses = point_to_plane_icp(strided(us_points, config.screen_points), starts,
+                                   target.match_approx, iterations=config.screen_iterations,
+                                   trim_fraction=config.icp_trim, tolerance_mm=0.1).T
+        scores = score_poses(poses, sub, target, config, approximate=True, origins=sub_origins)
     centroids = apply_poses(poses, us_points.mean(axis=0)[None])[:, 0]  # B 3
     chosen = [0] if keep_first else []
     order = np.argsort(scores, kind="stable")
@@ -320,6 +323,26 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
     if keep_first:
         screened[0] = starts[0]
     return kept, screened
+
+
+def _screen_compiled(us_points, starts, target: SurfaceCloud, config: HypothesisConfig,
+                     sub: np.ndarray, sub_origins: np.ndarray | None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The screening's ICP and quick score by the compiled kernels: ``(B, 4, 4)`` screened
+    poses and their ``(B,)`` scores (mm)."""
+    from comreg_core.registration.kernels import grid_icp, grid_scores
+
+    origin, spacing, grid = target.closest_point_grid
+    cloud, normals = target.points, target.normals
+    poses, _, _ = grid_icp(np.ascontiguousarray(strided(us_points, config.screen_points)),
+                           np.ascontiguousarray(starts, dtype=np.float64), origin,
+                           float(spacing), grid, cloud, normals, int(config.screen_iterations),
+                           float(config.icp_trim), 0.1)
+    origins = np.zeros((0, 3)) if sub_origins is None else np.ascontiguousarray(sub_origins)
+    scores = grid_scores(poses, np.ascontiguousarray(sub), origins, origin, float(spacing),
+                         grid, cloud, normals, float(config.score_trim),
+                         float(config.facing_penalty_mm))
+    return poses, scores
 
 
 def us_subset(points: np.ndarray, count: int) -> np.ndarray:

@@ -1,0 +1,141 @@
+"""The compiled kernels of the pose search (comreg_core/registration/kernels.py) against the
+numpy code they replaced (the same ICP and score, step for step) and scipy's rotations; and
+the same output at 1 and 2 threads."""
+
+import numba
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from comreg_core.registration import kernels
+from comreg_core.registration.config import HypothesisConfig
+from comreg_core.registration.icp import _numpy_pose_steps, point_to_plane_icp, strided
+from comreg_core.registration.scoring import score_poses
+from tests.helpers import random_rigid
+
+
+@pytest.fixture
+def numpy_path():
+    """Run the test body's registration code on the numpy path, then restore."""
+    kernels.COMPILED = False
+    yield
+    kernels.COMPILED = True
+
+
+def _starts(rng, points, count, degrees=25.0, mm=15.0):
+    """``(count, 4, 4)`` poses up to ``degrees``/``mm`` from the identity about the centroid."""
+    centre = points.mean(axis=0)
+    T = np.tile(np.eye(4), (count, 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(rng.normal(size=(count, 3)) * np.radians(degrees) / 2
+                                        ).as_matrix()
+    T[:, :3, 3] = centre - T[:, :3, :3] @ centre + rng.uniform(-mm, mm, size=(count, 3))
+    return T
+
+
+def test_rotation_from_rotvec_matches_scipy():
+    rng = np.random.default_rng(0)
+    vectors = np.concatenate([rng.normal(size=(50, 3)), rng.normal(size=(50, 3)) * 1e-5,
+                              np.zeros((1, 3))])
+    for v in vectors:
+        R = np.empty((3, 3))
+        kernels._rotation_from_rotvec(v, R)
+        np.testing.assert_allclose(R, Rotation.from_rotvec(v).as_matrix(), atol=1e-14)
+
+
+def test_select_is_the_kth_smallest():
+    rng = np.random.default_rng(1)
+    for n in (1, 2, 7, 64, 65, 200):
+        for trial in range(50):
+            values = (rng.integers(0, 4, n).astype(float) if trial % 2 else rng.normal(size=n))
+            k = int(rng.integers(0, n))
+            assert kernels._select(values.copy(), n, k) == np.sort(values)[k]
+
+
+def test_pose_steps_match_the_numpy_update():
+    rng = np.random.default_rng(2)
+    m, n = 5, 40
+    moved, q = rng.normal(size=(m, n, 3)) * 20, rng.normal(size=(m, n, 3)) * 20
+    nrm = rng.normal(size=(m, n, 3))
+    nrm /= np.linalg.norm(nrm, axis=2, keepdims=True)
+    d = np.linalg.norm(moved - q, axis=2)
+    d[0, :10] = np.inf  # unmatched pairs
+    d[1, 3:] = np.inf  # too few pairs: no update
+    for trim in (0.0, 0.1, 0.3):
+        T_numpy = np.tile(random_rigid(rng), (m, 1, 1))
+        T_compiled = T_numpy.copy()
+        expected = _numpy_pose_steps(moved, q, nrm, d, trim, T_numpy)
+        got = kernels.pose_steps(moved, q, nrm, d, trim, T_compiled)
+        np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12, equal_nan=True)
+        np.testing.assert_allclose(T_compiled, T_numpy, rtol=0, atol=1e-9)
+        assert np.isnan(got[1, 0]) and (T_compiled[1] == T_numpy[1]).all()
+
+
+def test_icp_same_result_compiled_or_numpy(fibula_patch, fibula_surface, numpy_path):
+    """The refinement's KD-tree matcher over 15 iterations; the polish's exact matcher over
+    one (its normal at a point nearest an edge is either triangle's, so a 1e-12 mm change
+    can pick the other one and later iterations part: measured 0.4 mm after two)."""
+    target = fibula_surface.cloud(5000)
+    rng = np.random.default_rng(3)
+    starts = _starts(rng, fibula_patch, 6)
+    for match, trim, iterations in ((target.match, 0.1, 15), (fibula_surface.matcher(2.0), 0.0,
+                                                               1)):
+        kernels.COMPILED = False
+        expected = point_to_plane_icp(fibula_patch, starts, match, iterations=iterations,
+                                      trim_fraction=trim)
+        kernels.COMPILED = True
+        got = point_to_plane_icp(fibula_patch, starts, match, iterations=iterations,
+                                 trim_fraction=trim)
+        np.testing.assert_allclose(got.T, expected.T, atol=1e-6)
+        np.testing.assert_array_equal(got.iterations, expected.iterations)
+        np.testing.assert_allclose(got.rmse_mm, expected.rmse_mm, rtol=1e-6)
+        assert np.abs(got.T - starts).max() > 0.1  # they moved
+
+
+def test_grid_icp_and_scores_match_the_numpy_screening(fibula_patch, fibula_surface):
+    target = fibula_surface.cloud(5000)
+    config = HypothesisConfig()
+    rng = np.random.default_rng(4)
+    starts = _starts(rng, fibula_patch, 40, degrees=40.0, mm=30.0)
+    src = strided(fibula_patch, 64)
+    kernels.COMPILED = False
+    try:
+        expected = point_to_plane_icp(src, starts, target.match_approx, iterations=20,
+                                      trim_fraction=0.1, tolerance_mm=0.1)
+    finally:
+        kernels.COMPILED = True
+    origin, spacing, grid = target.closest_point_grid
+    poses, rmse, done = kernels.grid_icp(src, starts, origin, float(spacing), grid,
+                                         target.points, target.normals, 20, 0.1, 0.1)
+    np.testing.assert_allclose(poses, expected.T, atol=1e-6)
+    np.testing.assert_array_equal(done, expected.iterations)
+    np.testing.assert_allclose(rmse, expected.rmse_mm, rtol=1e-6)
+
+    sub = strided(fibula_patch, 128)
+    origins = sub + 40.0 * np.array([0.0, 0.0, 1.0])  # beams from one side: some face away
+    for beam_origins in (None, origins):
+        expected_scores = score_poses(poses, sub, target, config, approximate=True,
+                                      origins=beam_origins)
+        scores = kernels.grid_scores(poses, sub, np.zeros((0, 3)) if beam_origins is None
+                                     else beam_origins, origin, float(spacing), grid,
+                                     target.points, target.normals, config.score_trim,
+                                     config.facing_penalty_mm)
+        np.testing.assert_allclose(scores, expected_scores, rtol=1e-9)
+    assert (np.abs(scores - expected_scores) < 1e-9).all() and scores.max() > 1.0
+
+
+def test_kernels_give_the_same_bits_at_one_and_two_threads(fibula_patch, fibula_surface):
+    target = fibula_surface.cloud(5000)
+    starts = _starts(np.random.default_rng(5), fibula_patch, 64, degrees=60.0, mm=40.0)
+    origin, spacing, grid = target.closest_point_grid
+    src = strided(fibula_patch, 64)
+    outputs = []
+    before = numba.get_num_threads()
+    try:
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            outputs.append(kernels.grid_icp(src, starts, origin, float(spacing), grid,
+                                            target.points, target.normals, 20, 0.1, 0.1))
+    finally:
+        numba.set_num_threads(before)
+    for a, b in zip(*outputs):
+        np.testing.assert_array_equal(a, b)
