@@ -55,6 +55,7 @@ from comreg_core.registration.inputs import beam_origins_for, limit_us_points, s
 from comreg_core.registration.result import RegistrationResult, residual_statistics
 from comreg_core.registration.priors import Prior, prior_record
 from comreg_core.registration.search import principal_axes_pose
+from comreg_core.registration.warm import warm_search
 from comreg_core.registration.surface import mesh_arrays
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.normalization import Normalization
@@ -262,7 +263,8 @@ class Registrar:
     def register(self, points, seed: int = 0, *,
                  hypotheses: HypothesisConfig | bool | None = None,
                  beam_origins: np.ndarray | None = None,
-                 prior: Prior | None = None) -> RegistrationResult:
+                 prior: Prior | None = None,
+                 warm_start: RegistrationResult | None = None) -> RegistrationResult:
         """Register a US bone cloud ``(N, 3)`` (mm, in the CT's patient space) to the CT.
 
         Args:
@@ -279,6 +281,10 @@ class Registrar:
                 network ``T_init`` replaces the principal-axes start); ``info["prior"]`` is
                 its record (:func:`~comreg_core.registration.priors.prior_record`: where the
                 result lies in it, ``at_edge``, ``reasons`` for the verdict).
+            warm_start: an earlier result of this registrar for the same sweep before it grew
+                (live registration): its poses are refined on ``points`` instead of a full
+                search, with no network pass (:mod:`comreg_core.registration.warm`;
+                ``info["warm_start"]`` says which it was).
         """
         hyp_cfg = (self.hypothesis_config if hypotheses is None
                    else self._search_config(hypotheses))
@@ -310,7 +316,15 @@ class Registrar:
         warnings = list(self.warnings)
         if n_given is not None and n_given > len(pts):
             warnings.append(subset_notice(n_given, len(pts)))
-        if self.model is None:
+        if warm_start is not None:
+            if warm_start.hypotheses is None or not hyp_cfg.enabled:
+                raise ComRegError("A warm start needs the pose search, on in both "
+                                  "registrations.", "Register with hypotheses on.")
+            T = T_coarse = warm_start.T_ct_us
+            dense, icp_rmse = None, float("nan")
+            t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
+                     icp=0.0, postprocess=0.0)
+        elif self.model is None:
             T = T_coarse = principal_axes_pose(pts, target) if getattr(
                 prior, "T_init", None) is None else prior.T_init
             dense, icp_rmse = None, float("nan")
@@ -321,7 +335,10 @@ class Registrar:
         hyp, t["hypotheses"] = None, 0.0
         if hyp_cfg.enabled:
             mark = time.perf_counter()
-            hyp = search_hypotheses(pts, T, target, dense, hyp_cfg,
+            hyp = warm_search(pts, warm_start.hypotheses, target, hyp_cfg,
+                              beam_origins=origins, prior=prior, space=self.space
+                              ) if warm_start is not None else search_hypotheses(
+                                    pts, T, target, dense, hyp_cfg,
                                     T_coarse=None if self.model is None else T_coarse,
                                     start_name="network" if self.model is not None else
                                     "pca" if getattr(prior, "T_init", None) is None else "init",
@@ -341,7 +358,8 @@ class Registrar:
         t["residuals"] = time.perf_counter() - mark
         info = {"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(t),
                 "residuals_mm": residuals, "warnings": warnings,
-                "hypotheses": None if hyp is None else hyp.to_json()}
+                "hypotheses": None if hyp is None else hyp.to_json(),
+                "warm_start": warm_start is not None}
         if hyp is not None:  # the flag where other consumers (the plugin) look for it
             info.update(ambiguous=hyp.ambiguous, confidence=hyp.confidence)
         if prior is not None:

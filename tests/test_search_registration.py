@@ -190,7 +190,7 @@ def test_extract_us_keeps_beam_origins_and_register_uses_them(tmp_path, shared_d
 
 def test_the_search_gives_the_same_pose_at_any_thread_count(tmp_path, shared_data):
     """Same inputs, same output: the pose search alone run at 1 and at 2 threads (BLAS and
-    OpenMP) returns bit-identical transforms."""
+    OpenMP, and numba's threads for the compiled kernels) returns bit-identical transforms."""
     import os
     import subprocess
     import sys
@@ -208,7 +208,7 @@ def test_the_search_gives_the_same_pose_at_any_thread_count(tmp_path, shared_dat
     results = []
     for threads in ("1", "2"):
         env = {**os.environ, "OMP_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads,
-               "MKL_NUM_THREADS": threads}
+               "MKL_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads}
         path = tmp_path / f"T{threads}.npy"
         subprocess.run([sys.executable, "-c", code, str(path)], env=env, check=True,
                        capture_output=True)

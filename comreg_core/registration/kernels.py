@@ -305,7 +305,7 @@ def grid_scores(poses, points, origins, origin, spacing, grid, cloud, normals, t
     return scores
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def pose_steps(moved, q, nrm, d, trim, T):
     """:func:`pose_step` for ``m`` starts at once: ``moved``, ``q``, ``nrm`` ``(m, n, 3)``,
     ``d`` ``(m, n)``, ``T`` ``(m, 4, 4)`` updated in place. Returns ``(m, 4)``: RMS (mm; NaN
@@ -313,8 +313,8 @@ def pose_steps(moved, q, nrm, d, trim, T):
     matched share of each start's update."""
     m, n = moved.shape[0], moved.shape[1]
     out = np.empty((m, 4))
-    for b in prange(m):
-        work = pose_work(n)
+    work = pose_work(n)  # one start after the other: a few starts, a thread pool costs more
+    for b in range(m):
         out[b, 0], out[b, 1], out[b, 2], out[b, 3] = pose_step(moved[b], q[b], nrm[b], d[b],
                                                                trim, T[b], work)
     return out
