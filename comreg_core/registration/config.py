@@ -55,7 +55,7 @@ class HypothesisConfig:
             sweep's place along the bone is roughly known (fewer starts, fewer wrong places
             that fit as well).
         screen_points, screen_iterations, screen_score_points: the screening of all starts
-            (:func:`~comreg_core.registration.search.screen_starts`): US points and
+            (:func:`~comreg_core.registration.screening.screen_starts`): US points and
             iterations of its quick ICP, US points of its quick score. More when the right
             basin is screened out on a hard bone (a near-symmetric shaft), fewer on a slow
             machine: the screening runs on every start (thousands) and dominates the time.

@@ -26,7 +26,7 @@ alternatives at test time, with no extra training data:
    sweeps the grid built on them alone missed the right basin in 2 of 20 (one of them
    unflagged); with them, 0 of 20. About 3,000 more starts; the screening costs ~1 s more.
 
-2. **Screening** (:func:`screen_starts`): all starts at once get a quick point-to-plane ICP
+2. **Screening** (:func:`~comreg_core.registration.screening.screen_starts`): all starts at once get a quick point-to-plane ICP
    (``screen_iterations`` on ``screen_points`` US points, correspondences read from a
    closest-point grid of the CT, :meth:`SurfaceCloud.nearest_approx`) and a quick score;
    the ``refine_top`` best distinct ones go on, the network's own pose always among them.
@@ -128,13 +128,12 @@ import numpy as np
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration.advice import ambiguity_advice
 from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration import kernels
-from comreg_core.registration.icp import (apply_poses, coarse_to_fine_icp, point_to_plane_icp,
-                                          strided)
+from comreg_core.registration.icp import coarse_to_fine_icp
 from comreg_core.registration.polish import choose_and_polish
 from comreg_core.registration.priors import Prior
+from comreg_core.registration.screening import screen_starts
 from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, confidence_over,
-                                              same_pose, score_poses)
+                                              score_poses)
 from comreg_core.registration.surface import SurfaceCloud, principal_frame
 from comreg_core.transforms import apply_transform, as_points, check_rigid, orthonormalize
 
@@ -271,78 +270,6 @@ def slide_offsets_mm(target: SurfaceCloud, config: HypothesisConfig) -> np.ndarr
         reach = 0.5 * ct_length_mm(target)
     steps = np.arange(1, int(reach // config.slide_step_mm) + 1) * config.slide_step_mm
     return np.concatenate([[0.0], np.stack([steps, -steps], axis=1).ravel()])
-
-
-def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceCloud,
-                  config: HypothesisConfig, *, keep_first: bool = True,
-                  origins: np.ndarray | None = None, within=None
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Pick the starts worth a full ICP: ``screen_iterations`` of point-to-plane ICP on
-    ``screen_points`` US points for every start at once (correspondences from the CT's
-    closest-point grid, :meth:`SurfaceCloud.nearest_approx`), then a quick score (trimmed
-    mean distance of ``screen_score_points`` US points to the CT); keep the first start (the
-    network's own pose, unmoved; unless ``keep_first`` is False) and then the best-scoring
-    ones, skipping those within
-    ``distinct_deg`` and ``distinct_mm`` (US centroid) of one already kept, up to
-    ``refine_top`` in all (all of them, unmoved, when ``refine_top`` is 0 or not below ``B``).
-
-    Args:
-        us_points: ``(n, 3)`` mm, US points (US frame).
-        starts: ``(B, 4, 4)`` mm start poses ``T_ct_us``.
-        origins: ``(n, 3)`` mm, each US point's beam origin (US frame), or None.
-        within: ``(B, 4, 4) -> (B,) bool``, the poses a prior allows, or None: the screened
-            poses it allows are kept first (a prior's starts may slide out of it).
-
-    Returns:
-        ``(K,)`` indices of the kept starts and their ``(K, 4, 4)`` screened poses.
-    """
-    if config.refine_top == 0 or len(starts) <= config.refine_top:
-        return np.arange(len(starts)), starts
-
-    sub = strided(us_points, config.screen_score_points)
-    sub_origins = None if origins is None else strided(origins, config.screen_score_points)
-    if kernels.COMPILED:
-        poses, scores = _screen_compiled(us_points, starts, target, config, sub, sub_origins)
-    else:
-        poses = point_to_plane_icp(strided(us_points, config.screen_points), starts,
-                                   target.match_approx, iterations=config.screen_iterations,
-                                   trim_fraction=config.icp_trim, tolerance_mm=0.1).T
-        scores = score_poses(poses, sub, target, config, approximate=True, origins=sub_origins)
-    centroids = apply_poses(poses, us_points.mean(axis=0)[None])[:, 0]  # B 3
-    chosen = [0] if keep_first else []
-    order = np.argsort(scores, kind="stable")
-    if within is not None:
-        order = order[np.argsort(~within(poses)[order], kind="stable")]
-    for i in order:
-        if len(chosen) == config.refine_top:
-            break
-        if not chosen or not same_pose(poses, centroids, i, np.array(chosen), config).any():
-            chosen.append(int(i))
-    kept = np.array(chosen)
-    screened = poses[kept]
-    if keep_first:
-        screened[0] = starts[0]
-    return kept, screened
-
-
-def _screen_compiled(us_points, starts, target: SurfaceCloud, config: HypothesisConfig,
-                     sub: np.ndarray, sub_origins: np.ndarray | None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """The screening's ICP and quick score by the compiled kernels: ``(B, 4, 4)`` screened
-    poses and their ``(B,)`` scores (mm)."""
-    from comreg_core.registration.kernels import grid_icp, grid_scores
-
-    origin, spacing, grid = target.closest_point_grid
-    cloud, normals = target.points, target.normals
-    poses, _, _ = grid_icp(np.ascontiguousarray(strided(us_points, config.screen_points)),
-                           np.ascontiguousarray(starts, dtype=np.float64), origin,
-                           float(spacing), grid, cloud, normals, int(config.screen_iterations),
-                           float(config.icp_trim), 0.1)
-    origins = np.zeros((0, 3)) if sub_origins is None else np.ascontiguousarray(sub_origins)
-    scores = grid_scores(poses, np.ascontiguousarray(sub), origins, origin, float(spacing),
-                         grid, cloud, normals, float(config.score_trim),
-                         float(config.facing_penalty_mm))
-    return poses, scores
 
 
 def us_subset(points: np.ndarray, count: int) -> np.ndarray:
@@ -494,7 +421,7 @@ def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: Su
                   ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
     """Steps 2-3 of the module docstring for the start poses ``grid`` ``{name: (4, 4)}``:
     screen them (``keep_first``: the first one, the network's own pose, always goes on), refine
-    the kept ones (``within``: see :func:`screen_starts`). Returns their names, start poses,
+    the kept ones (``within``: see :func:`~comreg_core.registration.screening.screen_starts`). Returns their names, start poses,
     ``(K, 4, 4)`` refined poses (mm) and ``(K,)`` ICP residuals (mm)."""
     all_names = list(grid)
     kept, screened = screen_starts(subset_mm, np.stack(list(grid.values())), target, config,

@@ -15,9 +15,10 @@ from scipy.spatial.transform import Rotation
 from comreg_core.config import ConfigError
 from comreg_core.registration.config import HypothesisConfig, as_hypothesis_config
 from comreg_core.registration.icp import coarse_to_fine_icp
+from comreg_core.registration.screening import screen_starts
 from comreg_core.registration.search import (PATCH_ORIENTATIONS, build_hypotheses,
                                              patch_orientation_starts, principal_axes_pose,
-                                             refine_starts, rotation_about, screen_starts,
+                                             refine_starts, rotation_about,
                                              search_hypotheses, slide_offsets_mm, us_subset)
 from comreg_core.registration.surface import CTSurface, SurfaceCloud
 from comreg_core.pointsets import farthest_point_indices
