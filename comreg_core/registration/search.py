@@ -200,11 +200,18 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
                 G = rotation_about(centre, axes[:, 0], math.radians(angle))
                 G = G @ flip if flipped else G
                 name = base + ("+flip" if flipped else "") + (f"+rot{angle:g}" if angle else "")
-                for slide in slides:
-                    S = np.eye(4)
-                    S[:3, 3] = slide * axes[:, 0]
-                    starts[name + (f"+slide{slide:g}" if slide else "")] = S @ G @ T_base
+                starts.update(slid_starts(name, G @ T_base, slides, axes[:, 0]))
     return starts
+
+
+def slid_starts(name: str, T: np.ndarray, slides: np.ndarray, axis: np.ndarray
+                ) -> dict[str, np.ndarray]:
+    """``{name+slideS: (4, 4)}``: the pose ``T`` (mm) followed by each slide ``S`` (mm) along
+    the unit ``axis`` (the name unchanged for slide 0)."""
+    poses = np.repeat(T[None], len(slides), axis=0)
+    poses[:, :3, 3] += slides[:, None] * axis
+    return {name + (f"+slide{slide:g}" if slide else ""): pose
+            for slide, pose in zip(slides, poses)}
 
 
 #: Orientations a patch gets (:func:`patch_orientation_starts`): scipy's icosahedral group
@@ -251,11 +258,8 @@ def patch_orientation_starts(points_us: np.ndarray, target: SurfaceCloud,
         G = np.eye(4)
         G[:3, :3] = rotation
         G[:3, 3] = target.centre - rotation @ target.centre
-        for slide in slides:
-            S = np.eye(4)
-            S[:3, 3] = slide * target.axes[:, 0]
-            name = f"patch{i}" + ("+turned" if grid_offset else "")
-            starts[name + (f"+slide{slide:g}" if slide else "")] = S @ G @ T_base
+        name = f"patch{i}" + ("+turned" if grid_offset else "")
+        starts.update(slid_starts(name, G @ T_base, slides, target.axes[:, 0]))
     return starts
 
 
