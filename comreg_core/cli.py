@@ -16,6 +16,7 @@ import typer
 
 from comreg_core import choices, runs
 from comreg_core import __version__
+from comreg_core.cli_batch import batch as batch_command
 from comreg_core.cli_calibrate import calibrate as calibrate_command
 from comreg_core.cli_errors import CommandApp, set_verbose
 from comreg_core.cli_evaluate import evaluate as evaluate_command
@@ -393,6 +394,7 @@ def info(path: Path = typer.Argument(..., help="Any file ComReg reads.")) -> Non
 
 app.command("evaluate")(evaluate_command)
 app.command("calibrate")(calibrate_command)
+app.command("batch")(batch_command)
 
 
 def main() -> None:

@@ -133,6 +133,7 @@ def _command_args(name: str, out: Path, run: Path, us: Path) -> list:
         "demo": ["demo", "--out", out],
         "report": ["report", out],
         "calibrate": ["calibrate", FIBULA_STL, "--out", out, "--sweeps", "4"],
+        "batch": ["batch", us.with_name("cohort.csv"), "--out", out],
     }[name]
 
 
