@@ -219,7 +219,7 @@ class Registrar:
         """The CT half of the network (computed once, cached)."""
         if self._encoding is None:
             ct = torch.from_numpy(self.normalization.points_to_model(self.ct_points)).float()
-            with torch.no_grad(), self.deterministic_forward():
+            with torch.inference_mode(), self.deterministic_forward():
                 self._encoding = self.model.encode_target(ct[None].to(self.device))
         return self._encoding
 
@@ -386,7 +386,7 @@ class Registrar:
         self._sync()
         t["preprocess"] = time.perf_counter() - start
         encoding = self.encoding
-        with torch.no_grad(), self.deterministic_forward():
+        with torch.inference_mode(), self.deterministic_forward():
             mark = time.perf_counter()
             completion, pose = model.coarse_pose(src, encoding)
             coarse = pose.transform
