@@ -20,6 +20,8 @@ from comreg_core.cli_batch import batch as batch_command
 from comreg_core.cli_calibrate import calibrate as calibrate_command
 from comreg_core.cli_errors import CommandApp, set_verbose
 from comreg_core.cli_evaluate import evaluate as evaluate_command
+from comreg_core.cli_live import live as live_command
+from comreg_core.cli_live import replay as replay_command
 from comreg_core.cli_shared import Device
 from comreg_core.cli_shared import progress_bar as _progress_bar
 
@@ -394,6 +396,8 @@ def info(path: Path = typer.Argument(..., help="Any file ComReg reads.")) -> Non
 
 app.command("evaluate")(evaluate_command)
 app.command("calibrate")(calibrate_command)
+app.command("live")(live_command)
+app.command("replay")(replay_command)
 app.command("batch")(batch_command)
 
 

@@ -10,7 +10,7 @@ Using it in 3D Slicer
    Slicer's Python console::
 
        slicer.util.pip_install("--no-deps -e /path/to/comreg")
-       slicer.util.pip_install("scipy pynrrd trimesh embreex pykdtree fpsample pyyaml typer torch")
+       slicer.util.pip_install("scipy pynrrd trimesh embreex pykdtree numba fpsample pyyaml typer pyigtl torch")
        slicer.util.pip_install("open3d")   # only for the RANSAC baseline
 
 2. Add the module folder ``/path/to/comreg/comreg_plugin`` in Edit > Application Settings >
@@ -46,6 +46,7 @@ if importlib.util.find_spec("comreg_core") is None:  # an uninstalled checkout
     if os.path.isdir(os.path.join(_REPO_ROOT, "comreg_core")):
         sys.path.insert(0, _REPO_ROOT)
 
+from comreg_plugin.live import TICK_MS, LiveRegistration  # noqa: E402
 from comreg_plugin.logic import ComRegLogic  # noqa: E402
 from comreg_plugin.parameter_node import ComRegParameterNode  # noqa: E402
 from comreg_plugin.slicer_compat import (ScriptedLoadableModule,  # noqa: E402
@@ -81,6 +82,8 @@ into the chosen linear transform (default "ReferenceToCT") with the US points un
 Optionally (section "Prior"), a rough initial pose (a transform node, US -> CT) with its
 tolerances and landmarks picked on the CT and in the US data (two point lists, paired by label)
 restrict the search to poses near them; a result at the edge of a tolerance is flagged.
+Section "Live (OpenIGTLink)" registers the frames an OpenIGTLink connector brings in (image and
+pose nodes, e.g. from PLUS Server) as they come, with the verdict and where to scan next.
 Transforms are saved as ITK .tfm/.h5 (LPS), like Slicer does.
 """
         self.parent.acknowledgementText = """
@@ -115,6 +118,8 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._parameterNode = None
         self._parameterNodeGuiTag = None
         self._timer = None
+        self._live = None
+        self._liveTimer = None
 
     def setup(self):
         import ctk
@@ -149,6 +154,10 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._timer = qt.QTimer()
         self._timer.setInterval(1000)
         self._timer.connect("timeout()", self.onPollPretraining)
+        ui.liveButton.connect("toggled(bool)", self.onLiveToggled)
+        self._liveTimer = qt.QTimer()
+        self._liveTimer.setInterval(TICK_MS)
+        self._liveTimer.connect("timeout()", self.onLiveTick)
 
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
@@ -159,6 +168,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def cleanup(self):
         if self._timer is not None:
             self._timer.stop()
+        self.onLiveToggled(False)
         self.removeObservers()
 
     def enter(self):
@@ -260,6 +270,31 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             p = self._parameterNode
             self.ui.resultLabel.text = summary.describe(p.ambiguous, p.confidence)
         self._run("Registration failed.", register)
+
+    def onLiveToggled(self, on):
+        """Start or stop the live mode (:mod:`comreg_plugin.live`) on the named nodes."""
+        if self._live is not None:
+            self._liveTimer.stop()
+            self._live.stop()
+            self._live = None
+        if on:
+            def start():
+                self._live = LiveRegistration.fromNodeNames(
+                    self.logic, self.ui.liveImageLineEdit.text, self.ui.livePoseLineEdit.text)
+                self.ui.liveStatusLabel.text = self._live.status
+                self._liveTimer.start()
+            self._run("Could not start the live registration.", start)
+            self.ui.liveButton.checked = self._live is not None
+
+    def onLiveTick(self):
+        if self._live is None:
+            return
+        ticked = []
+        self._run("Live registration stopped.", lambda: ticked.append(self._live.tick()))
+        if not ticked:  # the error was shown once; stop rather than repeat it every tick
+            self.ui.liveButton.checked = False
+            return
+        self.ui.liveStatusLabel.text = self._live.status
 
     def onSaveTransform(self):
         self._run("Could not save the transform.", lambda: self.logic.saveTransform(

@@ -21,8 +21,8 @@ LAYERS = (
     ("inference", "register_output"),
     ("evaluation",),
     ("report",),
-    ("demo", "cli_errors", "cli_shared", "cli_calibrate", "cli_evaluate", "cli", "cli_batch",
-     "batch"),
+    ("demo", "cli_errors", "cli_shared", "cli_calibrate", "cli_evaluate", "cli",
+     "live", "cli_live", "cli_batch", "batch"),
 )
 LAYER = {name: rank for rank, names in enumerate(LAYERS) for name in names}
 MAX_LINES = 500

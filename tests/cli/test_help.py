@@ -43,7 +43,7 @@ def _help(name: str, columns: int) -> list[str]:
 def test_every_command_is_listed():
     names = set(_commands()) - {""}
     assert {"extract-ct", "simulate", "extract-us", "pretrain", "register", "evaluate", "report",
-            "demo", "info", "batch"} <= names
+            "demo", "info", "batch", "live", "replay"} <= names
 
 
 @pytest.mark.parametrize("name", sorted(_commands()))

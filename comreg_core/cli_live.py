@@ -1,0 +1,164 @@
+"""``comreg live`` and ``comreg replay`` (registered on ``app`` in :mod:`comreg_core.cli`; their
+own module to keep the CLI file short). The work is in :mod:`comreg_core.live`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from comreg_core.cli_shared import Device
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` -> ``(host, port)``; a :class:`ComRegError` when it is not one."""
+    from comreg_core.errors import ComRegError
+
+    host, _, port = text.rpartition(":")
+    try:
+        number = int(port)
+        if not host or not 0 < number < 65536:
+            raise ValueError
+    except ValueError:
+        raise ComRegError(f"--igtl '{text}' is not HOST:PORT.",
+                          "Give the OpenIGTLink server as e.g. --igtl 127.0.0.1:18944 (PLUS "
+                          "Server's default port).") from None
+    return host.strip("[]"), number
+
+
+def live(
+    igtl: str = typer.Option(..., "--igtl", metavar="HOST:PORT", help="The OpenIGTLink server "
+                             "sending the tracked B-mode frames (PLUS Server, 'comreg replay', "
+                             "3D Slicer), e.g. 127.0.0.1:18944."),
+    ct_mesh: Path = typer.Option(..., "--ct", help="The CT bone mesh (mm)."),
+    model: Optional[Path] = typer.Option(None, "--model", help="Run folder written by 'comreg "
+                                         "pretrain': the network's pose first, then the search "
+                                         "around it (default: the search alone)."),
+    calibration: Optional[Path] = typer.Option(
+        None, "--calibration", help="The probe calibration (as 'comreg extract-us' takes it: a "
+        "PLUS device-set XML with ImageToProbe, or calibration.json) when the poses streamed "
+        "are the probe's (default device then ProbeToReference)."),
+    verdict_calibration: Optional[Path] = typer.Option(
+        None, "--verdict-calibration", help="calibration.json from 'comreg calibrate' "
+        "(default: the run folder's own): the verdict is then OK only when p_correct >= 0.95."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder: updates.csv "
+                                       "as it goes; on stop what 'comreg register' and 'comreg "
+                                       "report' write for the points."),
+    image_device: str = typer.Option("Image", "--image-device", help="The IMAGE device of the "
+                                     "B-mode frames."),
+    transform_device: Optional[str] = typer.Option(
+        None, "--transform-device", help="The TRANSFORM device of their poses (default "
+        "ImageToReference; ProbeToReference with --calibration)."),
+    send_device: str = typer.Option("ReferenceToCT", "--send-device", help="The TRANSFORM "
+                                    "device the registration is sent back as."),
+    until_end: bool = typer.Option(False, "--until-end", help="Stop when the server closes "
+                                   "the stream (default: reconnect and go on until Ctrl-C)."),
+    device: Device = typer.Option(Device.auto, help="Where to run the network."),
+    seed: int = typer.Option(0, "--seed", min=0),
+    report: bool = typer.Option(True, "--report/--no-report", help="With --out, also write "
+                                "report.html on stop (screenshots: some seconds)."),
+) -> None:
+    """Register while scanning: connect to an OpenIGTLink server, take its B-mode frames (IMAGE)
+    and their poses (TRANSFORM, PLUS names such as ImageToReference), find the bone in each
+    frame as 'comreg extract-us' does, and register the growing sweep to the CT: warm from the
+    last pose each update, the full search when the evidence changes.
+
+    Each update sends back a TRANSFORM (ReferenceToCT: the stream's reference frame to the CT,
+    as 3D Slicer applies it) and a STRING ComRegStatus (JSON: verdict, p_correct, the bone
+    covered in mm, advice: 'enough' or which end to scan towards), and prints one status line.
+    A lost connection is reconnected and nothing registered is lost. Stop with Ctrl-C (or
+    --until-end); --out then gets the files of 'comreg register' and its report.
+    """
+    from comreg_core.errors import ComRegError
+    from comreg_core.inference import Registrar
+    from comreg_core.io._files import check_output_folder, require_input_file
+    from comreg_core.live.igtl import IMAGE_POSE_DEVICE, PROBE_POSE_DEVICE
+    from comreg_core.live.run import FrameReceiver, finish_live, run_live
+    from comreg_core.live.session import LiveSession
+    from comreg_core.live.stream import probe_calibration
+    from comreg_core.register_output import find_calibration
+
+    host, port = _host_port(igtl)
+    inputs = [ct_mesh, model, calibration, verdict_calibration]
+    if out is not None:
+        check_output_folder(out, inputs=inputs)
+    require_input_file(ct_mesh, "CT bone mesh")
+    T_probe_pixel = None if calibration is None else probe_calibration(calibration)
+    pose_device = transform_device or (IMAGE_POSE_DEVICE if calibration is None
+                                       else PROBE_POSE_DEVICE)
+    if not image_device.strip() or not pose_device.strip() or not send_device.strip():
+        raise ComRegError("A device name is empty.", "Give --image-device, --transform-device "
+                          "and --send-device names, e.g. Image and ImageToReference.")
+    verdict = find_calibration(verdict_calibration, model)
+    registrar = (Registrar.from_ct(ct_mesh) if model is None
+                 else Registrar.from_run(model, device.value, ct_mesh=ct_mesh))
+    session = LiveSession(registrar, calibration=verdict, seed=seed)
+    typer.echo("preparing the CT side ...", err=True)
+    session.warm_up()
+    receiver = FrameReceiver(host, port, image_device, pose_device, T_probe_pixel,
+                             reconnect=not until_end)
+    typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "
+               f"'{pose_device}'; sending '{send_device}' (Ctrl-C to stop)", err=True)
+    summary = run_live(session, receiver, out_dir=out, until_end=until_end,
+                       send_device=send_device, on_status=typer.echo,
+                       on_note=lambda line: typer.echo(f"live: {line}", err=True))
+    typer.echo(summary.line())
+    if out is not None:
+        from comreg_core.register_output import summary_lines
+
+        result, page = finish_live(session, out, run_dir=model, ct_mesh=ct_mesh,
+                                   device=device.value, calibration=verdict_calibration,
+                                   report=report)
+        for line in summary_lines(result, out, with_network=model is not None):
+            typer.echo(line)
+        if page is not None:
+            typer.echo(f"wrote {page}")
+
+
+def replay(
+    sweep: Path = typer.Argument(..., help="A recorded tracked sweep: PLUS sequence (.igs.mha, "
+                                 ".seq.mha, .igs.nrrd, .seq.nrrd), a frame folder (frames + "
+                                 "tracking.csv + calibration.json) or a 3D Slicer volume "
+                                 "sequence."),
+    port: int = typer.Option(18944, "--port", min=0, max=65535, help="The port to serve on "
+                             "(0: a free one, printed)."),
+    rate: float = typer.Option(1.0, "--rate", help="Speed: 1 = as recorded, 4 = four times as "
+                               "fast."),
+    host: str = typer.Option("127.0.0.1", "--host", help="The address to serve on."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration", help="Its calibration "
+                                               "(as 'comreg extract-us' takes it)."),
+    first_frame: int = typer.Option(0, "--first-frame", min=0, help="Begin at this frame "
+                                    "(0 = the first)."),
+    wait: Optional[float] = typer.Option(None, "--wait", min=0.0, help="Give up when no client "
+                                         "connects within this many seconds (default: wait)."),
+) -> None:
+    """Serve a recorded sweep over OpenIGTLink as PLUS Server would: per frame an IMAGE 'Image'
+    and its TRANSFORM 'ImageToReference' with the same time stamp, at the recorded rate (or
+    --rate times it), to the first client that connects; then close the connection, so that
+    'comreg live --until-end' stops.
+    """
+    from comreg_core.errors import ComRegError
+    from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.live.igtl import ReplayServer, replay_sweep
+
+    if not rate > 0:
+        raise ComRegError(f"--rate {rate:g} is not a positive speed.", "Give e.g. --rate 1.")
+    tracked = read_tracked_sweep(sweep, calibration=calibration)
+    if first_frame >= tracked.n_frames:
+        raise ComRegError(f"--first-frame {first_frame} is outside the sweep's "
+                          f"{tracked.n_frames} frames.",
+                          f"Give a frame number from 0 to {tracked.n_frames - 1}.")
+    server = ReplayServer(host, port)
+    typer.echo(f"serving {sweep} ({tracked.n_frames - first_frame} frames from frame "
+               f"{first_frame}, x{rate:g}) on {host}:{server.port}; waiting for a client",
+               err=True)
+    try:
+        stats = replay_sweep(tracked, server, rate=rate, first_frame=first_frame, wait_s=wait)
+    except KeyboardInterrupt:
+        server.close()
+        typer.echo("stopped (Ctrl-C)", err=True)
+        return
+    typer.echo(f"served {stats.frames} frames in {stats.duration_s:.1f} s: {stats.sent} sent"
+               + (f", {stats.unsent} while no client was connected" if stats.unsent else "")
+               + (f", {stats.without_pose} without a pose" if stats.without_pose else ""))

@@ -1,0 +1,15 @@
+"""Live registration while scanning: an OpenIGTLink stream of tracked B-mode frames in, the
+US -> CT transform, its verdict and where to scan next out (``comreg live``), and a recorded
+sweep served as PLUS Server would (``comreg replay``). docs/live.md describes both.
+
+- :mod:`~comreg_core.live.stream`: frames, pairing images with poses, the growing sweep's bone
+  points (``extract-us``'s detector and clean-up) and the bone they cover;
+- :mod:`~comreg_core.live.session`: the update loop's state: warm or full registration, the
+  verdict, the advice, ``updates.csv``;
+- :mod:`~comreg_core.live.igtl`: the pyigtl client and server, and the replay;
+- :mod:`~comreg_core.live.run`: the receiver thread, the update loop and the output folder.
+
+It sits at the top of comreg_core beside the CLI and the demo: it registers
+(:mod:`comreg_core.inference`), writes ``comreg register``'s folder
+(:mod:`comreg_core.register_output`) and its report (:mod:`comreg_core.report`).
+"""

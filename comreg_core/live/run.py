@@ -1,0 +1,302 @@
+"""``comreg live``: the stream in, the registration out, until the user or the stream stops.
+
+Threads: the OpenIGTLink client's thread (:class:`FrameReceiver`, on
+:class:`~comreg_core.live.igtl.LiveClient`) reads every message, pairs images with poses
+(:class:`~comreg_core.live.stream.FrameAssembler`) and queues the frames; it never waits for the
+registration, so a slow update never blocks the stream. The update loop (:func:`run_live`, the
+caller's thread) takes all queued frames at once (coalesced,
+:meth:`~comreg_core.live.session.LiveSession.update`), registers, sends a TRANSFORM and a
+STRING back, writes a row of ``updates.csv`` and a status line. A full queue
+(:data:`MAX_QUEUED` frames) drops its oldest frame, and says so.
+
+Losing the connection loses nothing registered: the points stay in the session and the client
+reconnects; ``--until-end`` stops when the server closes the stream. On stop,
+:func:`finish_live` writes what ``comreg register`` and ``comreg report`` would for the points
+(:func:`~comreg_core.register_output.register_to_directory`).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pyigtl
+
+from comreg_core.errors import ComRegError
+from comreg_core.io import PointCloud, write_points
+from comreg_core.io._files import atomic_output
+from comreg_core.live.igtl import LiveClient, UnknownMessage, SEND_DEVICE, STATUS_DEVICE
+from comreg_core.live.session import LiveSession, LiveUpdate, UpdatesLog
+from comreg_core.live.stream import Frame, FrameAssembler
+from comreg_core.transforms import space_change
+
+log = logging.getLogger(__name__)
+
+#: Frames the receiver holds for the update loop at most (the oldest is dropped beyond).
+MAX_QUEUED = 200
+#: File names of a live folder, besides those of a registration folder.
+UPDATES = "updates.csv"
+US_POINTS = "us_points.ply"
+US_POINT_FRAMES = "us_points_frames.npy"
+FRAMES = "frames.csv"
+
+
+def slicer_transform(T_ct_us: np.ndarray, space: str) -> np.ndarray:
+    """``(4, 4)`` the pose ``T_ct_us`` (stream reference coordinates, taken as LPS as
+    ``extract-us`` takes a recording's, -> the CT in its ``space``) as 3D Slicer applies a
+    transform it receives: to the stream's coordinates as they come (Slicer puts them straight
+    into its RAS scene) -> the CT in RAS."""
+    return space_change(space, "RAS") @ np.asarray(T_ct_us) @ space_change("LPS", space)
+
+
+@dataclass
+class Batch:
+    """What :meth:`FrameReceiver.take` hands over: ``frames`` (in order), one-line ``notes``,
+    ``received`` images so far, and ``ended`` (the server closed the stream)."""
+
+    frames: list[Frame] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    received: int = 0
+    ended: bool = False
+
+
+class FrameReceiver:
+    """The receiving side of ``comreg live`` (module docstring).
+
+    Args:
+        host, port: the OpenIGTLink server (PLUS Server, ``comreg replay``, Slicer).
+        image_device: the IMAGE device of the B-mode frames.
+        pose_device: the TRANSFORM device of their poses.
+        T_probe_pixel: the probe calibration when ``pose_device`` is the probe's pose.
+        max_queued: frames held for the update loop at most.
+        reconnect: connect again after the server closed the stream (``--until-end``: not).
+    """
+
+    def __init__(self, host: str, port: int, image_device: str, pose_device: str,
+                 T_probe_pixel: np.ndarray | None = None, max_queued: int = MAX_QUEUED,
+                 reconnect: bool = True, clock: Callable[[], float] = time.monotonic):
+        self.image_device, self.pose_device = image_device, pose_device
+        self.clock = clock
+        self.assembler = FrameAssembler(pose_device, T_probe_pixel)
+        self._lock = threading.Lock()
+        self._frames: deque[Frame] = deque()
+        self._notes: list[str] = []
+        self._told: set = set()
+        self._ended = False
+        self.max_queued = int(max_queued)
+        self.dropped = 0
+        self.client = LiveClient(host, port, self._on_message, self._on_event, self._idle,
+                                 reconnect=reconnect)
+
+    def start(self) -> None:
+        self.client.start()
+
+    def stop(self) -> None:
+        self.client.stop()
+
+    def _note(self, text: str) -> None:
+        with self._lock:
+            self._notes.append(text)
+
+    def _note_once(self, key, text: str) -> None:
+        if key not in self._told:
+            self._told.add(key)
+            self._note(text)
+
+    def _push(self, frames: list[Frame], notes: list[str]) -> None:
+        with self._lock:
+            self._notes.extend(notes)
+            for frame in frames:
+                if len(self._frames) >= self.max_queued:
+                    old = self._frames.popleft()
+                    self.dropped += 1
+                    self._notes.append(f"LAGGING: the frame queue is full; dropped frame "
+                                       f"{old.index} ({self.dropped} so far)")
+                self._frames.append(frame)
+
+    def _on_message(self, message) -> None:
+        now = self.clock()
+        expected = (f"live reads IMAGE '{self.image_device}' and TRANSFORM "
+                    f"'{self.pose_device}'")
+        if isinstance(message, UnknownMessage):
+            self._note_once(("?", message.message_type, message.device_name),
+                            f"ignoring the unexpected {message.message_type or '?'} messages "
+                            f"of '{message.device_name}' ({expected})")
+        elif isinstance(message, pyigtl.ImageMessage) and \
+                message.device_name == self.image_device:
+            self._push(*self.assembler.add_image(message.image, message.ijk_to_world_matrix,
+                                                 message.timestamp, now))
+        elif isinstance(message, pyigtl.TransformMessage) and \
+                message.device_name == self.pose_device:
+            status = str(message.metadata.get("TransformStatus", "OK")).upper()
+            if status not in ("OK", "VALID"):
+                self._note_once(("invalid", message.device_name),
+                                f"the {message.device_name} pose is sent as {status}; frames "
+                                "without a valid pose are skipped")
+                return
+            self._push(*self.assembler.add_pose(message.device_name, message.matrix,
+                                                message.timestamp, now))
+        elif not isinstance(message, pyigtl.TransformMessage):
+            self._note_once((message.message_type, message.device_name),
+                            f"ignoring the {message.message_type} messages of "
+                            f"'{message.device_name}' ({expected})")
+
+    def _on_event(self, kind: str, text: str) -> None:
+        if kind == "closed":
+            self._push(*self.assembler.expire(float("inf")))
+            with self._lock:
+                self._ended = True
+        self._note(text)
+
+    def _idle(self) -> None:
+        frames, notes = self.assembler.expire(self.clock())
+        if frames or notes:
+            self._push(frames, notes)
+
+    def take(self, timeout_s: float = 0.1) -> Batch:
+        """Everything queued since the last call (waiting up to ``timeout_s`` for something)."""
+        end = self.clock() + timeout_s
+        while True:
+            with self._lock:
+                if self._frames or self._notes or self._ended or self.clock() >= end:
+                    batch = Batch(list(self._frames), self._notes, self.assembler.images,
+                                  self._ended)
+                    self._frames.clear()
+                    self._notes = []
+                    self._ended = False
+                    return batch
+            time.sleep(0.005)
+
+    def send(self, update: LiveUpdate, space: str, send_device: str = SEND_DEVICE) -> bool:
+        """Send ``update`` back: a TRANSFORM ``send_device`` (:func:`slicer_transform`) and a
+        STRING :data:`~comreg_core.live.igtl.STATUS_DEVICE` (its JSON); False when not
+        connected (nothing is sent then)."""
+        return self.client.send(
+            pyigtl.TransformMessage(slicer_transform(update.T_ct_us, space),
+                                    device_name=send_device),
+            pyigtl.StringMessage(update.message_text(), device_name=STATUS_DEVICE))
+
+
+@dataclass
+class LiveSummary:
+    """How a live run ended: ``updates`` sent, images ``received``, frames ``used``, and those
+    not: ``waiting`` (still in the backlog, used by :func:`finish_live`), ``dropped`` (a full
+    queue or backlog), ``without_pose`` (or with an unusable one)."""
+
+    updates: int
+    received: int
+    used: int
+    waiting: int
+    dropped: int
+    without_pose: int
+
+    def line(self) -> str:
+        lost = self.received - self.used - self.waiting
+        return (f"{self.updates} updates; {self.used} of {self.received} frames registered"
+                + (f", {self.waiting} waiting" if self.waiting else "")
+                + (f"; {lost} not used: {self.dropped} dropped while lagging, "
+                   f"{self.without_pose} without a usable pose"
+                   + (f", {lost - self.dropped - self.without_pose} other"
+                      if lost - self.dropped - self.without_pose else "") if lost else ""))
+
+
+def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Path | None = None,
+             until_end: bool = False, stop: threading.Event | None = None,
+             send_device: str = SEND_DEVICE, on_status: Callable[[str], None] | None = None,
+             on_note: Callable[[str], None] | None = None) -> LiveSummary:
+    """The update loop (module docstring) until ``stop`` is set, Ctrl-C, or (``until_end``) the
+    server closed the stream and the frames that came are registered. ``out_dir``: gets
+    ``updates.csv``, a row per update, flushed. ``on_status`` gets each update's status line,
+    ``on_note`` each one-line note. Frames the loop could not keep up with wait in the
+    session's backlog: they are registered when the stream pauses, and :func:`finish_live`
+    uses them all."""
+    on_status = on_status or (lambda line: log.info("%s", line))
+    on_note = on_note or (lambda line: log.warning("%s", line))
+    stop = stop or threading.Event()
+    updates_log = UpdatesLog(Path(out_dir) / UPDATES) if out_dir is not None else None
+    space = session.registrar.space
+    waiting_told = ended = False
+    receiver.start()
+    try:
+        while not stop.is_set():
+            batch = receiver.take(0.0 if session.backlog else 0.1)
+            for note in batch.notes:
+                on_note(note)
+            if batch.frames or session.backlog:
+                update = session.update(batch.frames, received=batch.received)
+                for note in session.take_notes():
+                    on_note(note)
+                if update is None and batch.frames and not waiting_told:
+                    on_status(f"waiting for bone: {session.points.frames_with_bone} of "
+                              f"{session.points.frames_used} frames show it so far")
+                    waiting_told = True
+                elif update is not None:
+                    receiver.send(update, space, send_device)
+                    update.latency_s = session.clock() - update.newest_s
+                    if updates_log is not None:
+                        updates_log.write(update)
+                    on_status(update.status_line())
+            ended = ended or batch.ended
+            if ended and until_end and not session.backlog:
+                break
+    except KeyboardInterrupt:
+        on_note("stopping (Ctrl-C)")
+    finally:
+        receiver.stop()
+        if updates_log is not None:
+            updates_log.close()
+    return LiveSummary(len(session.updates), receiver.assembler.images,
+                       session.points.frames_used, len(session.backlog),
+                       receiver.dropped + session.dropped,
+                       receiver.assembler.without_pose + receiver.assembler.bad_poses)
+
+
+def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_mesh=None,
+                device: str = "auto", calibration=None, report: bool = True):
+    """Write what ``comreg register`` (and ``comreg report``) would for the sweep's points, into
+    ``out_dir``: ``us_points.ply`` (tracker frame, LPS, with beam origins),
+    ``us_points_frames.npy`` (each point's frame, ``(N,)``), ``frames.csv`` (each frame used:
+    index, time stamp, points found, pose), then ``register_to_directory`` (``result.json``,
+    ``transform.tfm``, ``registered_us.ply``, ``config.yaml``, ...) and ``report.html``.
+    Frames still waiting in the session's backlog are detected first, so every frame received
+    is used. Returns ``(RegistrationResult, report path or None)``; raises
+    :class:`ComRegError` when no bone points were received."""
+    from comreg_core.register_output import register_to_directory  # torch: only when stopping
+
+    session.drain()
+    cloud = session.points.cloud()
+    if cloud is None:
+        raise ComRegError(f"No bone points were received ({session.points.frames_used} frames "
+                          "used), so nothing was registered.",
+                          "Check that the stream sends B-mode frames with their poses "
+                          "(--image-device, --transform-device) and that the bone is in view.")
+    out = Path(out_dir)
+    points_path = write_points(PointCloud(cloud.points, "LPS",
+                                          beam_origins=session.points.beam_origins(cloud)),
+                               out / US_POINTS)
+    with atomic_output(out / US_POINT_FRAMES) as tmp:
+        np.save(tmp, cloud.frame_index.astype(np.int64))
+    with atomic_output(out / FRAMES) as tmp:
+        with open(tmp, "w", newline="", encoding="utf-8") as f:
+            writer = csv.writer(f)
+            writer.writerow(["index", "timestamp_s", "received_s", "raw_points",
+                             *(f"T_ref_image_{r}{c}" for r in range(3) for c in range(4))])
+            for rec in session.points.records:
+                writer.writerow([rec.index, repr(rec.timestamp),
+                                 f"{rec.received_s - session.started_s:.4f}", rec.raw_points,
+                                 *(repr(float(v)) for v in rec.T_ref_image[:3].reshape(-1))])
+    result = register_to_directory(run_dir, points_path, out, device=device, seed=session.seed,
+                                   ct_mesh=ct_mesh, calibration=calibration)
+    path = None
+    if report:
+        from comreg_core.report import write_report_for_registration  # VTK
+
+        path = write_report_for_registration(out, ct_mesh=ct_mesh)
+    return result, path

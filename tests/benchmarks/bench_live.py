@@ -1,0 +1,191 @@
+"""Benchmark: live registration while scanning (issue 34), the real fibula sweep replayed over
+OpenIGTLink on 127.0.0.1 into ``comreg live``, real server and client in their own processes.
+
+``.venv/bin/python -m tests.benchmarks.bench_live [--rate 4] [--starts 0,15,30,45,60,75]
+[--model RUN_DIR] [--verdict-calibration FILE] [--out DIR]``
+
+Each replay serves the shared sweep (111 B-mode frames, every 10th of the recording) from one
+start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg live --until-end
+--out`` registers it as it comes. Per replay it prints:
+
+- ``ok@mm``: the bone covered (mm along the CT's long axis, updates.csv's ``covered_mm``) at the
+  first update whose verdict is OK, and whether that pose is correct: RTE < 4 mm and
+  RRE < 5 deg at the points' centroid, against the pseudo ground truth (ICP of the whole
+  sweep's points from the recorded pose: :func:`comreg_core.demo.pseudo_ground_truth`);
+- ``ok&wrong``: updates whose verdict was OK and whose pose was not correct (target: none);
+- ``final``: the verdict and correctness of the registration written on stop;
+- latency of the updates (median, 95th percentile; target median <= 0.2 s) and how many
+  updates ran the full search;
+- frames: served by the replay, received and registered by live, and lost without a report
+  (sent but not received, or received but neither registered nor reported; target 0).
+
+Controls: with ``--model RUN_DIR`` every replay runs twice, by the search alone and with the
+network (``--model``). Targets: never OK-and-wrong; OK within 150 mm; median update <= 0.2 s; no
+frame lost unreported. Timings depend on the machine's load: state it with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+SHARED = REPO.parent / "shared" / "data" / "ultrabones100k-fibula"
+
+
+def pseudo_truth(ct_path: Path) -> np.ndarray:
+    """``T_ct_us`` of the whole sweep: ICP from the recorded pose (tracking = CT frame)."""
+    from comreg_core.demo import pseudo_ground_truth
+    from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.registration.surface import CTSurface
+    from comreg_core.surfaces.us import extract_us_surface
+
+    points = extract_us_surface(read_tracked_sweep(SHARED)).points.points
+    return pseudo_ground_truth(points, CTSurface(ct_path))
+
+
+def serving_port(replay: subprocess.Popen) -> int:
+    """The port ``comreg replay --port 0`` printed it serves on (its stderr)."""
+    seen = []
+    for _ in range(50):
+        line = replay.stderr.readline()
+        found = re.search(r"on [^ ]+:(\d+); waiting", line)
+        if found:
+            return int(found.group(1))
+        seen.append(line)
+        if not line and replay.poll() is not None:
+            break
+    raise RuntimeError(f"comreg replay did not start: {''.join(seen)[-2000:]}")
+
+
+def one_replay(start: int, rate: float, out: Path, ct: Path, model: Path | None,
+               verdict_calibration: Path | None, timeout_s: float = 900.0) -> dict:
+    """Serve the sweep from frame ``start`` into ``comreg live``; the figures of the run."""
+    cli = [sys.executable, "-m", "comreg_core.cli"]
+    replay = subprocess.Popen(cli + ["replay", str(SHARED), "--port", "0", "--rate", str(rate),
+                                     "--first-frame", str(start), "--wait", "300"], cwd=REPO,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        port = serving_port(replay)
+        args = cli + ["live", "--igtl", f"127.0.0.1:{port}", "--ct", str(ct), "--out", str(out),
+                      "--until-end", "--no-report"]
+        if model is not None:
+            args += ["--model", str(model)]
+        if verdict_calibration is not None:
+            args += ["--verdict-calibration", str(verdict_calibration)]
+        began = time.monotonic()
+        live = subprocess.run(args, cwd=REPO, capture_output=True, text=True,
+                              timeout=timeout_s)
+        replay_out, _ = replay.communicate(timeout=60)
+    finally:
+        replay.kill()
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "live_stdout.txt").write_text(live.stdout)
+    (out / "live_stderr.txt").write_text(live.stderr)
+    if live.returncode != 0:
+        raise RuntimeError(f"live failed ({live.returncode}): {live.stderr[-2000:]}")
+    served = re.search(r"served (\d+) frames .*?: (\d+) sent", replay_out)
+    used = re.search(r"(\d+) of (\d+) frames registered(?:, (\d+) waiting)?", live.stdout)
+    reported = re.search(r"(\d+) not used", live.stdout)
+    modes = re.findall(r"\| (warm\+full|full|warm) \d", live.stdout)
+    return {"wall_s": time.monotonic() - began, "served": int(served.group(1)),
+            "full_searches": sum(m != "warm" for m in modes),
+            "sent": int(served.group(2)), "used": int(used.group(1)),
+            "received": int(used.group(2)),
+            "reported": int(reported.group(1)) if reported else 0}
+
+
+def figures(out: Path, T_truth: np.ndarray, run: dict) -> dict:
+    """The figures of one replay from its folder (updates.csv, result.json)."""
+    from comreg_core.io import read_points
+    from comreg_core.live.session import read_updates, row_transform
+    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+
+    rows = read_updates(out / "updates.csv")
+    correct = []
+    for row in rows:
+        T = row_transform(row)
+        centroid = np.array([row["centroid_x"], row["centroid_y"], row["centroid_z"]])
+        correct.append(translation_error_mm(T, T_truth, centroid) < 4.0
+                       and rotation_error_deg(T, T_truth) < 5.0)
+    ok = [row["verdict"] == "ok" for row in rows]
+    first = next((k for k, flag in enumerate(ok) if flag), None)
+    latency = np.array([row["latency_s"] for row in rows])
+    result = json.loads((out / "result.json").read_text())
+    points = read_points(out / "us_points.ply").points
+    T_final = np.array(result["T_ct_us"])
+    final_correct = (translation_error_mm(T_final, T_truth, points.mean(axis=0)) < 4.0
+                     and rotation_error_deg(T_final, T_truth) < 5.0)
+    unreported = (run["sent"] - run["received"]) + \
+        (run["received"] - run["used"] - run["reported"])
+    return {"updates": len(rows),
+            "ok_at_mm": None if first is None else rows[first]["covered_mm"],
+            "ok_correct": None if first is None else correct[first],
+            "ok_and_wrong": int(sum(o and not c for o, c in zip(ok, correct))),
+            "final": f"{result['verdict']}/{'right' if final_correct else 'WRONG'}",
+            "latency_median_s": float(np.median(latency)) if len(latency) else None,
+            "latency_p95_s": float(np.percentile(latency, 95)) if len(latency) else None,
+            "unreported": unreported, **run}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rate", type=float, default=4.0)
+    parser.add_argument("--starts", default="0,15,30,45,60,75")
+    parser.add_argument("--model", type=Path, default=None)
+    parser.add_argument("--verdict-calibration", type=Path, default=None)
+    parser.add_argument("--out", type=Path, default=REPO / "out" / "bench_live")
+    args = parser.parse_args(argv)
+    ct = SHARED / "fibula.stl"
+    starts = [int(s) for s in args.starts.split(",")]
+    methods = [("search", None)] + ([("comreg", args.model)] if args.model else [])
+    T_truth = pseudo_truth(ct)
+    print(f"replays of {SHARED.name} at x{args.rate:g} from frames {starts}; verdict: "
+          + (f"p_correct ({args.verdict_calibration})" if args.verdict_calibration
+             else "the search's confidence (no --verdict-calibration)"), flush=True)
+    header = (f"{'method':7} {'start':>5} {'upd':>4} {'ok@mm':>6} {'ok?':>5} {'ok&wrong':>8} "
+              f"{'final':>11} {'lat_med':>7} {'lat_p95':>7} {'full':>4} {'served':>6} {'recv':>5} "
+              f"{'used':>5} {'unrep':>5} {'wall_s':>6}")
+    print(header, flush=True)
+    summary = []
+    for name, model in methods:
+        for start in starts:
+            out = args.out / f"{name}_from{start:03d}"
+            if out.exists():
+                import shutil
+
+                shutil.rmtree(out)
+            run = one_replay(start, args.rate, out, ct, model, args.verdict_calibration)
+            f = figures(out, T_truth, run)
+            summary.append({"method": name, "start": start, **f})
+
+            def fmt(value, spec):
+                return "-" if value is None else format(value, spec)
+            right = None if f["ok_correct"] is None else ("yes" if f["ok_correct"] else "NO")
+            print(f"{name:7} {start:>5} {f['updates']:>4} {fmt(f['ok_at_mm'], '6.0f')} "
+                  f"{fmt(right, '>5')} {f['ok_and_wrong']:>8} {f['final']:>11} "
+                  f"{fmt(f['latency_median_s'], '7.2f')} {fmt(f['latency_p95_s'], '7.2f')} "
+                  f"{f['full_searches']:>4} {f['served']:>6} {f['received']:>5} "
+                  f"{f['used']:>5} {f['unreported']:>5} {f['wall_s']:>6.0f}", flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench_live.json").write_text(json.dumps(summary, indent=2) + "\n")
+    wrong = sum(s["ok_and_wrong"] for s in summary)
+    late = [s["ok_at_mm"] for s in summary if s["ok_at_mm"] is not None]
+    medians = [s["latency_median_s"] for s in summary if s["latency_median_s"] is not None]
+    print(f"targets: OK-and-wrong updates {wrong} (0); OK reached in "
+          f"{len(late)}/{len(summary)} replays, within 150 mm in "
+          f"{sum(v <= 150 for v in late)}; median update latency "
+          f"{np.median(medians) if medians else float('nan'):.2f} s (<= 0.2); frames lost "
+          f"unreported {sum(s['unreported'] for s in summary)} (0); figures in "
+          f"{args.out / 'bench_live.json'}")
+
+
+if __name__ == "__main__":
+    main()

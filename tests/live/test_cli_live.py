@@ -1,0 +1,62 @@
+"""Bad input to ``comreg live`` and ``comreg replay``: one ``error:`` line, exit status 2, no
+traceback, and nothing connected to or served first."""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+from typer.testing import CliRunner
+
+from comreg_core.cli import app
+from tests.helpers import FIBULA_STL
+from tests.live.conftest import cut_sweep
+
+runner = CliRunner()
+
+
+def _refused(args, *contains: str):
+    result = runner.invoke(app, [str(a) for a in args])
+    assert result.exit_code == 2, (result.exit_code, result.stdout, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert lines[-1].startswith("error: ") and "Traceback" not in result.stderr + result.stdout
+    assert sum(line.startswith("error: ") for line in lines) == 1
+    for text in contains:
+        assert text in lines[-1], (text, lines[-1])
+
+
+@pytest.fixture(scope="module")
+def sweep2(shared_data, tmp_path_factory):
+    return cut_sweep(tmp_path_factory.mktemp("sweep2"), 0, 2)
+
+
+@pytest.mark.parametrize("address", ["nonsense", "127.0.0.1", "127.0.0.1:0", "host:70000",
+                                     ":18944", "127.0.0.1:port"])
+def test_live_refuses_an_address_that_is_not_host_port(address, tmp_path):
+    _refused(["live", "--igtl", address, "--ct", FIBULA_STL, "--out", tmp_path / "out"],
+             "is not HOST:PORT")
+    assert not (tmp_path / "out").exists()
+
+
+def test_live_checks_its_inputs_before_connecting(tmp_path):
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", tmp_path / "no.stl"], "does not exist")
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--calibration",
+              tmp_path / "no.xml"], "does not exist")
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--verdict-calibration",
+              tmp_path / "no.json"], "does not exist")
+    (tmp_path / "file").write_text("x")
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--out", tmp_path / "file"],
+             "not a folder")
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--image-device", " "],
+             "device name is empty")
+
+
+def test_replay_refuses_bad_input(sweep2, tmp_path):
+    _refused(["replay", tmp_path / "missing"], "does not exist")
+    _refused(["replay", sweep2, "--first-frame", "2"], "outside the sweep's 2 frames")
+    _refused(["replay", sweep2, "--rate", "0"], "not a positive speed")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        _refused(["replay", sweep2, "--port", taken.getsockname()[1]], "Cannot serve on")
+    _refused(["replay", sweep2, "--port", "0", "--wait", "0.2"], "No client connected")

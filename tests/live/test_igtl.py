@@ -1,0 +1,91 @@
+"""The live client against a raw TCP server on 127.0.0.1 that sends real OpenIGTLink messages
+(packed by pyigtl) mixed with what a stream should not hold: a message type pyigtl does not
+know, a known type live does not read, a body whose CRC does not match, and bytes that are no
+OpenIGTLink header at all. Each gives one line; the client keeps going (and after the
+unreadable header reconnects)."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import pyigtl
+import pytest
+
+from comreg_core.io.tracked_us import read_tracked_sweep
+from comreg_core.live.igtl import frame_messages
+from comreg_core.live.run import FrameReceiver
+from tests.live.conftest import cut_sweep
+
+
+@pytest.fixture(scope="module")
+def sweep3(shared_data, tmp_path_factory):
+    return read_tracked_sweep(cut_sweep(tmp_path_factory.mktemp("sweep3"), 60, 3))
+
+
+def _listen(port: int) -> socket.socket:
+    server = socket.socket()
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.bind(("127.0.0.1", port))
+    server.listen()
+    server.settimeout(10.0)
+    return server
+
+
+def _collect(receiver: FrameReceiver, frames: int, notes: int, timeout_s: float = 10.0):
+    got_frames, got_notes = [], []
+    end = time.monotonic() + timeout_s
+    while (len(got_frames) < frames or len(got_notes) < notes) and time.monotonic() < end:
+        batch = receiver.take(0.05)
+        got_frames += batch.frames
+        got_notes += batch.notes
+    return got_frames, got_notes
+
+
+def _frame_bytes(sweep, i) -> bytes:
+    return b"".join(m.pack() for m in frame_messages(sweep, i, 100.0 + i))
+
+
+def test_unexpected_and_malformed_messages_give_one_line_and_the_client_goes_on(sweep3, port):
+    listener = _listen(port)
+    receiver = FrameReceiver("127.0.0.1", port, "Image", "ImageToReference")
+    receiver.start()
+    try:
+        conn, _ = listener.accept()
+        frames, notes = _collect(receiver, 0, 1)
+        assert notes == [f"connected to 127.0.0.1:{port}"]
+
+        unknown = bytearray(pyigtl.StringMessage("hello", device_name="Thing").pack())
+        unknown[2:14] = b"FOOBAR".ljust(12, b"\0")  # a type pyigtl does not know
+        bad_crc = bytearray(pyigtl.TransformMessage(np.eye(4), device_name="ImageToReference",
+                                                    timestamp=5.0).pack())
+        bad_crc[-1] ^= 0xFF  # the body no longer matches the header's CRC
+        point = pyigtl.PointMessage(positions=[[1.0, 2.0, 3.0]], names=["p"],
+                                    device_name="Stylus").pack()
+        conn.sendall(_frame_bytes(sweep3, 0) + bytes(unknown) + bytes(unknown) + point
+                     + bytes(bad_crc) + _frame_bytes(sweep3, 1))
+        frames, notes = _collect(receiver, 2, 3)
+        assert [f.index for f in frames] == [0, 1]
+        assert all("\n" not in note for note in notes)
+        assert len(notes) == 3, notes  # the unknown type is told once
+        assert sum("unexpected FOOBAR messages of 'Thing'" in n for n in notes) == 1
+        assert sum("ignoring the POINT messages of 'Stylus'" in n for n in notes) == 1
+        assert sum("CRC does not match" in n and n.endswith("skipped") for n in notes) == 1
+
+        # bytes that are no OpenIGTLink header: the stream cannot be followed; reconnect
+        conn.sendall(b"\x00\x07" + b"garbage!" * 7)
+        conn2, _ = listener.accept()  # the client dropped the connection and came back
+        frames, notes = _collect(receiver, 0, 2)
+        assert notes == ["received a message header that is not OpenIGTLink (version 7, a "
+                         f"body of {int.from_bytes(b'garbage!', 'big')} bytes); reconnecting",
+                         f"connected to 127.0.0.1:{port}"]
+        conn2.sendall(_frame_bytes(sweep3, 2))
+        frames, notes = _collect(receiver, 1, 0)
+        assert [f.index for f in frames] == [2] and notes == []
+        assert receiver.assembler.images == 3 and receiver.assembler.without_pose == 0
+        conn.close()
+        conn2.close()
+    finally:
+        receiver.stop()
+        listener.close()

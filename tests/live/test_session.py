@@ -1,0 +1,92 @@
+"""The live session's update policy (comreg_core.live.session) on frames of the real sweep fed
+directly: the full search first and when the covered bone grows, warm in between; a backlog
+that delays frames but drops them only beyond its bound, and says so; updates.csv written and
+read back; the advice's end of the bone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from comreg_core.io.tracked_us import read_tracked_sweep
+from comreg_core.live.session import (UPDATE_COLUMNS, LiveSession, UpdatesLog, read_updates,
+                                      row_transform, scan_advice)
+from comreg_core.live.stream import Frame
+from tests.helpers import assert_close
+from tests.live.conftest import cut_sweep
+
+
+@pytest.fixture(scope="module")
+def sweep(shared_data, tmp_path_factory):
+    return read_tracked_sweep(cut_sweep(tmp_path_factory.mktemp("sweep_s"), 30, 14))
+
+
+def _frames(sweep, indices, first_index=None):
+    return [Frame(i if first_index is None else first_index + k, sweep.frames[i], sweep.spacing,
+                  sweep.T_ref_image[i], float(sweep.timestamps[i]), 0.0)
+            for k, i in enumerate(indices)]
+
+
+def test_full_first_then_warm_then_full_when_the_bone_covered_grows(sweep, search_registrar,
+                                                                    tmp_path):
+    session = LiveSession(search_registrar)
+    first = session.update(_frames(sweep, range(6)))
+    assert first.mode == "full" and first.frames_used == 6 and first.frames_received == 6
+    # the same frame again: no new bone covered, so warm from the last pose
+    again = session.update(_frames(sweep, [5], first_index=6))
+    assert again.mode == "warm" and again.covered_mm == pytest.approx(first.covered_mm, abs=1.0)
+    centroid = again.centroid
+    moved = np.linalg.norm(again.T_ct_us[:3, :3] @ centroid + again.T_ct_us[:3, 3]
+                           - first.T_ct_us[:3, :3] @ centroid - first.T_ct_us[:3, 3])
+    assert moved < 5.0  # within the warm tolerance
+    grown = session.update(_frames(sweep, range(6, 14), first_index=7))
+    assert grown.covered_mm >= first.covered_mm + session.full_every_mm
+    assert grown.mode == "full" and grown.frames_used == 15
+
+    log = UpdatesLog(tmp_path / "updates.csv")
+    for update in (first, again, grown):
+        update.latency_s = 0.25
+        log.write(update)
+    log.close()
+    rows = read_updates(tmp_path / "updates.csv")
+    assert tuple(rows[0]) == UPDATE_COLUMNS and len(rows) == 3
+    for row, update in zip(rows, (first, again, grown)):
+        assert_close(row_transform(row), update.T_ct_us, atol=1e-12)
+        assert row["verdict"] == update.verdict and row["frames_used"] == update.frames_used
+        assert_close([row["centroid_x"], row["centroid_y"], row["centroid_z"]], update.centroid,
+                     atol=1e-4)
+        assert row["latency_s"] == 0.25 and row["p_correct"] is None
+    assert f"{grown.mode} " in grown.status_line() and grown.advice in grown.status_line()
+
+
+def test_the_backlog_delays_frames_and_drops_only_beyond_its_bound(sweep, search_registrar):
+    session = LiveSession(search_registrar, max_frames_per_update=3, max_backlog=8)
+    update = session.update(_frames(sweep, range(10)))
+    assert session.take_notes() == ["LAGGING: 2 frames waited too long and were dropped "
+                                    "(frames 0-1; 2 so far)"]
+    assert session.dropped == 2 and session.points.frames_used == 3
+    assert update.waiting == 5 and "LAGGING: 5 frames waiting" in update.status_line()
+    assert [r.index for r in session.points.records] == [2, 6, 9]  # spread, the newest in
+    update = session.update([])  # catching up while no frame comes
+    assert session.points.frames_used == 6 and update.waiting == 2
+    assert session.drain() == 2 and not session.backlog
+    assert sorted(r.index for r in session.points.records) == list(range(2, 10))
+    assert session.take_notes() == []
+
+
+def test_the_advice_points_to_the_nearer_end_until_it_is_reached(search_registrar):
+    session = LiveSession(search_registrar)
+    target = session.target
+    axis, centre = target.axes[:, 0], target.centre
+    along = (target.points - centre) @ axis
+    lo, hi = along.min(), along.max()
+    plus = "proximal end (superior)" if axis[2] > 0 else "distal end (inferior)"
+    minus = "distal end (inferior)" if axis[2] > 0 else "proximal end (superior)"
+
+    def at(a, b):
+        return centre + np.linspace(a, b, 200)[:, None] * axis
+
+    assert scan_advice(at(hi - 120, hi - 60), target) == f"scan towards the {plus}"
+    assert scan_advice(at(lo + 60, lo + 120), target) == f"scan towards the {minus}"
+    assert scan_advice(at(hi - 100, hi - 5), target) == f"scan towards the {minus}"
+    assert scan_advice(at(lo + 5, lo + 100), target) == f"scan towards the {plus}"
