@@ -332,3 +332,68 @@ def compile_kernels() -> None:
     grid_scores(eye, points, points, np.zeros(3), 1.0, grid, points, normals, 0.2, 5.0)
     pose_steps(np.stack([points] * 2), np.stack([points] * 2), np.stack([normals] * 2),
                np.ones((2, 12)), 0.1, eye.copy())
+
+
+@njit(cache=True)
+def _closest_on_triangle(p, a, b, c, out):
+    """Write into ``out`` ``(3,)`` the exact closest point of ``p`` on triangle ``(a, b, c)``:
+    :func:`~comreg_core.registration.surface.closest_points_on_triangles` for one point (the
+    Voronoi-region tests of Ericson, 5.1.5, in the same order of precedence)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = ab @ ap, ac @ ap
+    bp, cp = p - b, p - c
+    d3, d4 = ab @ bp, ac @ bp
+    d5, d6 = ab @ cp, ac @ cp
+    if d1 <= 0 and d2 <= 0:
+        out[:] = a
+        return
+    if d3 >= 0 and d4 <= d3:
+        out[:] = b
+        return
+    if d6 >= 0 and d5 <= d6:
+        out[:] = c
+        return
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    if vc <= 0 and d1 >= 0 and d3 <= 0:
+        t = min(max(d1 / (d1 - d3), 0.0), 1.0)
+        out[:] = a + ab * t
+        return
+    if vb <= 0 and d2 >= 0 and d6 <= 0:
+        t = min(max(d2 / (d2 - d6), 0.0), 1.0)
+        out[:] = a + ac * t
+        return
+    if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
+        t = min(max((d4 - d3) / ((d4 - d3) + (d5 - d6)), 0.0), 1.0)
+        out[:] = b + (c - b) * t
+        return
+    denom = va + vb + vc
+    v = vb / denom if denom != 0 else 0.0
+    w = vc / denom if denom != 0 else 0.0
+    out[:] = a + ab * v + ac * w
+
+
+@njit(cache=True, parallel=True)
+def closest_on_candidates(points, candidates, vertices, faces):
+    """For each of ``points`` ``(n, 3)`` mm, the closest point on its candidate triangles
+    ``candidates`` ``(n, k)`` (face indices into ``faces`` ``(F, 3)`` of ``vertices``
+    ``(V, 3)``): ``(closest (n, 3), face (n,), distance (n,))``, the first candidate of the
+    smallest distance winning ties."""
+    n, k = candidates.shape
+    closest = np.empty((n, 3))
+    face = np.empty(n, dtype=np.int64)
+    dist = np.empty(n)
+    for i in prange(n):
+        q = np.empty(3)
+        best = np.inf
+        for j in range(k):
+            f = candidates[i, j]
+            _closest_on_triangle(points[i], vertices[faces[f, 0]], vertices[faces[f, 1]],
+                                 vertices[faces[f, 2]], q)
+            d = np.sqrt((q[0] - points[i, 0]) ** 2 + (q[1] - points[i, 1]) ** 2
+                        + (q[2] - points[i, 2]) ** 2)
+            if d < best:
+                best = d
+                closest[i, :] = q
+                face[i] = f
+        dist[i] = best
+    return closest, face, dist

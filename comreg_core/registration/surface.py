@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
+from comreg_core.registration import kernels
 from comreg_core.io.meshes import SurfaceMesh, read_mesh
 from comreg_core.transforms import as_points
 
@@ -251,15 +252,22 @@ class _ClosestPoints:
         if ok.any():
             idx = np.where(np.isfinite(d[ok]), idx[ok], idx[ok][:, :1])
             faces = self.sample_face[idx]  # (n_ok, k)
-            tri = self.vertices[self.faces[faces]]  # (n_ok, k, 3, 3)
-            p = points[ok][:, None, :]
-            q = closest_points_on_triangles(p, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])
-            dq = np.linalg.norm(q - p, axis=2)
-            best = np.argmin(dq, axis=1)
-            rows = np.arange(len(best))
-            closest[ok] = q[rows, best]
-            normals[ok] = self.face_normals[faces[rows, best]]
-            dist[ok] = dq[rows, best]
+            if kernels.COMPILED:
+                closest[ok], face, dist[ok] = kernels.closest_on_candidates(
+                    np.ascontiguousarray(points[ok], dtype=np.float64),
+                    np.ascontiguousarray(faces, dtype=np.int64), self.vertices, self.faces)
+                normals[ok] = self.face_normals[face]
+            else:
+                tri = self.vertices[self.faces[faces]]  # (n_ok, k, 3, 3)
+                p = points[ok][:, None, :]
+                q = closest_points_on_triangles(p, tri[..., 0, :], tri[..., 1, :],
+                                                tri[..., 2, :])
+                dq = np.linalg.norm(q - p, axis=2)
+                best = np.argmin(dq, axis=1)
+                rows = np.arange(len(best))
+                closest[ok] = q[rows, best]
+                normals[ok] = self.face_normals[faces[rows, best]]
+                dist[ok] = dq[rows, best]
         far = dist > max_distance
         dist[far] = np.inf
         closest[far] = np.nan

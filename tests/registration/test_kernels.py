@@ -71,24 +71,22 @@ def test_pose_steps_match_the_numpy_update():
 
 
 def test_icp_same_result_compiled_or_numpy(fibula_patch, fibula_surface, numpy_path):
-    """The refinement's KD-tree matcher over 15 iterations; the polish's exact matcher over
-    one (its normal at a point nearest an edge is either triangle's, so a 1e-12 mm change
-    can pick the other one and later iterations part: measured 0.4 mm after two)."""
+    """The refinement's KD-tree matcher over 15 iterations. (The polish's exact matcher is not
+    compared over iterations: at a point nearest an edge either triangle's normal is right, the
+    two paths' rounding can pick different ones, and the next iterations part: measured 0.4 mm
+    after two. Its closest points are compared in test_closest_on_candidates_...)"""
     target = fibula_surface.cloud(5000)
-    rng = np.random.default_rng(3)
-    starts = _starts(rng, fibula_patch, 6)
-    for match, trim, iterations in ((target.match, 0.1, 15), (fibula_surface.matcher(2.0), 0.0,
-                                                               1)):
-        kernels.COMPILED = False
-        expected = point_to_plane_icp(fibula_patch, starts, match, iterations=iterations,
-                                      trim_fraction=trim)
-        kernels.COMPILED = True
-        got = point_to_plane_icp(fibula_patch, starts, match, iterations=iterations,
-                                 trim_fraction=trim)
-        np.testing.assert_allclose(got.T, expected.T, atol=1e-6)
-        np.testing.assert_array_equal(got.iterations, expected.iterations)
-        np.testing.assert_allclose(got.rmse_mm, expected.rmse_mm, rtol=1e-6)
-        assert np.abs(got.T - starts).max() > 0.1  # they moved
+    starts = _starts(np.random.default_rng(3), fibula_patch, 6)
+    kernels.COMPILED = False
+    expected = point_to_plane_icp(fibula_patch, starts, target.match, iterations=15,
+                                  trim_fraction=0.1)
+    kernels.COMPILED = True
+    got = point_to_plane_icp(fibula_patch, starts, target.match, iterations=15,
+                             trim_fraction=0.1)
+    np.testing.assert_allclose(got.T, expected.T, atol=1e-6)
+    np.testing.assert_array_equal(got.iterations, expected.iterations)
+    np.testing.assert_allclose(got.rmse_mm, expected.rmse_mm, rtol=1e-6)
+    assert np.abs(got.T - starts).max() > 0.1  # they moved
 
 
 def test_grid_icp_and_scores_match_the_numpy_screening(fibula_patch, fibula_surface):
@@ -139,3 +137,25 @@ def test_kernels_give_the_same_bits_at_one_and_two_threads(fibula_patch, fibula_
         numba.set_num_threads(before)
     for a, b in zip(*outputs):
         np.testing.assert_array_equal(a, b)
+
+
+def test_closest_on_candidates_matches_the_numpy_voronoi_tests(fibula_surface):
+    """Exact closest points on candidate triangles: the kernel against
+    surface.closest_points_on_triangles on points near, on and far from the mesh (every
+    Voronoi region: vertices, edges, faces)."""
+    from comreg_core.registration.surface import closest_points_on_triangles
+
+    rng = np.random.default_rng(6)
+    vertices, faces = fibula_surface.vertices, fibula_surface.faces
+    points = vertices[rng.integers(0, len(vertices), 300)] + rng.normal(size=(300, 3)) * 3.0
+    candidates = rng.integers(0, len(faces), size=(300, 8))
+    closest, face, dist = kernels.closest_on_candidates(points, candidates, vertices, faces)
+    tri = vertices[faces[candidates]]
+    q = closest_points_on_triangles(points[:, None], tri[..., 0, :], tri[..., 1, :],
+                                    tri[..., 2, :])
+    dq = np.linalg.norm(q - points[:, None], axis=2)
+    best = np.argmin(dq, axis=1)
+    rows = np.arange(len(points))
+    np.testing.assert_allclose(dist, dq[rows, best], atol=1e-9)
+    np.testing.assert_allclose(closest, q[rows, best], atol=1e-9)
+    np.testing.assert_array_equal(face, candidates[rows, best])
