@@ -16,8 +16,18 @@ The closest-point grid is the one of :meth:`SurfaceCloud.closest_point_grid`: ``
 
 from __future__ import annotations
 
+import threading
+
+import numba
 import numpy as np
 from numba import njit, prange
+
+#: numba's own thread pool, not OpenMP: numba's OpenMP layer changed the results of torch's
+#: OpenMP computations run after it in the same process (a resumed DDP training no longer
+#: matched the uninterrupted one bit for bit, tests/training/test_distributed.py). The pool
+#: takes one parallel launch at a time: callers hold :data:`PARALLEL` around each.
+numba.config.THREADING_LAYER = "workqueue"
+PARALLEL = threading.Lock()
 
 #: The compiled path on (False: the numpy code it replaced, kept until
 #: ``tests/benchmarks/bench_latency.py`` has shown the ratio).

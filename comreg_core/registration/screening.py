@@ -70,16 +70,15 @@ def _screen_compiled(us_points, starts, target: SurfaceCloud, config: Hypothesis
                      ) -> tuple[np.ndarray, np.ndarray]:
     """The screening's ICP and quick score by the compiled kernels: ``(B, 4, 4)`` screened
     poses and their ``(B,)`` scores (mm)."""
-    from comreg_core.registration.kernels import grid_icp, grid_scores
-
     origin, spacing, grid = target.closest_point_grid
     cloud, normals = target.points, target.normals
-    poses, _, _ = grid_icp(np.ascontiguousarray(strided(us_points, config.screen_points)),
-                           np.ascontiguousarray(starts, dtype=np.float64), origin,
-                           float(spacing), grid, cloud, normals, int(config.screen_iterations),
-                           float(config.icp_trim), 0.1)
     origins = np.zeros((0, 3)) if sub_origins is None else np.ascontiguousarray(sub_origins)
-    scores = grid_scores(poses, np.ascontiguousarray(sub), origins, origin, float(spacing),
-                         grid, cloud, normals, float(config.score_trim),
-                         float(config.facing_penalty_mm))
+    with kernels.PARALLEL:  # one parallel launch at a time (kernels.py)
+        poses, _, _ = kernels.grid_icp(
+            np.ascontiguousarray(strided(us_points, config.screen_points)),
+            np.ascontiguousarray(starts, dtype=np.float64), origin, float(spacing), grid, cloud,
+            normals, int(config.screen_iterations), float(config.icp_trim), 0.1)
+        scores = kernels.grid_scores(poses, np.ascontiguousarray(sub), origins, origin,
+                                     float(spacing), grid, cloud, normals,
+                                     float(config.score_trim), float(config.facing_penalty_mm))
     return poses, scores

@@ -253,9 +253,10 @@ class _ClosestPoints:
             idx = np.where(np.isfinite(d[ok]), idx[ok], idx[ok][:, :1])
             faces = self.sample_face[idx]  # (n_ok, k)
             if kernels.COMPILED:
-                closest[ok], face, dist[ok] = kernels.closest_on_candidates(
-                    np.ascontiguousarray(points[ok], dtype=np.float64),
-                    np.ascontiguousarray(faces, dtype=np.int64), self.vertices, self.faces)
+                with kernels.PARALLEL:
+                    closest[ok], face, dist[ok] = kernels.closest_on_candidates(
+                        np.ascontiguousarray(points[ok], dtype=np.float64),
+                        np.ascontiguousarray(faces, dtype=np.int64), self.vertices, self.faces)
                 normals[ok] = self.face_normals[face]
             else:
                 tri = self.vertices[self.faces[faces]]  # (n_ok, k, 3, 3)
