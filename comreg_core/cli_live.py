@@ -78,6 +78,9 @@ def live(
     from comreg_core.live.session import LiveSession
     from comreg_core.live.stream import probe_calibration
     from comreg_core.register_output import find_calibration
+    from comreg_core.registration import kernels
+
+    kernels.SERIAL = True  # the update loop must not wait on a thread pool beside the receiver
 
     host, port = _host_port(igtl)
     inputs = [ct_mesh, model, calibration, verdict_calibration]
