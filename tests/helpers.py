@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextlib
+import csv
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +12,7 @@ import numpy as np
 #: Real recorded data shipped beside the project (see ../shared/data/README.md).
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 FIBULA_STL = SHARED_DATA / "ultrabones100k-fibula" / "fibula.stl"
+FIBULA_DIR = SHARED_DATA / "ultrabones100k-fibula"
 
 
 def assert_close(actual, expected, *, rtol: float = 0.0, atol: float = 0.0, what: str = "value"):
@@ -128,3 +131,20 @@ def rigid_about(rotvec_deg, translation, about) -> np.ndarray:
     T[:3, 3] = np.asarray(about) - T[:3, :3] @ np.asarray(about) + np.asarray(translation,
                                                                               dtype=np.float64)
     return T
+
+
+def cut_sweep(out: Path, start: int, count: int, step: int = 1) -> Path:
+    """Frames ``start, start + step, ...`` (``count`` of them) of the shared fibula sweep as a
+    frame folder (frames/, tracking.csv, calibration.json) in ``out``."""
+    (out / "frames").mkdir(parents=True)
+    shutil.copy(FIBULA_DIR / "calibration.json", out / "calibration.json")
+    with open(FIBULA_DIR / "tracking.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    keep = rows[start:][::step][:count]
+    with open(out / "tracking.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(keep)
+    for row in keep:
+        shutil.copy(FIBULA_DIR / "frames" / f"{row['timestamp']}.png", out / "frames")
+    return out

@@ -4,34 +4,12 @@ loopback port per test."""
 
 from __future__ import annotations
 
-import csv
-import shutil
 import socket
 from pathlib import Path
 
 import pytest
 
-from tests.helpers import FIBULA_STL, SHARED_DATA
-
-FIBULA_DIR = SHARED_DATA / "ultrabones100k-fibula"
-
-
-def cut_sweep(out: Path, start: int, count: int, step: int = 1) -> Path:
-    """Frames ``start, start + step, ...`` (``count`` of them) of the shared fibula sweep as a
-    frame folder (frames/, tracking.csv, calibration.json) in ``out``."""
-    (out / "frames").mkdir(parents=True)
-    shutil.copy(FIBULA_DIR / "calibration.json", out / "calibration.json")
-    with open(FIBULA_DIR / "tracking.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    keep = rows[start:][::step][:count]
-    with open(out / "tracking.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(keep)
-    for row in keep:
-        shutil.copy(FIBULA_DIR / "frames" / f"{row['timestamp']}.png", out / "frames")
-    return out
-
+from tests.helpers import FIBULA_STL, cut_sweep
 
 def free_port() -> int:
     """A port nobody listens on now (the OS's choice for a bound, then closed socket)."""

@@ -4,18 +4,15 @@ real tracked sweep."""
 
 from __future__ import annotations
 
-import csv
-import shutil
 
 import pytest
 
-from tests.helpers import SHARED_DATA
+from tests.helpers import SHARED_DATA, cut_sweep
 
 #: Why the plugin tests skip when the headless MRML library is missing.
 SLICER_CORE_MISSING = ("slicer-core (3D Slicer's MRML as a Python wheel) is not installed: run "
                        "'pip install -e .[test]' or scripts/setup-env.sh")
 
-FIBULA_DIR = SHARED_DATA / "ultrabones100k-fibula"
 
 
 @pytest.fixture
@@ -39,16 +36,4 @@ def case(tmp_path_factory):
 @pytest.fixture(scope="session")
 def small_sweep(shared_data, tmp_path_factory):
     """Every 5th frame of the real UltraBones100k fibula sweep, as a frame folder."""
-    out = tmp_path_factory.mktemp("sweep")
-    (out / "frames").mkdir()
-    shutil.copy(FIBULA_DIR / "calibration.json", out / "calibration.json")
-    with open(FIBULA_DIR / "tracking.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    keep = rows[::5]
-    with open(out / "tracking.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, list(rows[0]))
-        writer.writeheader()
-        writer.writerows(keep)
-    for row in keep:
-        shutil.copy(FIBULA_DIR / "frames" / f"{row['timestamp']}.png", out / "frames")
-    return out
+    return cut_sweep(tmp_path_factory.mktemp("sweep"), 0, 10**6, step=5)
