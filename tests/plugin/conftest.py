@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import pytest
 
-from tests.helpers import SHARED_DATA, cut_sweep
+from tests.helpers import cut_sweep
 
 #: Why the plugin tests skip when the headless MRML library is missing.
 SLICER_CORE_MISSING = ("slicer-core (3D Slicer's MRML as a Python wheel) is not installed: run "
                        "'pip install -e .[test]' or scripts/setup-env.sh")
-
 
 
 @pytest.fixture
