@@ -68,19 +68,17 @@ def live(
     as 3D Slicer applies it) and a STRING ComRegStatus (JSON: verdict, p_correct, the bone
     covered in mm, advice: 'enough' or which end to scan towards), and prints one status line.
     A lost connection is reconnected and nothing registered is lost. Stop with Ctrl-C (or
-    --until-end); --out then gets the files of 'comreg register' and its report.
+    --until-end, or SIGTERM); --out then gets the files of 'comreg register' and its
+    report.
     """
     from comreg_core.errors import ComRegError
     from comreg_core.inference import Registrar
     from comreg_core.io._files import check_output_folder, require_input_file
     from comreg_core.live.igtl import IMAGE_POSE_DEVICE, PROBE_POSE_DEVICE
-    from comreg_core.live.run import FrameReceiver, finish_live, run_live
+    from comreg_core.live.run import FrameReceiver, finish_live, run_live, stop_on_sigterm
     from comreg_core.live.session import LiveSession
     from comreg_core.live.stream import probe_calibration
     from comreg_core.register_output import find_calibration
-    from comreg_core.registration import kernels
-
-    kernels.SERIAL = True  # the update loop must not wait on a thread pool beside the receiver
 
     host, port = _host_port(igtl)
     inputs = [ct_mesh, model, calibration, verdict_calibration]
@@ -103,9 +101,10 @@ def live(
                              reconnect=not until_end)
     typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "
                f"'{pose_device}'; sending '{send_device}' (Ctrl-C to stop)", err=True)
-    summary = run_live(session, receiver, out_dir=out, until_end=until_end,
-                       send_device=send_device, on_status=typer.echo,
-                       on_note=lambda line: typer.echo(f"live: {line}", err=True))
+    with stop_on_sigterm():
+        summary = run_live(session, receiver, out_dir=out, until_end=until_end,
+                           send_device=send_device, on_status=typer.echo,
+                           on_note=lambda line: typer.echo(f"live: {line}", err=True))
     typer.echo(summary.line())
     if out is not None:
         from comreg_core.register_output import summary_lines

@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import csv
 import logging
+import signal
 import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -207,6 +209,35 @@ class LiveSummary:
                       if lost - self.dropped - self.without_pose else "") if lost else ""))
 
 
+class StopRequested(KeyboardInterrupt):
+    """A stop asked for by a signal other than Ctrl-C (``reason``: e.g. "SIGTERM"); the update
+    loop stops on it as on Ctrl-C."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+@contextmanager
+def stop_on_sigterm():
+    """While inside: SIGTERM (``kill PID``, a supervisor, a batch system) stops :func:`run_live`
+    as Ctrl-C does, so that its folder is still written. A process started in the background by
+    a shell ignores Ctrl-C (SIGINT), as POSIX shells arrange; SIGTERM still reaches it. Only in
+    the main thread (elsewhere a no-op); the previous handler comes back on leaving."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _stop(signum, frame):
+        raise StopRequested("SIGTERM")
+
+    previous = signal.signal(signal.SIGTERM, _stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Path | None = None,
              until_end: bool = False, stop: threading.Event | None = None,
              send_device: str = SEND_DEVICE, on_status: Callable[[str], None] | None = None,
@@ -246,8 +277,8 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
             ended = ended or batch.ended
             if ended and until_end and not session.backlog:
                 break
-    except KeyboardInterrupt:
-        on_note("stopping (Ctrl-C)")
+    except KeyboardInterrupt as stopped:
+        on_note(f"stopping ({getattr(stopped, 'reason', 'Ctrl-C')})")
     finally:
         receiver.stop()
         if updates_log is not None:

@@ -28,9 +28,6 @@ from numba import njit, prange
 #: takes one parallel launch at a time: callers hold :data:`PARALLEL` around each.
 numba.config.THREADING_LAYER = "workqueue"
 PARALLEL = threading.Lock()
-#: Run the kernels on the calling thread only (:func:`use`): for a process whose other threads
-#: must not wait on a thread pool (``comreg live``'s update loop beside its receiver thread).
-SERIAL = False
 
 #: The compiled path on (False: the numpy code it replaced, kept until
 #: ``tests/benchmarks/bench_latency.py`` has shown the ratio).
@@ -410,18 +407,3 @@ def closest_on_candidates(points, candidates, vertices, faces):
                 face[i] = f
         dist[i] = best
     return closest, face, dist
-
-
-#: One-thread builds of the parallel kernels (``prange`` runs as ``range``), for :data:`SERIAL`.
-_SERIAL_BUILDS: dict = {}
-
-
-def use(kernel):
-    """``kernel`` itself, or with :data:`SERIAL` its one-thread build (compiled on first use in
-    the process, ~10 s: not cached, numba's cache would not tell it from the parallel build)."""
-    if not SERIAL:
-        return kernel
-    if kernel not in _SERIAL_BUILDS:
-        _SERIAL_BUILDS[kernel] = njit(kernel.py_func)
-    return _SERIAL_BUILDS[kernel]
-

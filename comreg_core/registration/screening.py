@@ -74,11 +74,11 @@ def _screen_compiled(us_points, starts, target: SurfaceCloud, config: Hypothesis
     cloud, normals = target.points, target.normals
     origins = np.zeros((0, 3)) if sub_origins is None else np.ascontiguousarray(sub_origins)
     with kernels.PARALLEL:  # one parallel launch at a time (kernels.py)
-        poses, _, _ = kernels.use(kernels.grid_icp)(
+        poses, _, _ = kernels.grid_icp(
             np.ascontiguousarray(strided(us_points, config.screen_points)),
             np.ascontiguousarray(starts, dtype=np.float64), origin, float(spacing), grid, cloud,
             normals, int(config.screen_iterations), float(config.icp_trim), 0.1)
-        scores = kernels.use(kernels.grid_scores)(
+        scores = kernels.grid_scores(
             poses, np.ascontiguousarray(sub), origins, origin, float(spacing), grid, cloud,
             normals, float(config.score_trim), float(config.facing_penalty_mm))
     return poses, scores

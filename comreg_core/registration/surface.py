@@ -254,7 +254,7 @@ class _ClosestPoints:
             faces = self.sample_face[idx]  # (n_ok, k)
             if kernels.COMPILED:
                 with kernels.PARALLEL:
-                    closest[ok], face, dist[ok] = kernels.use(kernels.closest_on_candidates)(
+                    closest[ok], face, dist[ok] = kernels.closest_on_candidates(
                         np.ascontiguousarray(points[ok], dtype=np.float64),
                         np.ascontiguousarray(faces, dtype=np.int64), self.vertices, self.faces)
                 normals[ok] = self.face_normals[face]

@@ -159,23 +159,3 @@ def test_closest_on_candidates_matches_the_numpy_voronoi_tests(fibula_surface):
     np.testing.assert_allclose(dist, dq[rows, best], atol=1e-9)
     np.testing.assert_allclose(closest, q[rows, best], atol=1e-9)
     np.testing.assert_array_equal(face, candidates[rows, best])
-
-
-def test_the_serial_builds_give_the_same_bits(fibula_patch, fibula_surface):
-    """kernels.SERIAL (comreg live): the one-thread builds return what the parallel ones do."""
-    target = fibula_surface.cloud(5000)
-    starts = _starts(np.random.default_rng(8), fibula_patch, 32, degrees=60.0, mm=40.0)
-    origin, spacing, grid = target.closest_point_grid
-    src = strided(fibula_patch, 64)
-    args = (src, starts, origin, float(spacing), grid, target.points, target.normals, 20, 0.1,
-            0.1)
-    parallel = kernels.use(kernels.grid_icp)(*args)
-    kernels.SERIAL = True
-    try:
-        serial_kernel = kernels.use(kernels.grid_icp)
-        serial = serial_kernel(*args)
-    finally:
-        kernels.SERIAL = False
-    assert serial_kernel is not kernels.grid_icp
-    for a, b in zip(parallel, serial):
-        np.testing.assert_array_equal(a, b)
