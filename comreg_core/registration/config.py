@@ -77,12 +77,6 @@ class HypothesisConfig:
         icp_schedule: its coarse stages before, ``(US points, iterations)`` each. Both: more
             when refined poses stop short of their basin's minimum (a long bone, starts far
             off), fewer for speed.
-        icp_patience: the last stage stops a hypothesis whose residual has not fallen by
-            0.1 um for this many iterations (0: all ``icp_iterations``). By then the coarse
-            stages have found its basin: its trimmed ICP jitters about the minimum without
-            meeting the 0.01 mm tolerance (on the bundled whole cloud all 11 refined poses ran
-            the full 20 iterations for < 0.01 mm of residual; with 3 they stop after about 4,
-            the result unchanged to 0.3 mm before the polish; docs/performance.md).
         icp_margin_mm: after each stage only the hypotheses whose residual (trimmed RMS, mm)
             is within this of the best go on (the others are far behind; this only saves
             time). Larger when the US cloud is noisy enough that the right pose's residual
@@ -146,7 +140,6 @@ class HypothesisConfig:
     target_points: int = 20_000
     icp_iterations: int = 20
     icp_schedule: tuple[tuple[int, int], ...] = ((128, 30), (512, 30))
-    icp_patience: int = 3
     icp_margin_mm: float = 1.0
     icp_trim: float = 0.1
     score_trim: float = 0.2
@@ -194,7 +187,6 @@ class HypothesisConfig:
         require(self.icp_points >= 3, "hypotheses.icp_points", "must be at least 3")
         require(self.target_points >= 100, "hypotheses.target_points", "must be at least 100")
         require(self.icp_iterations >= 0, "hypotheses.icp_iterations", "must be 0 or more")
-        require(self.icp_patience >= 0, "hypotheses.icp_patience", "must be 0 or more")
         require(all(p >= 6 and it >= 0 for p, it in self.icp_schedule),
                 "hypotheses.icp_schedule", "needs at least 6 points and 0 or more iterations "
                 "per stage")

@@ -188,15 +188,13 @@ def coarse_to_fine_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
                        iterations: int = 20,
                        schedule: tuple[tuple[int, int], ...] = ((128, 30), (512, 30)),
                        margin_mm: float | None = None, trim_fraction: float = 0.0,
-                       tolerance_mm: float = 0.01, patience: int = 0
-                       ) -> tuple[np.ndarray, np.ndarray]:
+                       tolerance_mm: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """:func:`point_to_plane_icp` of one source cloud from ``B`` starts, coarse to fine: first
     the ``schedule`` stages ``(points, iterations)`` on evenly strided subsets of the source
     (the long way from a poor start is cheap there; stages with ``points >= n`` are skipped),
     then ``iterations`` on all ``n`` points. After each stage only the starts whose residual is
     within ``margin_mm`` of the best one go on (all when None); the others keep their pose and
-    residual so far (they are far behind: this only saves time). ``patience`` (the last stage
-    only): :func:`point_to_plane_icp`'s, a start whose residual has stalled stops there.
+    residual so far (they are far behind: this only saves time).
 
     Args:
         source: ``(n, 3)`` mm; ``T_init``: ``(B, 4, 4)`` mm; ``match``: the correspondences.
@@ -212,12 +210,10 @@ def coarse_to_fine_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
     stages.append((len(src), int(iterations)))
     going = np.ones(len(T), dtype=bool)
     for i, (points, its) in enumerate(stages):
-        last = i == len(stages) - 1
         result = point_to_plane_icp(strided(src, points), T[going], match, iterations=its,
-                                    trim_fraction=trim_fraction, tolerance_mm=tolerance_mm,
-                                    patience=patience if last else 0)
+                                    trim_fraction=trim_fraction, tolerance_mm=tolerance_mm)
         T[going], rmse[going] = result.T, result.rmse_mm
-        if margin_mm is not None and not last and np.isfinite(rmse[going]).any():
+        if margin_mm is not None and i < len(stages) - 1 and np.isfinite(rmse[going]).any():
             going &= ~(rmse > np.nanmin(rmse[going]) + margin_mm)
     return T, rmse
 

@@ -41,9 +41,8 @@ alternatives at test time, with no extra training data:
    the ICP 20 mm off the truth). Point-to-plane ICP
    (:func:`~comreg_core.registration.icp.coarse_to_fine_icp`), coarse to fine: the
    ``icp_schedule`` stages on evenly strided subsets (128, then 512 US points, 30 iterations
-   each), then ``icp_iterations`` on all ``icp_points`` (a hypothesis whose residual stalls
-   for ``icp_patience`` iterations stops); after each stage only the hypotheses whose
-   residual is within ``icp_margin_mm`` of the best go on. (Point-to-point ICP, hard or
+   each), then ``icp_iterations`` on all ``icp_points``; after each stage only the hypotheses
+   whose residual is within ``icp_margin_mm`` of the best go on. (Point-to-point ICP, hard or
    soft, crawls along a shaft, where the surface slides under the points: measured in
    ``tests/benchmarks/bench_hypotheses.py`` before it was dropped.)
 
@@ -436,7 +435,6 @@ def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: Su
                                        iterations=config.icp_iterations,
                                        schedule=config.icp_schedule,
                                        margin_mm=config.icp_margin_mm,
-                                       trim_fraction=config.icp_trim,
-                                       patience=config.icp_patience)
+                                       trim_fraction=config.icp_trim)
     poses = np.stack([orthonormalize(T) for T in refined])
     return names, [grid[n] for n in names], poses, rmse

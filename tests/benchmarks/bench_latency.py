@@ -23,8 +23,7 @@ Sets (every trial moves the points by a random ``paper`` pose: one axis, +-90 de
 Columns: success (RTE < 4 mm and RRE < 5 deg), flagged (share of results the search calls
 ambiguous), RTE/RRE medians, latency median and 90th percentile (s, the registration call
 with the CT's structures built beforehand, as a ``Registrar`` reused across calls has them),
-and ``ratio``: the numpy path's median over the compiled path's (``kernels.COMPILED``; the
-old path also runs the refinement's last stage to its 20 iterations, ``icp_patience=0``).
+and ``ratio``: the numpy path's median over the compiled path's (``kernels.COMPILED``).
 The load average is printed: measure on an idle machine.
 """
 
@@ -90,22 +89,17 @@ def time_trials(registrar, cases, paths) -> dict:
     """Every case ``(points, beam origins or None, truth)`` on each path: ``{path: rows}``."""
     from comreg_core.registration import kernels
 
-    from dataclasses import replace
-
     rows = {path: [] for path in paths}
     registrar.register(cases[0][0], beam_origins=cases[0][1])  # CT structures, kernels
-    config = registrar.hypothesis_config
     for points, origins, T_truth in cases:
         for path in paths:
             kernels.COMPILED = path == "compiled"
-            registrar.hypothesis_config = config if path == "compiled" else \
-                replace(config, icp_patience=0)  # the old path: the refinement's 20 iterations
             start = time.perf_counter()
             result = registrar.register(points, beam_origins=origins)
             seconds = time.perf_counter() - start
             rows[path].append((seconds, *errors(result.T_ct_us, T_truth, points),
                                bool(result.info.get("ambiguous"))))
-    kernels.COMPILED, registrar.hypothesis_config = True, config
+    kernels.COMPILED = True
     return rows
 
 
