@@ -335,7 +335,7 @@ class LiveSession:
         return judge_registration(pts, T_ct_us, self.registrar.surface,
                                   confidence=evidence.confidence, ambiguous=evidence.ambiguous,
                                   p_correct=p_correct, short_sweep=extent < 0.5,
-                                  ok_probability=ok_probability)
+                                  ok_probability=ok_probability, scale_scan=False)
 
 
 def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:

@@ -23,7 +23,6 @@ import numpy as np
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration.config import (MESH_REFINE_ITERATIONS, MESH_REFINE_POINTS,
                                              MESH_REFINE_TRIM, POLISH_PATIENCE)
-from comreg_core.registration import kernels
 from comreg_core.registration.kernels import pose_steps
 from comreg_core.registration.surface import Matcher
 from comreg_core.transforms import as_points
@@ -119,8 +118,7 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
         q, nrm, d = match(moved)  # m n 3, m n 3, m n
         done_iterations[active] += 1
         Ta = np.ascontiguousarray(T[active])
-        steps = pose_steps if kernels.COMPILED else _numpy_pose_steps
-        step = steps(np.ascontiguousarray(moved), np.ascontiguousarray(q, dtype=np.float64),
+        step = pose_steps(np.ascontiguousarray(moved), np.ascontiguousarray(q, dtype=np.float64),
                           np.ascontiguousarray(nrm, dtype=np.float64),
                           np.ascontiguousarray(d, dtype=np.float64), float(trim_fraction), Ta)
         inliers[active] = step[:, 3]
@@ -144,44 +142,6 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
     if single:
         return ICPResult(T[0], rmse[0], done_iterations[0], converged[0], inliers[0])
     return ICPResult(T, rmse, done_iterations, converged, inliers)
-
-
-def _numpy_pose_steps(moved, q, nrm, d, trim_fraction, T):
-    """:func:`~comreg_core.registration.kernels.pose_steps` in numpy: the path before the
-    compiled kernels, kept until ``tests/benchmarks/bench_latency.py`` has shown the ratio."""
-    from scipy.spatial.transform import Rotation
-
-    m = len(moved)
-    matched = np.isfinite(d)
-    out = np.zeros((m, 4))
-    out[:, 0], out[:, 3] = np.nan, matched.mean(axis=1)
-    if trim_fraction > 0:  # of the matched pairs, the farthest trim_fraction left out
-        count = matched.sum(axis=1)
-        keep = np.minimum(count, np.maximum(MIN_PAIRS, count - (trim_fraction * count
-                                                                ).astype(np.int64)))
-        limit = np.sort(np.where(matched, d, np.inf), axis=1)[
-            np.arange(m), np.maximum(keep - 1, 0)][:, None]  # m 1
-        w = (matched & (d <= limit)).astype(np.float64)  # m n
-    else:
-        w = matched.astype(np.float64)
-    ok = np.flatnonzero(w.sum(1) >= MIN_PAIRS)
-    moved, q, nrm, w, Ta = moved[ok], q[ok], nrm[ok], w[ok], T[ok]
-    q, nrm = np.where(w[..., None] > 0, q, 0.0), np.where(w[..., None] > 0, nrm, 0.0)
-    r = np.einsum("bni,bni->bn", moved - q, nrm)  # signed distance to the plane
-    out[ok, 0] = np.sqrt((w * r * r).sum(1) / w.sum(1))
-    c = (w[..., None] * moved).sum(1) / w.sum(1)[:, None]
-    A = np.concatenate([np.cross(moved - c[:, None], nrm), nrm], axis=2)
-    Aw = A * w[..., None]
-    H = Aw.transpose(0, 2, 1) @ A
-    g = (Aw.transpose(0, 2, 1) @ r[..., None])[..., 0]
-    damp = (1e-6 * np.trace(H, axis1=1, axis2=2)[:, None, None] + 1e-12) * np.eye(6)
-    x = np.linalg.solve(H + damp, -g[..., None])[..., 0]
-    step = np.tile(np.eye(4), (len(ok), 1, 1))
-    step[:, :3, :3] = Rotation.from_rotvec(x[:, :3]).as_matrix()
-    step[:, :3, 3] = c - np.einsum("bij,bj->bi", step[:, :3, :3], c) + x[:, 3:]
-    T[ok] = step @ Ta
-    out[ok, 1], out[ok, 2] = np.linalg.norm(x[:, :3], axis=1), np.linalg.norm(x[:, 3:], axis=1)
-    return out
 
 
 def coarse_to_fine_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *,

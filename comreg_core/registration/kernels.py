@@ -29,10 +29,6 @@ from numba import njit, prange
 numba.config.THREADING_LAYER = "workqueue"
 PARALLEL = threading.Lock()
 
-#: The compiled path on (False: the numpy code it replaced, kept until
-#: ``tests/benchmarks/bench_latency.py`` has shown the ratio).
-COMPILED = True
-
 #: Fewest kept pairs an ICP update needs (six unknowns): :data:`icp.MIN_PAIRS`.
 _MIN_PAIRS = 6
 

@@ -8,8 +8,8 @@ import numpy as np
 
 from comreg_core.registration import kernels
 from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
-from comreg_core.registration.scoring import same_pose, score_poses
+from comreg_core.registration.icp import apply_poses, strided
+from comreg_core.registration.scoring import same_pose
 from comreg_core.registration.surface import SurfaceCloud
 
 
@@ -41,13 +41,7 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
 
     sub = strided(us_points, config.screen_score_points)
     sub_origins = None if origins is None else strided(origins, config.screen_score_points)
-    if kernels.COMPILED:
-        poses, scores = _screen_compiled(us_points, starts, target, config, sub, sub_origins)
-    else:
-        poses = point_to_plane_icp(strided(us_points, config.screen_points), starts,
-                                   target.match_approx, iterations=config.screen_iterations,
-                                   trim_fraction=config.icp_trim, tolerance_mm=0.1).T
-        scores = score_poses(poses, sub, target, config, approximate=True, origins=sub_origins)
+    poses, scores = _screen_compiled(us_points, starts, target, config, sub, sub_origins)
     centroids = apply_poses(poses, us_points.mean(axis=0)[None])[:, 0]  # B 3
     chosen = [0] if keep_first else []
     order = np.argsort(scores, kind="stable")

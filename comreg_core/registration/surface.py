@@ -7,8 +7,8 @@
   (:meth:`~CTSurface.cloud`). Registration, simulation, evaluation and the report all use it.
 - :class:`SurfaceCloud`: dense points on the surface with normals, a KD-tree and a
   closest-point grid: the target of the pose search's ICP and its score.
-- :func:`closest_points_on_triangles`, :func:`sample_triangles`, :func:`estimate_normals`,
-  :func:`principal_frame`: the geometry underneath.
+- :func:`sample_triangles`, :func:`estimate_normals`, :func:`principal_frame`: the geometry
+  underneath (exact closest points on triangles: ``kernels.closest_on_candidates``).
 
 Numpy, scipy, pykdtree and VTK only: no torch, nothing above ``io`` in this package's layers.
 """
@@ -47,43 +47,6 @@ def sample_triangles(vertices: np.ndarray, faces: np.ndarray, face_areas: np.nda
     s1 = np.sqrt(r1)
     w = np.stack([1 - s1, s1 * (1 - r2), s1 * r2], axis=1)
     return np.einsum("nk,nkj->nj", w, vertices[faces[face]]), face
-
-
-def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
-                                ) -> np.ndarray:
-    """Exact closest point of each point ``p[i]`` on triangle ``(a[i], b[i], c[i])`` (all
-    ``(..., 3)``), by the Voronoi-region tests of Ericson, *Real-Time Collision Detection*, 5.1.5.
-    """
-    dot = lambda u, v: np.einsum("...j,...j->...", u, v)  # noqa: E731
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    bp = p - b
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    cp = p - c
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v = np.where(denom != 0, vb / denom, 0.0)
-        w = np.where(denom != 0, vc / denom, 0.0)
-        out = a + ab * v[..., None] + ac * w[..., None]  # interior (face region)
-        # edge regions (each overrides the face region where it applies)
-        t_bc = np.clip((d4 - d3) / ((d4 - d3) + (d5 - d6)), 0, 1)
-        on_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-        out = np.where(on_bc[..., None], b + (c - b) * t_bc[..., None], out)
-        t_ac = np.clip(d2 / (d2 - d6), 0, 1)
-        on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        out = np.where(on_ac[..., None], a + ac * t_ac[..., None], out)
-        t_ab = np.clip(d1 / (d1 - d3), 0, 1)
-        on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        out = np.where(on_ab[..., None], a + ab * t_ab[..., None], out)
-    # vertex regions
-    out = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, out)
-    out = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, out)
-    out = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, out)
-    return out
 
 
 def principal_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -254,23 +217,11 @@ class _ClosestPoints:
         if ok.any():
             idx = np.where(np.isfinite(d[ok]), idx[ok], idx[ok][:, :1])
             faces = self.sample_face[idx]  # (n_ok, k)
-            if kernels.COMPILED:
-                with kernels.PARALLEL:
-                    closest[ok], face, dist[ok] = kernels.closest_on_candidates(
-                        np.ascontiguousarray(points[ok], dtype=np.float64),
-                        np.ascontiguousarray(faces, dtype=np.int64), self.vertices, self.faces)
-                normals[ok] = self.face_normals[face]
-            else:
-                tri = self.vertices[self.faces[faces]]  # (n_ok, k, 3, 3)
-                p = points[ok][:, None, :]
-                q = closest_points_on_triangles(p, tri[..., 0, :], tri[..., 1, :],
-                                                tri[..., 2, :])
-                dq = np.linalg.norm(q - p, axis=2)
-                best = np.argmin(dq, axis=1)
-                rows = np.arange(len(best))
-                closest[ok] = q[rows, best]
-                normals[ok] = self.face_normals[faces[rows, best]]
-                dist[ok] = dq[rows, best]
+            with kernels.PARALLEL:
+                closest[ok], face, dist[ok] = kernels.closest_on_candidates(
+                    np.ascontiguousarray(points[ok], dtype=np.float64),
+                    np.ascontiguousarray(faces, dtype=np.int64), self.vertices, self.faces)
+            normals[ok] = self.face_normals[face]
         far = dist > max_distance
         dist[far] = np.inf
         closest[far] = np.nan

@@ -1,9 +1,10 @@
-"""Benchmark: registration latency (issue 35), the compiled path against the numpy path it
-replaced, measured in the same run, with the accuracy beside it.
+"""Benchmark: registration latency (issue 35), with the accuracy beside it. (The numpy path
+the compiled kernels replaced was measured against them in the same run before it was removed:
+docs/performance.md has the ratios.)
 
 ``.venv/bin/python -m tests.benchmarks.bench_latency [--trials 10] [--seed 0]
 [--set bundled,simulated-fibula,real-fibula,grown] [--model fibula=RUN --untrained
-fibula=RUN0] [--paths compiled,numpy]``
+fibula=RUN0]``
 
 Sets (every trial moves the points by a random ``paper`` pose: one axis, +-90 deg, +-100 mm):
 
@@ -22,8 +23,7 @@ Sets (every trial moves the points by a random ``paper`` pose: one axis, +-90 de
 
 Columns: success (RTE < 4 mm and RRE < 5 deg), flagged (share of results the search calls
 ambiguous), RTE/RRE medians, latency median and 90th percentile (s, the registration call
-with the CT's structures built beforehand, as a ``Registrar`` reused across calls has them),
-and ``ratio``: the numpy path's median over the compiled path's (``kernels.COMPILED``).
+with the CT's structures built beforehand, as a ``Registrar`` reused across calls has them).
 The load average is printed: measure on an idle machine.
 """
 
@@ -85,58 +85,42 @@ def errors(T, T_truth, points) -> tuple[float, float]:
             rotation_error_deg(T, T_truth))
 
 
-def time_trials(registrar, cases, paths) -> dict:
-    """Every case ``(points, beam origins or None, truth)`` on each path: ``{path: rows}``."""
-    from comreg_core.registration import kernels
-
-    rows = {path: [] for path in paths}
+def time_trials(registrar, cases) -> list:
+    """Every case ``(points, beam origins or None, truth)``: rows ``(seconds, RTE mm, RRE deg,
+    flagged)``."""
+    rows = []
     registrar.register(cases[0][0], beam_origins=cases[0][1])  # CT structures, kernels
     for points, origins, T_truth in cases:
-        for path in paths:
-            kernels.COMPILED = path == "compiled"
-            start = time.perf_counter()
-            result = registrar.register(points, beam_origins=origins)
-            seconds = time.perf_counter() - start
-            rows[path].append((seconds, *errors(result.T_ct_us, T_truth, points),
-                               bool(result.info.get("ambiguous"))))
-    kernels.COMPILED = True
+        start = time.perf_counter()
+        result = registrar.register(points, beam_origins=origins)
+        seconds = time.perf_counter() - start
+        rows.append((seconds, *errors(result.T_ct_us, T_truth, points),
+                     bool(result.info.get("ambiguous"))))
     return rows
 
 
-def grown_trials(registrar, points, origins, frames, T_truth, paths) -> dict:
+def grown_trials(registrar, points, origins, frames, T_truth) -> list:
     """The sweep growing 10 frames at a time from 30: a full search, then warm updates."""
-    from comreg_core.registration import kernels
-
-    rows = {path: [] for path in paths}
-    registrar.register(points[frames < 30], beam_origins=origins[frames < 30])
-    for path in paths:
-        kernels.COMPILED = path == "compiled"
-        first = frames < 30
-        last = registrar.register(points[first], beam_origins=origins[first])
-        for upto in range(40, int(frames.max()) + 2, 10):
-            used = frames < upto
-            start = time.perf_counter()
-            last = registrar.register(points[used], beam_origins=origins[used], warm_start=last)
-            seconds = time.perf_counter() - start
-            rows[path].append((seconds, *errors(last.T_ct_us, T_truth, points[used]),
-                               bool(last.info.get("ambiguous"))))
-    kernels.COMPILED = True
+    rows = []
+    first = frames < 30
+    last = registrar.register(points[first], beam_origins=origins[first])
+    for upto in range(40, int(frames.max()) + 2, 10):
+        used = frames < upto
+        start = time.perf_counter()
+        last = registrar.register(points[used], beam_origins=origins[used], warm_start=last)
+        seconds = time.perf_counter() - start
+        rows.append((seconds, *errors(last.T_ct_us, T_truth, points[used]),
+                     bool(last.info.get("ambiguous"))))
     return rows
 
 
-def print_rows(name: str, method: str, rows: dict) -> None:
-    medians = {}
-    for path, values in rows.items():
-        a = np.array(values, dtype=np.float64)
-        seconds, rte, rre, flagged = a[:, 0], a[:, 1], a[:, 2], a[:, 3]
-        success = np.mean((rte < SUCCESS_MM) & (rre < SUCCESS_DEG))
-        medians[path] = float(np.median(seconds))
-        print(f"{name:>17} {method:>9} {path:>8} {len(a):>6} {success:>7.0%} {flagged.mean():>7.0%} "
-              f"{np.median(rte):>7.2f} {np.median(rre):>7.2f} {medians[path]:>7.3f} "
-              f"{np.percentile(seconds, 90):>6.3f}", flush=True)
-    if {"compiled", "numpy"} <= set(medians):
-        print(f"{'':>17} {method:>9}    ratio numpy / compiled median: "
-              f"{medians['numpy'] / medians['compiled']:.2f}x", flush=True)
+def print_rows(name: str, method: str, rows: list) -> None:
+    a = np.array(rows, dtype=np.float64)
+    seconds, rte, rre, flagged = a[:, 0], a[:, 1], a[:, 2], a[:, 3]
+    success = np.mean((rte < SUCCESS_MM) & (rre < SUCCESS_DEG))
+    print(f"{name:>17} {method:>9} {len(a):>6} {success:>7.0%} {flagged.mean():>7.0%} "
+          f"{np.median(rte):>7.2f} {np.median(rre):>7.2f} {np.median(seconds):>7.3f} "
+          f"{np.percentile(seconds, 90):>6.3f}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -156,9 +140,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--set", default=",".join(SETS))
     p.add_argument("--model", action="append", default=[], help="fibula=RUN")
     p.add_argument("--untrained", action="append", default=[], help="fibula=RUN0")
-    p.add_argument("--paths", default="compiled,numpy")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
-    paths = args.paths.split(",")
     models = dict(a.split("=", 1) for a in args.model)
     untrained = dict(a.split("=", 1) for a in args.untrained)
     import numba
@@ -167,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"load average {os.getloadavg()[0]:.2f} (1 min) on {os.cpu_count()} cores; torch "
           f"{torch.get_num_threads()} threads, numba {numba.get_num_threads()}; "
           f"success: RTE < {SUCCESS_MM:g} mm and RRE < {SUCCESS_DEG:g} deg")
-    print(f"{'set':>17} {'method':>9} {'path':>8} {'trials':>6} {'success':>7} {'flagged':>7} "
+    print(f"{'set':>17} {'method':>9} {'trials':>6} {'success':>7} {'flagged':>7} "
           f"{'RTE med':>7} {'RRE med':>7} {'median s':>7} {'p90 s':>6}")
     rng_pose = np.random.default_rng(args.seed)
     fibula = read_mesh(FIBULA_STL)
@@ -192,7 +174,7 @@ def main(argv: list[str] | None = None) -> None:
             points, origins, frames = real_sweep(SHARED_DATA)
             methods = registrars(fibula, None, None)
             print_rows(name, "search", grown_trials(methods["search"], points, origins, frames,
-                                                    T_truth, paths))
+                                                    T_truth))
             continue
         else:
             raise SystemExit(f"unknown set {name!r}; choose from {', '.join(SETS)}")
@@ -204,7 +186,7 @@ def main(argv: list[str] | None = None) -> None:
                           None if origins is None else apply_transform(T_move, origins),
                           T_truth @ invert_rigid(T_move)))
         for method, registrar in methods.items():
-            print_rows(name, method, time_trials(registrar, cases, paths))
+            print_rows(name, method, time_trials(registrar, cases))
 
 
 if __name__ == "__main__":

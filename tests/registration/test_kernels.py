@@ -1,6 +1,7 @@
 """The compiled kernels of the pose search (comreg_core/registration/kernels.py) against the
-numpy code they replaced (the same ICP and score, step for step) and scipy's rotations; and
-the same output at 1 and 2 threads."""
+numpy code they replaced (tests/registration/reference.py: the same update and closest points),
+the Python ICP loop and score (the screening's), scipy's rotations; and the same output at 1
+and 2 threads."""
 
 import numba
 import numpy as np
@@ -9,17 +10,10 @@ from scipy.spatial.transform import Rotation
 
 from comreg_core.registration import kernels
 from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.icp import _numpy_pose_steps, point_to_plane_icp, strided
+from comreg_core.registration.icp import point_to_plane_icp, strided
 from comreg_core.registration.scoring import score_poses
 from tests.helpers import random_rigid
-
-
-@pytest.fixture
-def numpy_path():
-    """Run the test body's registration code on the numpy path, then restore."""
-    kernels.COMPILED = False
-    yield
-    kernels.COMPILED = True
+from tests.registration.reference import closest_points_on_triangles, numpy_pose_steps
 
 
 def _starts(rng, points, count, degrees=25.0, mm=15.0):
@@ -63,44 +57,21 @@ def test_pose_steps_match_the_numpy_update():
     for trim in (0.0, 0.1, 0.3):
         T_numpy = np.tile(random_rigid(rng), (m, 1, 1))
         T_compiled = T_numpy.copy()
-        expected = _numpy_pose_steps(moved, q, nrm, d, trim, T_numpy)
+        expected = numpy_pose_steps(moved, q, nrm, d, trim, T_numpy)
         got = kernels.pose_steps(moved, q, nrm, d, trim, T_compiled)
         np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12, equal_nan=True)
         np.testing.assert_allclose(T_compiled, T_numpy, rtol=0, atol=1e-9)
         assert np.isnan(got[1, 0]) and (T_compiled[1] == T_numpy[1]).all()
 
 
-def test_icp_same_result_compiled_or_numpy(fibula_patch, fibula_surface, numpy_path):
-    """The refinement's KD-tree matcher over 15 iterations. (The polish's exact matcher is not
-    compared over iterations: at a point nearest an edge either triangle's normal is right, the
-    two paths' rounding can pick different ones, and the next iterations part: measured 0.4 mm
-    after two. Its closest points are compared in test_closest_on_candidates_...)"""
-    target = fibula_surface.cloud(5000)
-    starts = _starts(np.random.default_rng(3), fibula_patch, 6)
-    kernels.COMPILED = False
-    expected = point_to_plane_icp(fibula_patch, starts, target.match, iterations=15,
-                                  trim_fraction=0.1)
-    kernels.COMPILED = True
-    got = point_to_plane_icp(fibula_patch, starts, target.match, iterations=15,
-                             trim_fraction=0.1)
-    np.testing.assert_allclose(got.T, expected.T, atol=1e-6)
-    np.testing.assert_array_equal(got.iterations, expected.iterations)
-    np.testing.assert_allclose(got.rmse_mm, expected.rmse_mm, rtol=1e-6)
-    assert np.abs(got.T - starts).max() > 0.1  # they moved
-
-
-def test_grid_icp_and_scores_match_the_numpy_screening(fibula_patch, fibula_surface):
+def test_grid_icp_and_scores_match_the_python_screening(fibula_patch, fibula_surface):
     target = fibula_surface.cloud(5000)
     config = HypothesisConfig()
     rng = np.random.default_rng(4)
     starts = _starts(rng, fibula_patch, 40, degrees=40.0, mm=30.0)
     src = strided(fibula_patch, 64)
-    kernels.COMPILED = False
-    try:
-        expected = point_to_plane_icp(src, starts, target.match_approx, iterations=20,
-                                      trim_fraction=0.1, tolerance_mm=0.1)
-    finally:
-        kernels.COMPILED = True
+    expected = point_to_plane_icp(src, starts, target.match_approx, iterations=20,
+                                  trim_fraction=0.1, tolerance_mm=0.1)
     origin, spacing, grid = target.closest_point_grid
     poses, rmse, done = kernels.grid_icp(src, starts, origin, float(spacing), grid,
                                          target.points, target.normals, 20, 0.1, 0.1)
@@ -141,9 +112,8 @@ def test_kernels_give_the_same_bits_at_one_and_two_threads(fibula_patch, fibula_
 
 def test_closest_on_candidates_matches_the_numpy_voronoi_tests(fibula_surface):
     """Exact closest points on candidate triangles: the kernel against
-    surface.closest_points_on_triangles on points near, on and far from the mesh (every
+    the reference closest_points_on_triangles on points near, on and far from the mesh (every
     Voronoi region: vertices, edges, faces)."""
-    from comreg_core.registration.surface import closest_points_on_triangles
 
     rng = np.random.default_rng(6)
     vertices, faces = fibula_surface.vertices, fibula_surface.faces
