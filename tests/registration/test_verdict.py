@@ -99,3 +99,20 @@ def test_points_off_the_bone_are_check(fibula, simulated_sweep):
     verdict = judge_registration(simulated_sweep, T, fibula)
     assert verdict.verdict == "check"
     assert any("lie off the CT bone" in r for r in verdict.reasons)
+
+
+def test_a_short_sweep_may_skip_the_scale_scan_it_ignores(fibula, axis, real_sweep):
+    """scale_scan=False (a live update): a short sweep's verdict and every other figure as
+    with the scan; a whole sweep scans anyway; a slide is still CHECK."""
+    points, T = real_sweep
+    short = points[:800]
+    for pose in (T, slid(T, 20.0, axis)):
+        scanned = judge_registration(short, pose, fibula, short_sweep=True)
+        skipped = judge_registration(short, pose, fibula, short_sweep=True, scale_scan=False)
+        assert skipped.verdict == scanned.verdict and skipped.reasons == scanned.reasons
+        assert skipped.figures["refit_scale"] is None and scanned.figures["refit_scale"] > 0
+        assert {k: v for k, v in skipped.figures.items() if not k.startswith("refit_scale")} \
+            == {k: v for k, v in scanned.figures.items() if not k.startswith("refit_scale")}
+    assert scanned.verdict == "check"  # the slide
+    whole = judge_registration(points, T, fibula, scale_scan=False)
+    assert whole.figures["refit_scale"] is not None
