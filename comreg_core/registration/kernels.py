@@ -340,6 +340,9 @@ def compile_kernels() -> None:
                np.ones((2, 12)), 0.1, eye.copy())
     closest_on_candidates(points, np.zeros((12, 2), dtype=np.int64), points,
                           np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int64))
+    from comreg_core.surfaces.us_detector import _viterbi  # the bone detector's kernel
+
+    _viterbi(np.zeros((4, 3)), 1, 0.5, 1.0)
 
 
 @njit(cache=True, inline="always")
