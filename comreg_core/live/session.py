@@ -16,7 +16,8 @@ So the verdict only ever turns OK, or back to CHECK, on a full search.
 at most :data:`VERDICT_POINTS` of the points) with the result's own evidence: the margin of its
 best clinically different pose (and, with a calibration, ``p_correct`` at the sweep's extent)
 or its confidence. A warm result's evidence covers the competitors it carried over from the
-last full search; new ones are found by the next full search.
+last full search; new ones are found by the next full search. The US calibration's scale is
+checked (the refit's scale scan, ~0.07 s) on full searches only.
 
 **Advice.** ``"enough"`` when the verdict is OK, else which end of the bone to scan towards
 (:func:`scan_advice`).
@@ -294,7 +295,8 @@ class LiveSession:
                 covered >= self._covered_at_full + self.full_every_mm:
             return (*self._full(pts, origins, everything), "full")
         result = warm_register(self.registrar, pts, origins, self._result, self.seed)
-        verdict = self._judge(pts, result.T_ct_us, self._evidence_of(result, pts))
+        verdict = self._judge(pts, result.T_ct_us, self._evidence_of(result, pts),
+                              scale_scan=False)
         if self._moved(result.T_ct_us, self.last.T_ct_us, pts.mean(axis=0)) \
                 or verdict.verdict != self.last.verdict:
             return (*self._full(pts, origins, everything), "warm+full")
@@ -321,8 +323,12 @@ class LiveSession:
         self._covered_at_full = self.covered_mm(everything, result.T_ct_us)
         return result, self._judge(pts, result.T_ct_us, self._evidence_of(result, pts))
 
-    def _judge(self, pts: np.ndarray, T_ct_us: np.ndarray, evidence: _Evidence):
-        """The verdict of ``T_ct_us`` for ``pts`` with the registration's ``evidence``."""
+    def _judge(self, pts: np.ndarray, T_ct_us: np.ndarray, evidence: _Evidence,
+               scale_scan: bool = True):
+        """The verdict of ``T_ct_us`` for ``pts`` with the registration's ``evidence``; without
+        ``scale_scan`` (a warm update) no scale check: the US calibration's scale is checked
+        by the full searches (a scale problem found there makes the warm verdicts differ, so
+        each update runs the full search again and stays CHECK)."""
         extent = extent_share(pts, self.ct_length)
         p_correct = None
         if self.calibration is not None:
@@ -335,7 +341,7 @@ class LiveSession:
         return judge_registration(pts, T_ct_us, self.registrar.surface,
                                   confidence=evidence.confidence, ambiguous=evidence.ambiguous,
                                   p_correct=p_correct, short_sweep=extent < 0.5,
-                                  ok_probability=ok_probability, scale_scan=False)
+                                  ok_probability=ok_probability, scale_scan=scale_scan)
 
 
 def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:

@@ -139,13 +139,13 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, confidence: float | No
     whose best-fitting scale says nothing (a short stretch of shaft fits at many scales: at
     their true pose 4 of 11 real 30-60 mm fibula runs fit 16-25 % closer scaled by 0.8-1.16), so
     the scale check is left out. ``distances``: the registered points' distances to the CT if
-    already computed (mm). ``scale_scan=False`` with ``short_sweep`` skips the refit's scale
-    scan, whose answer is then not used (``refit_scale`` and ``refit_scale_gain`` are None):
-    a live update's verdict, ~0.1 s sooner."""
+    already computed (mm). ``scale_scan=False`` skips the refit's scale scan and so the scale
+    check (``refit_scale`` and ``refit_scale_gain`` are None; a short sweep ignores them
+    anyway): a live update's verdict, up to ~0.1 s sooner."""
     surface = as_surface(ct_surface)
     points = apply_transform(check_rigid(T_ct_us), as_points(us_points, "US points"))
     d = surface.distance(points) if distances is None else np.asarray(distances, np.float64)
-    shift, scale, gain = refit(points, surface, scale_scan=scale_scan or not short_sweep)
+    shift, scale, gain = refit(points, surface, scale_scan=scale_scan)
     figures = {"median_mm": float(np.median(d)), "p90_mm": float(np.percentile(d, 90)),
                "within_2mm": float(np.mean(d <= NEAR_MM)), "coverage": coverage(points, surface),
                "refit_shift_mm": shift, "refit_scale": scale, "refit_scale_gain": gain,
