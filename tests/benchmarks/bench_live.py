@@ -2,7 +2,7 @@
 OpenIGTLink on 127.0.0.1 into ``comreg live``, real server and client in their own processes.
 
 ``.venv/bin/python -m tests.benchmarks.bench_live [--rate 4] [--starts 0,15,30,45,60,75]
-[--model RUN_DIR] [--verdict-calibration FILE] [--out DIR]``
+[--model RUN_DIR] [--untrained RUN0] [--verdict-calibration FILE] [--out DIR]``
 
 Each replay serves the shared sweep (111 B-mode frames, every 10th of the recording) from one
 start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg live --until-end
@@ -20,8 +20,9 @@ start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg li
   (sent but not received, or received but neither registered nor reported; target 0).
 
 Controls: with ``--model RUN_DIR`` every replay runs twice, by the search alone and with the
-network (``--model``). Targets: never OK-and-wrong; OK within 150 mm; median update <= 0.2 s; no
-frame lost unreported. Timings depend on the machine's load: state it with the figures.
+network (``--model``); ``--untrained RUN0`` adds a third, the same network untrained.
+Targets: never OK-and-wrong; OK within 150 mm; median update <= 0.2 s; no frame lost
+unreported. Timings depend on the machine's load: state it with the figures.
 """
 
 from __future__ import annotations
@@ -140,17 +141,20 @@ def main(argv=None) -> None:
     parser.add_argument("--rate", type=float, default=4.0)
     parser.add_argument("--starts", default="0,15,30,45,60,75")
     parser.add_argument("--model", type=Path, default=None)
+    parser.add_argument("--untrained", type=Path, default=None, help="the same network before "
+                        "its first step (the control), e.g. from bench_learning")
     parser.add_argument("--verdict-calibration", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=REPO / "out" / "bench_live")
     args = parser.parse_args(argv)
     ct = SHARED / "fibula.stl"
     starts = [int(s) for s in args.starts.split(",")]
-    methods = [("search", None)] + ([("comreg", args.model)] if args.model else [])
+    methods = [("search", None)] + ([("comreg", args.model)] if args.model else []) \
+        + ([("untrained", args.untrained)] if args.untrained else [])
     T_truth = pseudo_truth(ct)
     print(f"replays of {SHARED.name} at x{args.rate:g} from frames {starts}; verdict: "
           + (f"p_correct ({args.verdict_calibration})" if args.verdict_calibration
              else "the search's confidence (no --verdict-calibration)"), flush=True)
-    header = (f"{'method':7} {'start':>5} {'upd':>4} {'ok@mm':>6} {'ok?':>5} {'ok&wrong':>8} "
+    header = (f"{'method':9} {'start':>5} {'upd':>4} {'ok@mm':>6} {'ok?':>5} {'ok&wrong':>8} "
               f"{'final':>11} {'lat_med':>7} {'lat_p95':>7} {'full':>4} {'served':>6} {'recv':>5} "
               f"{'used':>5} {'unrep':>5} {'wall_s':>6}")
     print(header, flush=True)
@@ -169,7 +173,7 @@ def main(argv=None) -> None:
             def fmt(value, spec):
                 return "-" if value is None else format(value, spec)
             right = None if f["ok_correct"] is None else ("yes" if f["ok_correct"] else "NO")
-            print(f"{name:7} {start:>5} {f['updates']:>4} {fmt(f['ok_at_mm'], '6.0f')} "
+            print(f"{name:9} {start:>5} {f['updates']:>4} {fmt(f['ok_at_mm'], '6.0f')} "
                   f"{fmt(right, '>5')} {f['ok_and_wrong']:>8} {f['final']:>11} "
                   f"{fmt(f['latency_median_s'], '7.2f')} {fmt(f['latency_p95_s'], '7.2f')} "
                   f"{f['full_searches']:>4} {f['served']:>6} {f['received']:>5} "
