@@ -66,6 +66,40 @@ def _euler_pose(translation, euler_xyz_deg) -> np.ndarray:
     return T
 
 
+@dataclass
+class FrameFolderCalibration:
+    """A frame folder's ``calibration.json``: ``spacing`` ``(2,)`` mm per pixel ``(sx, sy)``,
+    ``image_size`` ``(columns, rows)`` (None when the file does not give it) and
+    ``T_probe_image`` ``(4, 4)`` (image mm, pixel centres at ``c + 0.5`` -> probe mm)."""
+
+    spacing: np.ndarray
+    image_size: tuple[int, int] | None
+    T_probe_image: np.ndarray
+
+
+def read_frame_folder_calibration(calibration_json: str | Path) -> FrameFolderCalibration:
+    """Read and check a ``calibration.json`` (``pixel_spacing_mm``, ``image_to_probe``:
+    ``translation_mm`` and ``euler_xyz_deg``, optionally ``image_size_px``); a clear
+    :class:`CorruptFileError` otherwise."""
+    calibration_json = require_input_file(calibration_json, "calibration file")
+    try:
+        cal = json.loads(calibration_json.read_text(encoding="utf-8"))
+        sx, sy = (float(v) for v in cal["pixel_spacing_mm"])
+        size = cal.get("image_size_px")
+        size = None if size is None else tuple(int(v) for v in size)
+        T_probe_image = _euler_pose(cal["image_to_probe"]["translation_mm"],
+                                    cal["image_to_probe"]["euler_xyz_deg"])
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise CorruptFileError(calibration_json, f"missing or bad calibration entry ({exc})") \
+            from None
+    if not (sx > 0 and sy > 0 and np.isfinite([sx, sy]).all()
+            and (size is None or (len(size) == 2 and min(size) > 0))
+            and np.isfinite(T_probe_image).all()):
+        raise CorruptFileError(calibration_json, "pixel spacing, image size and image_to_probe "
+                                                 "must be positive, finite numbers")
+    return FrameFolderCalibration(np.array([sx, sy]), size, T_probe_image)
+
+
 def read_frame_folder_tracking(tracking_csv: str | Path, calibration_json: str | Path
                                ) -> FrameFolderTracking:
     """Poses of a frame folder (the one reader of the UltraBones100k tracking chain)::
@@ -77,20 +111,11 @@ def read_frame_folder_tracking(tracking_csv: str | Path, calibration_json: str |
     kept as invalid frames, with a warning.
     """
     tracking_csv = require_input_file(tracking_csv, "tracking file")
-    calibration_json = require_input_file(calibration_json, "calibration file")
-    try:
-        cal = json.loads(calibration_json.read_text(encoding="utf-8"))
-        sx, sy = (float(v) for v in cal["pixel_spacing_mm"])
-        cols, rows = (int(v) for v in cal["image_size_px"])
-        T_probe_image = _euler_pose(cal["image_to_probe"]["translation_mm"],
-                                    cal["image_to_probe"]["euler_xyz_deg"])
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise CorruptFileError(calibration_json, f"missing or bad calibration entry ({exc})") \
-            from None
-    if not (sx > 0 and sy > 0 and np.isfinite([sx, sy]).all() and cols > 0 and rows > 0
-            and np.isfinite(T_probe_image).all()):
-        raise CorruptFileError(calibration_json, "pixel spacing, image size and image_to_probe "
-                                                 "must be positive, finite numbers")
+    cal = read_frame_folder_calibration(calibration_json)
+    if cal.image_size is None:
+        raise CorruptFileError(calibration_json, "missing or bad calibration entry "
+                                                 "('image_size_px')")
+    (sx, sy), (cols, rows), T_probe_image = cal.spacing, cal.image_size, cal.T_probe_image
     try:
         with open(tracking_csv, newline="", encoding="utf-8") as f:
             table = list(csv.DictReader(f))

@@ -17,18 +17,15 @@ Coordinates: a frame's pixel (row r, column c) lies at ``T_ref_image @ (c sx, r 
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 from collections import deque
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from comreg_core.errors import ComRegError, CorruptFileError
+from comreg_core.errors import ComRegError
 from comreg_core.io._files import file_extension, require_input_file
-from comreg_core.io.frame_folders import _euler_pose
+from comreg_core.io.frame_folders import read_frame_folder_calibration
 from comreg_core.io.plus_files import read_plus_calibration
 from comreg_core.io.sweeps import TrackedSweep, frames_to_grey
 from comreg_core.surfaces.us_config import USExtractionConfig
@@ -319,17 +316,8 @@ def probe_calibration(path) -> np.ndarray:
     path = require_input_file(path, "probe calibration")
     if file_extension(path) != ".json":
         return read_plus_calibration(path)
-    try:
-        cal = json.loads(Path(path).read_text(encoding="utf-8"))
-        sx, sy = (float(v) for v in cal["pixel_spacing_mm"])
-        T = _euler_pose(cal["image_to_probe"]["translation_mm"],
-                        cal["image_to_probe"]["euler_xyz_deg"])
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise CorruptFileError(path, f"missing or bad calibration entry ({exc})") from None
-    if not (sx > 0 and sy > 0 and math.isfinite(sx) and math.isfinite(sy)
-            and np.isfinite(T).all()):
-        raise CorruptFileError(path, "pixel spacing and image_to_probe must be finite, "
-                                     "positive numbers")
+    cal = read_frame_folder_calibration(path)
+    sx, sy = cal.spacing
     half = np.eye(4)
     half[:2, 3] = 0.5 * sx, 0.5 * sy
-    return T @ half @ np.diag([sx, sy, 1.0, 1.0])
+    return cal.T_probe_image @ half @ np.diag([sx, sy, 1.0, 1.0])
