@@ -56,7 +56,11 @@ class ICPResult(NamedTuple):
 def apply_poses(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``(n, 3)`` points (or ``(B, n, 3)``, one cloud per pose) moved by each of ``(B, 4, 4)``
     poses: ``(B, n, 3)``."""
-    return points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
+    points = np.asarray(points)
+    # R @ p^T rather than p @ R^T: the same products and sums (bit for bit, tested), but
+    # numpy's batched matmul with an inner size of 3 is ~7x slower the other way round
+    rotated = poses[:, :3, :3] @ (points.T if points.ndim == 2 else points.transpose(0, 2, 1))
+    return np.ascontiguousarray(rotated.transpose(0, 2, 1) + poses[:, None, :3, 3])
 
 
 def strided(points: np.ndarray, count: int) -> np.ndarray:
