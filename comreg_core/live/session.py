@@ -17,7 +17,11 @@ at most :data:`VERDICT_POINTS` of the points) with the result's own evidence: th
 best clinically different pose (and, with a calibration, ``p_correct`` at the sweep's extent)
 or its confidence. A warm result's evidence covers the competitors it carried over from the
 last full search; new ones are found by the next full search. The US calibration's scale is
-checked (the refit's scale scan, ~0.07 s) on full searches only.
+checked (the refit's scale scan, ~0.07 s) on full searches only. An OK verdict must also have
+*settled* (:data:`SETTLED_TOLERANCE`): the pose agrees with the last full search made on at
+least ``full_every_mm`` less bone, else the update says CHECK; a partial sweep's pose can slide
+along the shaft by a few millimetres while every other test passes, and the first OK needs two
+full searches.
 
 **Advice.** ``"enough"`` when the verdict is OK, else which end of the bone to scan towards
 (:func:`scan_advice`).
@@ -30,7 +34,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +54,10 @@ log = logging.getLogger(__name__)
 #: A warm pose that moved more than this from the last update's, (deg, mm at the points'
 #: centroid), calls for the full search.
 WARM_TOLERANCE = (5.0, 5.0)
+#: An OK verdict needs the pose to agree, within this (deg, mm at the points' centroid), with
+#: the last full search made on at least ``full_every_mm`` less bone: a pose still moving as
+#: bone is added has not settled (None: no such check).
+SETTLED_TOLERANCE = (2.0, 2.0)
 #: Points registered per update at most (a seeded uniform subset of the sweep's).
 LIVE_POINTS = 4000
 #: Points the verdict of an update is computed on at most.
@@ -194,6 +202,7 @@ class LiveSession:
         self._evidence: _Evidence | None = None
         self._result = None  # the last RegistrationResult (the warm start of the next)
         self._covered_at_full = -math.inf
+        self._fulls: list[tuple[float, np.ndarray]] = []  # (covered mm, T_ct_us) of each
         self.last: LiveUpdate | None = None
 
     def warm_up(self) -> None:
@@ -295,8 +304,8 @@ class LiveSession:
                 covered >= self._covered_at_full + self.full_every_mm:
             return (*self._full(pts, origins, everything), "full")
         result = warm_register(self.registrar, pts, origins, self._result, self.seed)
-        verdict = self._judge(pts, result.T_ct_us, self._evidence_of(result, pts),
-                              scale_scan=False)
+        verdict = self._settled(self._judge(pts, result.T_ct_us, self._evidence_of(result, pts),
+                                            scale_scan=False), result.T_ct_us, pts, covered)
         if self._moved(result.T_ct_us, self.last.T_ct_us, pts.mean(axis=0)) \
                 or verdict.verdict != self.last.verdict:
             return (*self._full(pts, origins, everything), "warm+full")
@@ -321,7 +330,29 @@ class LiveSession:
         result = self.registrar.register(pts, seed=self.seed, beam_origins=origins)
         self._result = result
         self._covered_at_full = self.covered_mm(everything, result.T_ct_us)
-        return result, self._judge(pts, result.T_ct_us, self._evidence_of(result, pts))
+        verdict = self._settled(self._judge(pts, result.T_ct_us, self._evidence_of(result, pts)),
+                                result.T_ct_us, pts, self._covered_at_full)
+        self._fulls.append((self._covered_at_full, np.array(result.T_ct_us)))
+        return result, verdict
+
+    def _settled(self, verdict, T_ct_us: np.ndarray, pts: np.ndarray, covered: float):
+        """``verdict``, turned CHECK when it is OK but the pose has not settled: it is beyond
+        :data:`SETTLED_TOLERANCE` from the last full search made on at least
+        ``full_every_mm`` less bone (or there is none yet)."""
+        if not verdict.ok or SETTLED_TOLERANCE is None:
+            return verdict
+        earlier = [T for mm, T in self._fulls if mm <= covered - self.full_every_mm]
+        if earlier:
+            deg, mm = SETTLED_TOLERANCE
+            turned = rotation_error_deg(T_ct_us, earlier[-1])
+            moved = translation_error_mm(T_ct_us, earlier[-1], pts.mean(axis=0))
+            if turned <= deg and moved <= mm:
+                return verdict
+            why = (f"The pose moved {moved:.1f} mm / {turned:.1f} deg since the registration "
+                   f"of {self.full_every_mm:g} mm less bone: it has not settled yet.")
+        else:
+            why = "No registration of less bone to confirm this pose yet."
+        return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
 
     def _judge(self, pts: np.ndarray, T_ct_us: np.ndarray, evidence: _Evidence,
                scale_scan: bool = True):

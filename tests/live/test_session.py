@@ -90,3 +90,37 @@ def test_the_advice_points_to_the_nearer_end_until_it_is_reached(search_registra
     assert scan_advice(at(lo + 60, lo + 120), target) == f"scan towards the {minus}"
     assert scan_advice(at(hi - 100, hi - 5), target) == f"scan towards the {minus}"
     assert scan_advice(at(lo + 5, lo + 100), target) == f"scan towards the {plus}"
+
+
+def test_an_ok_verdict_waits_until_the_pose_has_settled(search_registrar):
+    """OK stands only when the pose agrees (2 mm / 2 deg at the points' centroid) with the full
+    search made on at least ``full_every_mm`` less bone; otherwise CHECK, with the reason."""
+    from comreg_core.registration.verdict import Verdict
+
+    session = LiveSession(search_registrar)
+    pts = np.random.default_rng(0).normal(scale=10.0, size=(200, 3)) + [0.0, 0.0, 50.0]
+    earlier = _pose(np.eye(3), [1.0, 2.0, 3.0])
+    session._fulls = [(100.0, earlier)]
+    ok = Verdict("ok", [], {"median_mm": 0.5})
+
+    def shifted(mm, deg=0.0):
+        c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+        return _pose([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], [1.0 + mm, 2.0, 3.0])
+
+    assert session._settled(ok, shifted(1.5), pts, covered=120.0).ok
+    moved = session._settled(ok, shifted(2.5), pts, covered=120.0)
+    assert moved.verdict == "check" and "moved 2.5 mm / 0.0 deg" in moved.reasons[-1]
+    assert moved.figures == ok.figures and ok.reasons == []  # the original is left alone
+    # a 3 deg turn about x (through the origin) moves the centroid (~50 mm away) by ~2.6 mm as well
+    assert session._settled(ok, shifted(0.0, 3.0), pts, covered=120.0).verdict == "check"
+    # the only full search was on less than full_every_mm less bone: nothing to confirm it yet
+    early = session._settled(ok, earlier, pts, covered=110.0)
+    assert early.verdict == "check" and "No registration of less bone" in early.reasons[-1]
+    check = Verdict("check", ["residuals"], {})
+    assert session._settled(check, earlier, pts, covered=120.0) is check
+
+
+def _pose(R, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
