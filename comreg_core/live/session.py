@@ -80,7 +80,8 @@ def warm_register(registrar, points: np.ndarray, origins: np.ndarray | None, las
     grew (:meth:`Registrar.register <comreg_core.inference.Registrar.register>`'s
     ``warm_start``: its poses refined, no full search, no network pass). The one place to
     change how a live update registers warm."""
-    return registrar.register(points, seed=seed, beam_origins=origins, warm_start=last)
+    return registrar.register(points, seed=seed, beam_origins=origins, warm_start=last,
+                              residuals=False)
 
 
 @dataclass
@@ -327,7 +328,8 @@ class LiveSession:
         return self._evidence
 
     def _full(self, pts: np.ndarray, origins: np.ndarray | None, everything: np.ndarray):
-        result = self.registrar.register(pts, seed=self.seed, beam_origins=origins)
+        result = self.registrar.register(pts, seed=self.seed, beam_origins=origins,
+                                         residuals=False)  # the verdict measures its own
         self._result = result
         self._covered_at_full = self.covered_mm(everything, result.T_ct_us)
         verdict = self._settled(self._judge(pts, result.T_ct_us, self._evidence_of(result, pts)),

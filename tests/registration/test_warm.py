@@ -43,6 +43,9 @@ def test_a_warm_start_finds_the_full_search_pose_from_few_poses(grown_sweep):
     assert warm.hypotheses.chosen == earlier.hypotheses.chosen
     assert 0.0 <= warm.confidence <= 1.0 and warm.hypotheses.polish is not None
     assert warm.n_points == len(grown) and warm.residuals["median"] < 0.5
+    # without residuals (live updates): the same pose, bit for bit, and no distances measured
+    quiet = registrar.register(grown, warm_start=earlier, residuals=False)
+    assert np.array_equal(quiet.T_ct_us, warm.T_ct_us) and quiet.residuals == {}
 
 
 def test_a_warm_start_needs_the_search(grown_sweep):
