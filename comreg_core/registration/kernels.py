@@ -343,6 +343,9 @@ def compile_kernels() -> None:
     from comreg_core.surfaces.us_detector import _viterbi  # the bone detector's kernel
 
     _viterbi(np.zeros((4, 3)), 1, 0.5, 1.0)
+    from comreg_core.surfaces.us_denoise import cluster_labels  # the clean-up's kernel
+
+    cluster_labels(points, 1.0, 2)
 
 
 @njit(cache=True, inline="always")

@@ -53,6 +53,33 @@ def test_dbscan_clusters_match_naive():
     assert np.array_equal(both, np.isin(ours, np.flatnonzero(sizes >= 0.3 * sizes[0])))
 
 
+def test_dbscan_labels_are_exactly_the_naive_ones_numbered_by_size():
+    """The compiled grid kernel against the naive DBSCAN, label for label: clusters numbered by
+    decreasing size, ties by their lowest point index; neighbours at exactly the radius count
+    (points on an integer grid, radius 1: exact distances); duplicates; clouds far from 0."""
+    rng = np.random.default_rng(11)
+    problems = [(np.argwhere(np.ones((4, 3, 3))).astype(float) * [1, 1, 1], 1.0, 3),
+                (np.argwhere(rng.random((6, 6, 2)) < 0.5).astype(float), 1.0, 2),
+                (np.repeat(rng.normal(size=(20, 3)), 3, axis=0), 0.3, 4)]
+    for _ in range(60):
+        n = int(rng.integers(1, 200))
+        centres = rng.normal(scale=15.0, size=(int(rng.integers(1, 5)), 3)) + rng.normal(
+            scale=500.0, size=3)
+        points = centres[rng.integers(0, len(centres), n)] + rng.normal(
+            scale=rng.uniform(0.3, 3.0), size=(n, 3))
+        problems.append((points, float(rng.uniform(0.5, 4.0)), int(rng.integers(1, 8))))
+    for points, radius, min_points in problems:
+        naive = naive_dbscan(points, radius, min_points)
+        expected = naive.copy()
+        if (naive >= 0).any():
+            sizes = np.bincount(naive[naive >= 0])
+            rank = np.empty_like(sizes)
+            rank[np.argsort(-sizes, kind="stable")] = np.arange(len(sizes))
+            expected[naive >= 0] = rank[naive[naive >= 0]]
+        assert np.array_equal(cluster_labels(points, radius, min_points), expected)
+    assert np.array_equal(cluster_labels(np.zeros((0, 3)), 1.0), np.zeros(0, dtype=int))
+
+
 def test_statistical_outliers_match_naive():
     rng = np.random.default_rng(7)
     points = np.concatenate([rng.normal(0, 1, (300, 3)), [[8, 8, 8], [-9, 0, 9]]])
