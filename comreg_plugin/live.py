@@ -5,11 +5,13 @@ in place at every message: a scalar volume node per IMAGE device (``Image``, a 2
 linear transform node per TRANSFORM device (``ImageToReference``). :class:`LiveRegistration`
 observes the image node: each new image (``ImageDataModifiedEvent``) becomes a frame with the
 pose its transform node holds at that moment. :meth:`LiveRegistration.tick` (the module's qt
-timer, every :data:`TICK_MS` ms; any loop headless) runs one update of
-:class:`comreg_core.live.session.LiveSession`, the same update ``comreg live`` runs (warm from
-the last pose, the full search when the evidence changes, the verdict, the advice), and writes
-the registration into the output transform node (``ReferenceToCT``, to parent, RAS) and the
-status line (:attr:`LiveRegistration.status`).
+timer, every :data:`TICK_MS` ms; any loop headless) starts one update of
+:class:`comreg_core.live.session.LiveSession` in a worker thread, the same update ``comreg
+live`` runs (warm from the last pose, the full search when the evidence changes, the verdict,
+the advice), so the GUI stays responsive while it registers; a later tick, on the GUI thread,
+writes its registration into the output transform node (``ReferenceToCT``, to parent, RAS) and
+the status line (:attr:`LiveRegistration.status`), and starts the next. Only the GUI thread
+touches the scene; frames that come meanwhile wait for the next update.
 
 Coordinates, as for the module's Sequence browser sweeps
 (:func:`comreg_plugin.scene_inputs.trackedSweepFromBrowser`): a frame's pose in LPS is
@@ -22,6 +24,7 @@ Method names are camelCase here, as in 3D Slicer modules.
 """
 
 import logging
+import threading
 import time
 from typing import Optional
 
@@ -43,8 +46,8 @@ slicer = require_slicer()
 
 log = logging.getLogger(__name__)
 
-#: How often the module's timer runs an update (ms).
-TICK_MS = 200
+#: How often the module's timer ticks (ms): applies a finished update, starts the next.
+TICK_MS = 50
 #: Node attribute prefix (as the Logic's).
 ATTRIBUTE_PREFIX = "ComReg."
 
@@ -102,6 +105,8 @@ class LiveRegistration:
         self.status = (f"live: waiting for frames in '{imageNode.GetName()}' posed by "
                        f"'{poseNode.GetName()}'")
         self._frames: list = []
+        self._worker: Optional[threading.Thread] = None
+        self._outcome: dict = {}  # the worker's "update" or "error"
         self._observer = imageNode.AddObserver(slicer.vtkMRMLVolumeNode.ImageDataModifiedEvent,
                                                self.onImageModified)
 
@@ -162,14 +167,46 @@ class LiveRegistration:
 
     # -- updates --------------------------------------------------------------------------------
 
-    def tick(self) -> Optional[LiveUpdate]:
-        """One update with the frames that came since the last (or the backlog): the output
-        node and :attr:`status` follow it. None when there was nothing to register."""
-        frames, self._frames = self._frames, []
-        if not frames and not self.session.backlog:
+    @property
+    def busy(self) -> bool:
+        """Whether an update is running in the worker thread."""
+        return self._worker is not None
+
+    def tick(self, wait: bool = False) -> Optional[LiveUpdate]:
+        """On the GUI thread: apply the update that finished in the worker thread (the output
+        node and :attr:`status` follow it), then start the next one with the frames that came
+        since (or the backlog). Returns the update applied now, or None. ``wait``: also wait
+        for the update just started and apply it (headless scripts). An error of the update
+        is raised here."""
+        applied = self._finish(block=False)
+        if self._worker is None:
+            frames, self._frames = self._frames, []
+            if frames or self.session.backlog:
+                self._outcome = {}
+                self._worker = threading.Thread(target=self._update, args=(frames,
+                                                self.received), name="ComReg live", daemon=True)
+                self._worker.start()
+        if wait and self._worker is not None:
+            applied = self._finish(block=True) or applied
+        return applied
+
+    def _update(self, frames: list, received: int) -> None:
+        """The worker thread: one session update (no scene access)."""
+        try:
+            self._outcome["update"] = self.session.update(frames, received=received)
+        except Exception as exc:  # noqa: BLE001 - raised again on the GUI thread by tick()
+            self._outcome["error"] = exc
+
+    def _finish(self, block: bool) -> Optional[LiveUpdate]:
+        """Apply the worker's update when it is done (waiting for it with ``block``)."""
+        if self._worker is None or (self._worker.is_alive() and not block):
             return None
-        update = self.session.update(frames, received=self.received)
+        self._worker.join()
+        self._worker = None
         self.notes += self.session.take_notes()
+        if "error" in self._outcome:
+            raise self._outcome["error"]
+        update = self._outcome.get("update")
         if update is None:
             self.status = (f"live: waiting for bone ({self.session.points.frames_with_bone} of "
                            f"{self.session.points.frames_used} frames show it)")
@@ -187,7 +224,12 @@ class LiveRegistration:
         return update
 
     def stop(self) -> None:
-        """Stop observing the image node (the registration stays in the output node)."""
+        """Stop observing the image node, after the update under way (applied); the
+        registration stays in the output node."""
+        try:
+            self._finish(block=True)
+        except Exception as exc:  # noqa: BLE001 - stopping anyway; said in the notes
+            self.notes.append(f"the last update failed: {exc}")
         if self._observer is not None:
             self.imageNode.RemoveObserver(self._observer)
             self._observer = None

@@ -1,7 +1,8 @@
 """The module's live mode (comreg_plugin.live) headless on real MRML nodes: frames of the real
 fibula sweep arrive in an image node and a transform node as OpenIGTLink's connector updates
 them (in the module's RAS convention of a shown sweep); each tick registers the grown sweep
-into the output transform node and the status line, onto the pseudo ground truth."""
+(in a worker thread) into the output transform node and the status line, onto the pseudo ground
+truth."""
 
 from __future__ import annotations
 
@@ -59,9 +60,9 @@ def test_live_mode_registers_the_incoming_frames(logic, sweep16):
     for i in range(sweep16.n_frames):
         _stream_frame(imageNode, poseNode, sweep16, i)
         if i % 4 == 3:
-            updates.append(live.tick())
+            updates.append(live.tick(wait=True))
     while live.session.backlog:
-        updates.append(live.tick())
+        updates.append(live.tick(wait=True))
     updates = [u for u in updates if u is not None]
     assert updates and live.received == 16 and live.session.points.frames_used == 16
     last = updates[-1]
@@ -88,6 +89,41 @@ def test_live_mode_registers_the_incoming_frames(logic, sweep16):
     live.stop()  # no more frames taken
     _stream_frame(imageNode, poseNode, sweep16, 0)
     assert live.received == 16 and live.tick() is None
+
+
+def test_live_mode_registers_off_the_gui_thread(logic, sweep16):
+    """The timer's ticks do not wait for the registration: the updates run in another thread and are applied to
+    the scene by a later tick, on the GUI thread; stopping applies the one under way."""
+    import threading
+    import time
+
+    ct = logic.loadBoneMesh(FIBULA_STL)
+    imageNode = logic.scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "Image")
+    poseNode = logic.scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "ImageToReference")
+    live = LiveRegistration(logic, imageNode, poseNode, ctModelNode=ct)
+    ran_in, real_update = [], live.session.update
+
+    def update(*args, **kwargs):  # the real update, noting its thread
+        ran_in.append(threading.get_ident())
+        return real_update(*args, **kwargs)
+
+    live.session.update = update
+    applied, deadline = [], time.monotonic() + 120.0
+    for i in range(sweep16.n_frames):
+        _stream_frame(imageNode, poseNode, sweep16, i)
+        applied.append(live.tick())
+    while (live.busy or live.session.backlog or live._frames) and time.monotonic() < deadline:
+        applied.append(live.tick())
+        time.sleep(0.02)
+    applied = [u for u in applied if u is not None]
+    assert ran_in and threading.get_ident() not in ran_in
+    assert not live.busy and live.session.points.frames_used == 16
+    assert [id(u) for u in applied] == [id(u) for u in live.session.updates]  # each once
+    last = live.session.updates[-1]
+    live.stop()
+    assert_close(transformToParentRAS(live.outputTransformNode),
+                 T_RAS_LPS @ last.T_ct_us @ T_RAS_LPS, atol=1e-9)
+    assert live.status == last.status_line()
 
 
 def test_live_mode_refuses_missing_nodes_and_takes_the_parent_transform(logic, sweep16):
