@@ -12,6 +12,7 @@ import numpy as np
 
 from comreg_core.registration.config import (POLISH_PATIENCE, POLISH_TOLERANCE_MM,
                                              QUICK_POLISH_ITERATIONS, QUICK_POLISH_POINTS,
+                                             SLIDE_PROBE_GAIN, SLIDE_PROBE_MAX_SHARE,
                                              HypothesisConfig)
 from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
 from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
@@ -24,8 +25,8 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
                       scores: np.ndarray, polishes: list[dict[str, Any] | None],
                       target: SurfaceCloud,
                       config: HypothesisConfig, *, origins: np.ndarray | None = None,
-                      within: Callable[[np.ndarray], np.ndarray] | None = None
-                      ) -> tuple[int, int | None]:
+                      within: Callable[[np.ndarray], np.ndarray] | None = None,
+                      slide_probe: bool = True) -> tuple[int, int | None]:
     """Steps 5-6 of the search: polish the poses tied with the best (``poses``
     ``(B, 4, 4)``, ``scores`` ``(B,)`` and ``polishes`` are updated in place; poses polished
     before are not polished again), choose, and find the runner-up. Returns ``(chosen,
@@ -34,7 +35,9 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
     ``within``: ``(B, 4, 4) poses -> (B,) bool``, the poses a prior allows
     (:meth:`~comreg_core.registration.priors.Prior.allows`), or None (all). With it only the
     allowed poses are polished, chosen (the polished ones among them, else any) and count as
-    the runner-up; when it allows none, all are considered."""
+    the runner-up; when it allows none, all are considered. ``slide_probe``: the chosen pose
+    of a partial sweep gets :func:`probe_slides` (the full search; a warm start does not;
+    nor with a prior, which bounds the pose itself)."""
     eligible = np.ones(len(poses), dtype=bool)
     allowed = eligible if within is None else within(poses)
     pool = np.flatnonzero(allowed) if allowed.any() else np.arange(len(poses))
@@ -64,11 +67,57 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
         if within is not None and allowed[best] and not within(poses[best][None])[0]:
             poses[best], scores[best], polishes[best] = before  # it left the prior: undone
         placed[best] = apply_transform(poses[best], centroid[None])[0]
+    if slide_probe and within is None and polishes[best] is not None:
+        probed = probe_slides(subset_mm, centroid, poses[best], scores[best], polishes[best],
+                              target, config, origins=origins)
+        if probed is not None:
+            poses[best], scores[best], polishes[best] = probed
+            placed[best] = apply_transform(poses[best], centroid[None])[0]
     others = np.array([i for i in range(len(poses)) if i != best
                        and (allowed[i] or not allowed.any())], dtype=np.int64)
     distinct = others[~same_pose(poses, placed, best, others, config)]
     runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
     return best, runner
+
+
+def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, score: float,
+                 previous: dict[str, Any], target: SurfaceCloud, config: HypothesisConfig, *,
+                 origins: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, float, dict[str, Any]] | None:
+    """The slide probe (``config.slide_probe_mm``): ``T`` ``(4, 4)``, the polished chosen pose
+    of ``subset_mm`` ``(n, 3)`` with exact ``score`` and polish record ``previous``, slid by the probe distance along the CT's
+    long axis both ways and quick-polished from there (scored exactly on all of
+    ``subset_mm``); the better of the two, when it scores lower than ``score``, is polished in
+    full and returned if it still does, by at least :data:`SLIDE_PROBE_GAIN`: (pose, exact
+    score, polish record with ``slid_mm``, ``probe_shift_mm`` of the US centroid from ``T``,
+    and ``moved_mm`` from before the first polish, as the norms combine).
+    None otherwise, or when the sweep spans at least :data:`SLIDE_PROBE_MAX_SHARE` of the CT's
+    length (a whole cloud), or ``slide_probe_mm`` is 0."""
+    if config.slide_probe_mm <= 0:
+        return None
+    axis = target.axes[:, 0]
+    along_ct = np.ptp((target.points - target.centre) @ axis)
+    if np.ptp(apply_transform(T, subset_mm) @ axis) >= SLIDE_PROBE_MAX_SHARE * along_ct:
+        return None
+    best = None
+    for slide in (-config.slide_probe_mm, config.slide_probe_mm):
+        shift = np.eye(4)
+        shift[:3, 3] = slide * axis
+        pose, quick_score, info = polish_pose(subset_mm, centroid, shift @ T, target, config,
+                                              quick=True, origins=origins)
+        if quick_score < score and (best is None or quick_score < best[1]):
+            best = pose, quick_score, info, slide
+    if best is None:
+        return None
+    pose, probed_score, info = polish_pose(subset_mm, centroid, best[0], target, config,
+                                           after=best[2], origins=origins)
+    if not probed_score < (1.0 - SLIDE_PROBE_GAIN) * score:
+        return None
+    shift = np.linalg.norm(apply_transform(pose, centroid[None])
+                           - apply_transform(T, centroid[None]))
+    info.update(slid_mm=float(best[3]), probe_shift_mm=float(shift),
+                moved_mm=float(np.hypot(previous["moved_mm"], shift)))
+    return pose, probed_score, info
 
 
 def polish_pose(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,

@@ -93,7 +93,8 @@ def warm_search(us_points: np.ndarray, previous: HypothesisResult, target: Surfa
     scores = score_poses(poses, subset_mm, target, cfg, origins=origins)
     polishes: list[dict[str, Any] | None] = [None] * len(names)
     best, runner = choose_and_polish(subset_mm, centroid, poses, scores, polishes, target, cfg,
-                                     origins=origins, within=within)
+                                     origins=origins, within=within,
+                                     slide_probe=False)  # the full searches probed
     confidence = 1.0 if runner is None else float(
         confidence_over(scores[best], scores[runner], cfg))
     ambiguous = confidence < cfg.min_confidence
