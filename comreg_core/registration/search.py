@@ -69,7 +69,10 @@ alternatives at test time, with no extra training data:
    0.1 deg / 0.1 mm, and poses that the refinement scored alike (a flip at 0.19 mm, the truth's
    basin at 0.17 mm) separate once polished (0.2 mm vs 0.006 mm). Median cost ~0.05 s, ~0.4 s
    with ties. Built from a bare cloud, the target has no :attr:`~SurfaceCloud.surface` and
-   the polish is skipped.
+   the polish is skipped. A partial sweep's chosen pose then gets the *slide probe*
+   (:func:`~comreg_core.registration.polish.probe_slides`, ``slide_probe_mm``): polished again
+   from that far along the CT's long axis both ways, a slid pose scoring >= 2 % better
+   replaces it (the search can stop in the basin next to the right one along a shaft).
 
 6. **Choice and confidence**: the best score wins (exact ties go to the network's own pose).
    Two poses are *distinct* when rotated apart by more than ``distinct_deg`` or placing the US
