@@ -84,15 +84,16 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
                  previous: dict[str, Any], target: SurfaceCloud, config: HypothesisConfig, *,
                  origins: np.ndarray | None = None
                  ) -> tuple[np.ndarray, float, dict[str, Any]] | None:
-    """The slide probe (``config.slide_probe_mm``): ``T`` ``(4, 4)``, the polished chosen pose
-    of ``subset_mm`` ``(n, 3)`` with exact ``score`` and polish record ``previous``, slid by the probe distance along the CT's
-    long axis both ways and quick-polished from there (scored exactly on all of
-    ``subset_mm``); the better of the two, when it scores lower than ``score``, is polished in
-    full and returned if it still does, by at least :data:`SLIDE_PROBE_GAIN`: (pose, exact
-    score, polish record with ``slid_mm``, ``probe_shift_mm`` of the US centroid from ``T``,
-    and ``moved_mm`` from before the first polish, as the norms combine).
-    None otherwise, or when the sweep spans at least :data:`SLIDE_PROBE_MAX_SHARE` of the CT's
-    length (a whole cloud), or ``slide_probe_mm`` is 0."""
+    """The slide probe (``config.slide_probe_mm``) of ``T`` ``(4, 4)``, the polished chosen
+    pose of ``subset_mm`` ``(n, 3)`` (its exact ``score``, its polish record ``previous``):
+    ``T`` slid by the probe distance along the CT's long axis, both ways, is quick-polished
+    from there and scored exactly on all of ``subset_mm``; the better of the two, if it scores
+    lower than ``score``, is polished in full. Returns it when it then scores at least
+    :data:`SLIDE_PROBE_GAIN` lower: ``(pose, exact score, polish record)``, the record with
+    ``slid_mm``, ``probe_shift_mm`` (of the US centroid from ``T``) and ``moved_mm`` (from
+    before the first polish, as the norms combine). None otherwise, when the sweep spans at
+    least :data:`SLIDE_PROBE_MAX_SHARE` of the CT's length (a whole cloud), or when
+    ``slide_probe_mm`` is 0."""
     if config.slide_probe_mm <= 0:
         return None
     axis = target.axes[:, 0]
@@ -113,10 +114,10 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
                                            after=best[2], origins=origins)
     if not probed_score < (1.0 - SLIDE_PROBE_GAIN) * score:
         return None
-    shift = np.linalg.norm(apply_transform(pose, centroid[None])
+    moved = np.linalg.norm(apply_transform(pose, centroid[None])
                            - apply_transform(T, centroid[None]))
-    info.update(slid_mm=float(best[3]), probe_shift_mm=float(shift),
-                moved_mm=float(np.hypot(previous["moved_mm"], shift)))
+    info.update(slid_mm=float(best[3]), probe_shift_mm=float(moved),
+                moved_mm=float(np.hypot(previous["moved_mm"], moved)))
     return pose, probed_score, info
 
 

@@ -92,8 +92,9 @@ def test_live_mode_registers_the_incoming_frames(logic, sweep16):
 
 
 def test_live_mode_registers_off_the_gui_thread(logic, sweep16):
-    """The timer's ticks do not wait for the registration: the updates run in another thread and are applied to
-    the scene by a later tick, on the GUI thread; stopping applies the one under way."""
+    """The timer's ticks do not wait for the registration: the updates run in another thread
+    and are applied to the scene by a later tick, on the GUI thread; stopping applies the one
+    under way."""
     import threading
     import time
 
