@@ -25,7 +25,7 @@ from comreg_core.registration.inputs import MAX_US_POINTS
 from comreg_core.registration.priors import Prior
 from comreg_core.registration.calibration import (OK_PROBABILITY, Calibration,
                                                   result_evidence)
-from comreg_core.registration.search import ct_length_mm
+from comreg_core.registration.surface import ct_length_mm
 from comreg_core.registration.verdict import judge_registration
 from comreg_core.registration.result import RegistrationResult
 from comreg_core.transforms import apply_transform, check_rigid, invert_rigid

@@ -79,7 +79,7 @@ def calibrate(ct_mesh, *, sweeps: int = 60, lengths_mm: tuple[float, float] = (3
     from comreg_core.errors import ComRegError
     from comreg_core.inference import Registrar
     from comreg_core.registration.metrics import registration_metrics
-    from comreg_core.registration.search import ct_length_mm
+    from comreg_core.registration.surface import ct_length_mm
     from comreg_core.simulation import BoneModel, sample_initial_pose, simulate_sweep
     from comreg_core.surfaces.us_points import beam_origins
     from comreg_core.training.checkpoint import ct_fingerprint

@@ -44,7 +44,7 @@ from comreg_core.registration.advice import end_names
 from comreg_core.registration.calibration import (OK_PROBABILITY, Calibration,
                                                   clinical_competitor, extent_share)
 from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
-from comreg_core.registration.search import ct_length_mm
+from comreg_core.registration.surface import ct_length_mm
 from comreg_core.registration.verdict import judge_registration
 from comreg_core.live.stream import Frame, SweepPoints, coalesce, covered_length_mm
 from comreg_core.transforms import apply_transform, space_change
@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 WARM_TOLERANCE = (5.0, 5.0)
 #: An OK verdict needs the pose to agree, within this (deg, mm at the points' centroid), with
 #: the last full search made on at least ``full_every_mm`` less bone: a pose still moving as
-#: bone is added has not settled (None: no such check).
+#: bone is added has not settled.
 SETTLED_TOLERANCE = (2.0, 2.0)
 #: Points registered per update at most (a seeded uniform subset of the sweep's).
 LIVE_POINTS = 4000
@@ -341,7 +341,7 @@ class LiveSession:
         """``verdict``, turned CHECK when it is OK but the pose has not settled: it is beyond
         :data:`SETTLED_TOLERANCE` from the last full search made on at least
         ``full_every_mm`` less bone (or there is none yet)."""
-        if not verdict.ok or SETTLED_TOLERANCE is None:
+        if not verdict.ok:
             return verdict
         earlier = [T for mm, T in self._fulls if mm <= covered - self.full_every_mm]
         if earlier:

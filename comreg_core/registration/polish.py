@@ -17,7 +17,7 @@ from comreg_core.registration.config import (POLISH_PATIENCE, POLISH_TOLERANCE_M
 from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
 from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
                                               trimmed_mean)
-from comreg_core.registration.surface import SurfaceCloud, facing_away
+from comreg_core.registration.surface import SurfaceCloud, ct_length_mm, facing_away
 from comreg_core.transforms import apply_transform
 
 
@@ -97,8 +97,8 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
     if config.slide_probe_mm <= 0:
         return None
     axis = target.axes[:, 0]
-    along_ct = np.ptp((target.points - target.centre) @ axis)
-    if np.ptp(apply_transform(T, subset_mm) @ axis) >= SLIDE_PROBE_MAX_SHARE * along_ct:
+    if np.ptp(apply_transform(T, subset_mm) @ axis) >= SLIDE_PROBE_MAX_SHARE * ct_length_mm(
+            target):
         return None
     best = None
     for slide in (-config.slide_probe_mm, config.slide_probe_mm):

@@ -137,7 +137,7 @@ from comreg_core.registration.priors import Prior
 from comreg_core.registration.screening import screen_starts
 from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, confidence_over,
                                               score_poses)
-from comreg_core.registration.surface import SurfaceCloud, principal_frame
+from comreg_core.registration.surface import SurfaceCloud, ct_length_mm, principal_frame
 from comreg_core.transforms import apply_transform, as_points, check_rigid, orthonormalize
 
 
@@ -228,11 +228,6 @@ def is_patch(points_us: np.ndarray, target: SurfaceCloud, config: HypothesisConf
     _, axes = principal_frame(points_us)
     spread = float(np.ptp(points_us @ axes[:, 0]))
     return spread < config.patch_max_share * ct_length_mm(target)
-
-
-def ct_length_mm(target: SurfaceCloud) -> float:
-    """The CT bone's extent along its long axis (mm)."""
-    return float(np.ptp((target.points - target.centre) @ target.axes[:, 0]))
 
 
 def patch_orientation_starts(points_us: np.ndarray, target: SurfaceCloud,

@@ -361,3 +361,9 @@ class SurfaceCloud:
         if origins is not None and facing_penalty_mm > 0:
             d = d + facing_penalty_mm * facing_away(self.normals[idx], pts, origins)
         return d
+
+
+def ct_length_mm(target: SurfaceCloud) -> float:
+    """The CT bone's extent along its long axis (mm): of ``target``'s points along
+    ``axes[:, 0]``."""
+    return float(np.ptp((target.points - target.centre) @ target.axes[:, 0]))

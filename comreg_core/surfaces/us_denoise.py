@@ -9,6 +9,7 @@ import logging
 import numpy as np
 from numba import njit
 
+from comreg_core.errors import InvalidGeometryError
 from comreg_core.pointsets import farthest_point_indices
 from comreg_core.surfaces.us_config import DenoiseConfig
 from comreg_core.surfaces.us_points import NoBoneFoundError, USSurfacePoints
@@ -33,12 +34,13 @@ def cluster_labels(points: np.ndarray, radius_mm: float, min_points: int = 5) ->
     cells = np.floor((points - points.min(axis=0)) / radius_mm).astype(np.int64)
     shape = cells.max(axis=0) + 3  # a margin of one empty cell on each side
     if float(np.prod(shape.astype(np.float64))) > 2.0 ** 62:
-        raise ValueError(f"A cluster radius of {radius_mm:g} mm is too small for a cloud "
-                         f"{np.ptp(points, axis=0).max():.0f} mm wide.")
+        raise InvalidGeometryError(f"A cluster radius of {radius_mm:g} mm is too small for a "
+                                   f"cloud {np.ptp(points, axis=0).max():.0f} mm wide.",
+                                   "Check the points' units (mm) and denoise.cluster_radius_mm.")
     keys = ((cells[:, 0] + 1) * shape[1] + cells[:, 1] + 1) * shape[2] + cells[:, 2] + 1
     order = np.argsort(keys, kind="stable")
-    is_core, component = _core_clusters(points, keys, order, keys[order], shape,
-                                        float(radius_mm), int(min_points))
+    is_core, component = _core_clusters(points, order, keys[order], shape, float(radius_mm),
+                                        int(min_points))
     core = np.flatnonzero(is_core)
     if len(core) == 0:
         return labels
@@ -56,10 +58,10 @@ def cluster_labels(points: np.ndarray, radius_mm: float, min_points: int = 5) ->
 
 
 @njit(cache=True)
-def _core_clusters(points, keys, order, sorted_keys, shape, radius, min_points):
-    """DBSCAN's core points and their clusters on a grid of ``radius`` cells: ``keys`` ``(N,)``
-    each point's cell (row-major in ``shape``, no point in the outer cells), ``order`` the
-    points sorted by it (``sorted_keys``). Returns ``(is_core (N,) bool, component (N,))``:
+def _core_clusters(points, order, sorted_keys, shape, radius, min_points):
+    """DBSCAN's core points and their clusters on a grid of ``radius`` cells: ``order`` the
+    points sorted by their cell, ``sorted_keys`` ``(N,)`` those cells (row-major in ``shape``,
+    no point in the outer cells). Returns ``(is_core (N,) bool, component (N,))``:
     core points within ``radius`` (inclusive) of each other share a component, numbered in
     the order of their lowest point index (as scipy's ``connected_components``); -1 elsewhere."""
     n = len(points)
