@@ -22,7 +22,8 @@ from comreg_core.cli_errors import CommandApp, set_verbose
 from comreg_core.cli_evaluate import evaluate as evaluate_command
 from comreg_core.cli_live import live as live_command
 from comreg_core.cli_live import replay as replay_command
-from comreg_core.cli_shared import Device
+from comreg_core.cli_shared import (INIT_OPTION, INIT_TOLERANCE_OPTION, LANDMARK_TOLERANCE_OPTION,
+                                     LANDMARKS_OPTION, Device)
 from comreg_core.cli_shared import progress_bar as _progress_bar
 
 app = CommandApp(
@@ -293,23 +294,10 @@ def register(
         None, "--verdict-calibration", help="calibration.json from 'comreg calibrate' (default: "
         "the run folder's own, if pretrain wrote one): result.json then gets p_correct and the "
         "verdict is OK only when p_correct >= 0.95."),
-    init: Optional[Path] = typer.Option(
-        None, "--init", metavar="TRANSFORM", help="A rough initial pose T_ct_us: an ITK "
-        "transform file (.tfm, .h5, .txt) as 3D Slicer saves it (or a registration's "
-        "transform.tfm). The search then tries only poses near it (--init-tolerance) and the "
-        "verdict is CHECK when the result sits at the edge of that tolerance."),
-    init_tolerance: Optional[str] = typer.Option(
-        None, "--init-tolerance", metavar="DEG,MM", help="How far the pose may be from --init: "
-        "its rotation by at most DEG degrees, and it places the US points' centroid at most MM "
-        "from where --init places it. Default 30,30."),
-    landmarks: Optional[tuple[Path, Path]] = typer.Option(
-        None, "--landmarks", metavar="CT_POINTS US_POINTS", help="Landmarks picked on the CT and "
-        "in the US data: two 3D Slicer markups files (.mrk.json or .fcsv, LPS or RAS as "
-        "stored), paired by label. Only poses that put every US landmark within its tolerance "
-        "of its CT landmark are kept; the search starts from poses that match them."),
-    landmark_tolerance: Optional[float] = typer.Option(
-        None, "--landmark-tolerance", metavar="MM", min=0.001, help="Each landmark's tolerance "
-        "(mm; default 10); a point's own 'tol=5' in its markups description overrides it."),
+    init: Optional[Path] = INIT_OPTION,
+    init_tolerance: Optional[str] = INIT_TOLERANCE_OPTION,
+    landmarks: Optional[tuple[Path, Path]] = LANDMARKS_OPTION,
+    landmark_tolerance: Optional[float] = LANDMARK_TOLERANCE_OPTION,
 ) -> None:
     """Register a US bone surface to the CT: with --ct alone by the pose search (principal axes,
     flips, turns and slides of the US cloud, refined by ICP and scored against the CT), with

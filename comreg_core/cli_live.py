@@ -8,7 +8,8 @@ from typing import Optional
 
 import typer
 
-from comreg_core.cli_shared import Device
+from comreg_core.cli_shared import (INIT_OPTION, INIT_TOLERANCE_OPTION, LANDMARK_TOLERANCE_OPTION,
+                                     LANDMARKS_OPTION, Device)
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -58,6 +59,10 @@ def live(
     seed: int = typer.Option(0, "--seed", min=0),
     report: bool = typer.Option(True, "--report/--no-report", help="With --out, also write "
                                 "report.html on stop (screenshots: some seconds)."),
+    init: Optional[Path] = INIT_OPTION,
+    init_tolerance: Optional[str] = INIT_TOLERANCE_OPTION,
+    landmarks: Optional[tuple[Path, Path]] = LANDMARKS_OPTION,
+    landmark_tolerance: Optional[float] = LANDMARK_TOLERANCE_OPTION,
 ) -> None:
     """Register while scanning: connect to an OpenIGTLink server, take its B-mode frames (IMAGE)
     and their poses (TRANSFORM, PLUS names such as ImageToReference), find the bone in each
@@ -67,7 +72,9 @@ def live(
     Each update sends back a TRANSFORM (ReferenceToCT: the stream's reference frame to the CT,
     as 3D Slicer applies it) and a STRING ComRegStatus (JSON: verdict, p_correct, the bone
     covered in mm, advice: 'enough' or which end to scan towards), and prints one status line.
-    A lost connection is reconnected and nothing registered is lost. Stop with Ctrl-C (or
+    A lost connection is reconnected and nothing registered is lost. A prior from the operating
+    room (--init, --landmarks; as 'comreg register' takes them, in the stream's reference
+    frame) bounds every update and the final registration. Stop with Ctrl-C (or
     --until-end, or SIGTERM); --out then gets the files of 'comreg register' and its
     report.
     """
@@ -78,13 +85,14 @@ def live(
     from comreg_core.live.run import FrameReceiver, finish_live, run_live, stop_on_sigterm
     from comreg_core.live.session import LiveSession
     from comreg_core.live.stream import probe_calibration
-    from comreg_core.register_output import find_calibration
+    from comreg_core.register_output import find_calibration, load_prior
 
     host, port = _host_port(igtl)
-    inputs = [ct_mesh, model, calibration, verdict_calibration]
+    inputs = [ct_mesh, model, calibration, verdict_calibration, init, *(landmarks or ())]
     if out is not None:
         check_output_folder(out, inputs=inputs)
     require_input_file(ct_mesh, "CT bone mesh")
+    prior = load_prior(init, init_tolerance, landmarks, landmark_tolerance)
     T_probe_pixel = None if calibration is None else probe_calibration(calibration)
     pose_device = transform_device or (IMAGE_POSE_DEVICE if calibration is None
                                        else PROBE_POSE_DEVICE)
@@ -94,7 +102,7 @@ def live(
     verdict = find_calibration(verdict_calibration, model)
     registrar = (Registrar.from_ct(ct_mesh) if model is None
                  else Registrar.from_run(model, device.value, ct_mesh=ct_mesh))
-    session = LiveSession(registrar, calibration=verdict, seed=seed)
+    session = LiveSession(registrar, calibration=verdict, prior=prior, seed=seed)
     typer.echo("preparing the CT side ...", err=True)
     session.warm_up()
     receiver = FrameReceiver(host, port, image_device, pose_device, T_probe_pixel,
@@ -111,7 +119,7 @@ def live(
 
         result, page = finish_live(session, out, run_dir=model, ct_mesh=ct_mesh,
                                    device=device.value, calibration=verdict_calibration,
-                                   report=report)
+                                   prior=prior, report=report)
         for line in summary_lines(result, out, with_network=model is not None):
             typer.echo(line)
         if page is not None:

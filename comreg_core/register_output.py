@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import re
-from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
@@ -22,7 +21,7 @@ from comreg_core.io._files import atomic_output, check_output_folder
 from comreg_core.io.transform_files import save_transform
 from comreg_core.registration.config import HypothesisConfig
 from comreg_core.registration.inputs import MAX_US_POINTS
-from comreg_core.registration.priors import Prior
+from comreg_core.registration.priors import Prior, prior_allows, with_prior_reasons
 from comreg_core.registration.calibration import (OK_PROBABILITY, Calibration,
                                                   result_evidence)
 from comreg_core.registration.surface import ct_length_mm
@@ -425,28 +424,6 @@ def prior_inputs(prior: Prior) -> dict:
     return {"init": prior.init_file,
             "init_tolerance": None if prior.T_init is None else [prior.max_deg, prior.max_mm],
             "landmarks": {lm.label: lm.tolerance_mm for lm in prior.landmarks}}
-
-
-def prior_allows(prior: Prior, result: RegistrationResult):
-    """``(4, 4) T -> bool``: whether ``prior`` (in the result's space) allows a pose of
-    ``result`` (the US centroid: that of the points it registered)."""
-    points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
-    centroid = points.mean(axis=0)
-    return lambda T: bool(prior.allows(np.asarray(T)[None], centroid)[0])
-
-
-def with_prior_reasons(verdict, record: dict | None):
-    """``verdict`` (:class:`~comreg_core.registration.verdict.Verdict`) with the prior's
-    ``reasons`` (:func:`~comreg_core.registration.priors.prior_record`: a result at the edge of
-    a tolerance, a clearly better pose outside the prior, no pose within it) appended and
-    then ``"check"``; unchanged without a prior or reasons. The figures gain ``prior_at_edge``.
-    """
-    if not record:
-        return verdict
-    figures = {**verdict.figures, "prior_at_edge": bool(record.get("at_edge"))}
-    reasons = [*verdict.reasons, *record.get("reasons", [])]
-    return replace(verdict, verdict="check" if reasons else verdict.verdict, reasons=reasons,
-                   figures=figures)
 
 
 def parse_tolerance(text: str) -> tuple[float, float]:

@@ -38,6 +38,7 @@ from comreg_core.live.session import LiveSession, LiveUpdate
 from comreg_core.live.stream import Frame, pixel_pose
 from comreg_core.transforms import T_RAS_LPS
 from comreg_plugin.registration import TRANSFORM_NODE_NAME
+from comreg_plugin.scene_inputs import priorFromNodes
 from comreg_plugin.scene_io import (arrayFromVtkMatrix, requireNode, uniqueName,
                                     vtkMatrixFromArray)
 from comreg_plugin.slicer_compat import require_slicer
@@ -66,11 +67,14 @@ class LiveRegistration:
         outputTransformNode: where the registration goes (default: a new ``ReferenceToCT``).
         calibration: a :class:`~comreg_core.registration.calibration.Calibration` for the
             verdict, or None.
+        prior: a :class:`~comreg_core.registration.priors.Prior` (LPS; an initial pose, CT and
+            US landmarks, the US ones in the stream's reference frame) bounding every update,
+            or None (:func:`comreg_plugin.scene_inputs.priorFromNodes` makes one from nodes).
     """
 
     def __init__(self, logic, imageNode, poseNode=None, *, method: str = "search",
                  ctModelNode=None, runDirectory=None, outputTransformNode=None,
-                 calibration=None, device: str = "auto", seed: int = 0,
+                 calibration=None, prior=None, device: str = "auto", seed: int = 0,
                  maxFramesPerUpdate: int = 16):
         requireNode(imageNode, "vtkMRMLScalarVolumeNode", "incoming image",
                     "Pick the image node the OpenIGTLink connector updates (e.g. 'Image').")
@@ -98,7 +102,7 @@ class LiveRegistration:
         self.logic, self.imageNode, self.poseNode = logic, imageNode, poseNode
         self.outputTransformNode = outputTransformNode
         self.method = method
-        self.session = LiveSession(registrar, calibration=calibration, seed=seed,
+        self.session = LiveSession(registrar, calibration=calibration, prior=prior, seed=seed,
                                    max_frames_per_update=maxFramesPerUpdate)
         self.received = 0
         self.notes: list = []
@@ -115,7 +119,8 @@ class LiveRegistration:
                       poseName: str = "ImageToReference") -> "LiveRegistration":
         """A live registration of the nodes named ``imageName`` and ``poseName`` in the logic's
         scene (the connector names them after the devices), with the parameter node's method,
-        CT model, run folder, device, seed and output transform."""
+        CT model, run folder, device, seed, output transform and prior (initial pose,
+        landmarks: :func:`~comreg_plugin.scene_inputs.priorFromNodes`)."""
         p = logic.getParameterNode()
         nodes = []
         for name, what in ((imageName, "image"), (poseName, "pose")):
@@ -127,7 +132,8 @@ class LiveRegistration:
             nodes.append(node)
         live = cls(logic, nodes[0], nodes[1], method=p.method if p.method != "ransac"
                    else "search", ctModelNode=p.ctModel, runDirectory=p.runDirectory,
-                   outputTransformNode=p.outputTransform, device=p.device, seed=p.seed)
+                   outputTransformNode=p.outputTransform, device=p.device, seed=p.seed,
+                   prior=priorFromNodes(parameters=p))
         p.outputTransform = live.outputTransformNode
         return live
 

@@ -290,12 +290,13 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
 
 
 def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_mesh=None,
-                device: str = "auto", calibration=None, report: bool = True):
+                device: str = "auto", calibration=None, prior=None, report: bool = True):
     """Write what ``comreg register`` (and ``comreg report``) would for the sweep's points, into
     ``out_dir``: ``us_points.ply`` (tracker frame, LPS, with beam origins),
     ``us_points_frames.npy`` (each point's frame, ``(N,)``), ``frames.csv`` (each frame used:
     index, time stamp, points found, pose), then ``register_to_directory`` (``result.json``,
-    ``transform.tfm``, ``registered_us.ply``, ``config.yaml``, ...) and ``report.html``.
+    ``transform.tfm``, ``registered_us.ply``, ``config.yaml``, ...; within ``prior``, a
+    :class:`~comreg_core.registration.priors.Prior` or None) and ``report.html``.
     Frames still waiting in the session's backlog are detected first, so every frame received
     is used. Returns ``(RegistrationResult, report path or None)``; raises
     :class:`ComRegError` when no bone points were received."""
@@ -324,7 +325,7 @@ def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_m
                                  f"{rec.received_s - session.started_s:.4f}", rec.raw_points,
                                  *(repr(float(v)) for v in rec.T_ref_image[:3].reshape(-1))])
     result = register_to_directory(run_dir, points_path, out, device=device, seed=session.seed,
-                                   ct_mesh=ct_mesh, calibration=calibration)
+                                   ct_mesh=ct_mesh, calibration=calibration, prior=prior)
     path = None
     if report:
         from comreg_core.report import write_report_for_registration  # VTK

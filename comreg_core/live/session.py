@@ -21,7 +21,16 @@ checked (the refit's scale scan, ~0.07 s) on full searches only. An OK verdict m
 *settled* (:data:`SETTLED_TOLERANCE`): the pose agrees with the last full search made on at
 least ``full_every_mm`` less bone, else the update says CHECK; a partial sweep's pose can slide
 along the shaft by a few millimetres while every other test passes, and the first OK needs two
-full searches.
+full searches. On a sweep spanning under half the CT, an OK verdict also needs its two halves
+to agree (:func:`~comreg_core.registration.polish.halves_disagreement_deg` within
+:data:`HALVES_TOLERANCE_DEG`, measured by the full search, kept by the warm updates after it):
+a shaft pins its rotation about its own axis only weakly.
+
+**Prior.** What the operating room knows (a rough initial pose, landmarks touched with a tracked
+pointer: :class:`~comreg_core.registration.priors.Prior`) bounds every registration, full or
+warm, as it bounds ``comreg register``'s, and its reasons (a result at its edge, a clearly
+better pose outside it) make the update CHECK. On a long bone's shaft it is what rules out the
+bone reversed end to end before the sweep reaches an end.
 
 **Advice.** ``"enough"`` when the verdict is OK, else which end of the bone to scan towards
 (:func:`scan_advice`).
@@ -41,9 +50,11 @@ import numpy as np
 
 from comreg_core.errors import ComRegError
 from comreg_core.registration.advice import end_names
-from comreg_core.registration.calibration import (OK_PROBABILITY, Calibration,
+from comreg_core.registration.calibration import (OK_PROBABILITY, TOLERANCE_DEG, Calibration,
                                                   clinical_competitor, extent_share)
 from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+from comreg_core.registration.polish import halves_disagreement_deg
+from comreg_core.registration.priors import Prior, prior_allows, with_prior_reasons
 from comreg_core.registration.surface import ct_length_mm
 from comreg_core.registration.verdict import judge_registration
 from comreg_core.live.stream import Frame, SweepPoints, coalesce, covered_length_mm
@@ -58,6 +69,9 @@ WARM_TOLERANCE = (5.0, 5.0)
 #: the last full search made on at least ``full_every_mm`` less bone: a pose still moving as
 #: bone is added has not settled.
 SETTLED_TOLERANCE = (2.0, 2.0)
+#: An OK verdict on a sweep spanning under half the CT needs its two halves (along the bone) to
+#: fit best at rotations at most this far apart (deg): the tolerance of a correct pose.
+HALVES_TOLERANCE_DEG = TOLERANCE_DEG
 #: Points registered per update at most (a seeded uniform subset of the sweep's).
 LIVE_POINTS = 4000
 #: Points the verdict of an update is computed on at most.
@@ -73,15 +87,15 @@ UPDATE_COLUMNS = ("time_s", "frames_received", "frames_used", "covered_mm", "ver
 
 
 def warm_register(registrar, points: np.ndarray, origins: np.ndarray | None, last,
-                  seed: int = 0):
+                  seed: int = 0, prior: Prior | None = None):
     """The warm start of a live update: register ``points`` ``(N, 3)`` (beam ``origins``
     ``(N, 3)`` or None) again from ``last``, the previous
     :class:`~comreg_core.registration.result.RegistrationResult` of the same sweep before it
     grew (:meth:`Registrar.register <comreg_core.inference.Registrar.register>`'s
-    ``warm_start``: its poses refined, no full search, no network pass). The one place to
-    change how a live update registers warm."""
+    ``warm_start``: its poses refined, no full search, no network pass), within ``prior`` when
+    given. The one place to change how a live update registers warm."""
     return registrar.register(points, seed=seed, beam_origins=origins, warm_start=last,
-                              residuals=False)
+                              prior=prior, residuals=False)
 
 
 @dataclass
@@ -164,6 +178,11 @@ class LiveSession:
             network), its CT mesh known (the verdict needs it).
         calibration: the verdict's :class:`~comreg_core.registration.calibration.Calibration`
             or None (then it judges by the full search's confidence).
+        prior: what the operating room knows (a rough initial pose, landmarks picked with a
+            tracked pointer: :class:`~comreg_core.registration.priors.Prior`, any space) or
+            None. Every registration, full or warm, keeps to the poses it allows; the verdict
+            looks for the competitor among them and is CHECK when the result sits at its edge
+            or a pose outside it fits clearly better (as ``comreg register --init``).
         extraction: the bone detector's and clean-up's settings (``extract-us``'s defaults).
         seed: of the registrations and the subsets.
         max_frames_per_update: frames an update detects at most (evenly spread over those
@@ -176,7 +195,7 @@ class LiveSession:
     """
 
     def __init__(self, registrar, *, calibration: Calibration | None = None,
-                 extraction=None, seed: int = 0, max_frames_per_update: int = 16,
+                 prior: Prior | None = None, extraction=None, seed: int = 0, max_frames_per_update: int = 16,
                  max_backlog: int = 300, full_every_mm: float = 20.0,
                  live_points: int = LIVE_POINTS, clock=None):
         if registrar.surface is None:
@@ -184,6 +203,7 @@ class LiveSession:
                               "it).", "Give the CT bone mesh (--ct CT_MESH).")
         self.registrar = registrar
         self.calibration = calibration
+        self.prior = None if prior is None else prior.in_space(registrar.space)
         self.points = SweepPoints(extraction) if extraction is not None else SweepPoints()
         self.seed = int(seed)
         self.max_frames_per_update = int(max_frames_per_update)
@@ -204,6 +224,7 @@ class LiveSession:
         self._result = None  # the last RegistrationResult (the warm start of the next)
         self._covered_at_full = -math.inf
         self._fulls: list[tuple[float, np.ndarray]] = []  # (covered mm, T_ct_us) of each
+        self._halves_deg: float | None = None  # the last full search's, when it measured it
         self.last: LiveUpdate | None = None
 
     def warm_up(self) -> None:
@@ -214,7 +235,7 @@ class LiveSession:
         along = (samples - self.target.centre) @ self.target.axes[:, 0]
         patch = samples[np.abs(along - np.median(along)) < 0.25 * self.ct_length]
         result = self.registrar.register(patch, seed=self.seed)
-        self._judge(patch, result.T_ct_us, _Evidence(1.0, None, False))
+        self._judge(patch, result, _Evidence(1.0, None, False))
 
     # -- one update ----------------------------------------------------------------------------
 
@@ -304,9 +325,10 @@ class LiveSession:
         if self.last is None or self._result is None or \
                 covered >= self._covered_at_full + self.full_every_mm:
             return (*self._full(pts, origins, everything), "full")
-        result = warm_register(self.registrar, pts, origins, self._result, self.seed)
-        verdict = self._settled(self._judge(pts, result.T_ct_us, self._evidence_of(result, pts),
+        result = warm_register(self.registrar, pts, origins, self._result, self.seed, self.prior)
+        verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts),
                                             scale_scan=False), result.T_ct_us, pts, covered)
+        verdict = self._consistent(verdict, pts, self._halves_deg)
         if self._moved(result.T_ct_us, self.last.T_ct_us, pts.mean(axis=0)) \
                 or verdict.verdict != self.last.verdict:
             return (*self._full(pts, origins, everything), "warm+full")
@@ -323,17 +345,25 @@ class LiveSession:
     def _evidence_of(self, result, pts: np.ndarray) -> _Evidence:
         margin = 1.0
         if result.hypotheses is not None:
-            margin = clinical_competitor(result.hypotheses, pts)["margin"]
+            allowed = None if self.prior is None else prior_allows(self.prior, result)
+            margin = clinical_competitor(result.hypotheses, pts, allowed)["margin"]
         self._evidence = _Evidence(float(margin), result.confidence, bool(result.ambiguous))
         return self._evidence
 
     def _full(self, pts: np.ndarray, origins: np.ndarray | None, everything: np.ndarray):
         result = self.registrar.register(pts, seed=self.seed, beam_origins=origins,
-                                         residuals=False)  # the verdict measures its own
+                                         prior=self.prior, residuals=False)  # (the verdict
+        # measures its own residuals)
         self._result = result
         self._covered_at_full = self.covered_mm(everything, result.T_ct_us)
-        verdict = self._settled(self._judge(pts, result.T_ct_us, self._evidence_of(result, pts)),
+        verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts)),
                                 result.T_ct_us, pts, self._covered_at_full)
+        self._halves_deg = None
+        if verdict.ok and extent_share(pts, self.ct_length) < 0.5:
+            self._halves_deg = halves_disagreement_deg(
+                pts, result.T_ct_us, self.target, self.registrar.hypothesis_config,
+                origins=origins)
+        verdict = self._consistent(verdict, pts, self._halves_deg)
         self._fulls.append((self._covered_at_full, np.array(result.T_ct_us)))
         return result, verdict
 
@@ -356,9 +386,21 @@ class LiveSession:
             why = "No registration of less bone to confirm this pose yet."
         return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
 
-    def _judge(self, pts: np.ndarray, T_ct_us: np.ndarray, evidence: _Evidence,
-               scale_scan: bool = True):
-        """The verdict of ``T_ct_us`` for ``pts`` with the registration's ``evidence``; without
+    def _consistent(self, verdict, pts: np.ndarray, halves_deg: float | None):
+        """``verdict``, turned CHECK when it is OK for a sweep spanning under half the CT whose
+        halves fit best more than :data:`HALVES_TOLERANCE_DEG` apart (``halves_deg``, None
+        when not measured)."""
+        if not verdict.ok or extent_share(pts, self.ct_length) >= 0.5 or halves_deg is None \
+                or halves_deg <= HALVES_TOLERANCE_DEG:
+            return verdict
+        why = (f"The two halves of the sweep fit best turned {halves_deg:.1f} deg apart: the "
+               f"bone seen so far does not pin the pose's rotation to {HALVES_TOLERANCE_DEG:g} "
+               "deg yet.")
+        return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
+
+    def _judge(self, pts: np.ndarray, result, evidence: _Evidence, scale_scan: bool = True):
+        """The verdict of ``result`` (its ``T_ct_us``, and where it lies in the prior) for
+        ``pts`` with the registration's ``evidence``; without
         ``scale_scan`` (a warm update) no scale check: the US calibration's scale is checked
         by the full searches (a scale problem found there makes the warm verdicts differ, so
         each update runs the full search again and stays CHECK)."""
@@ -371,10 +413,12 @@ class LiveSession:
                 len(pts), VERDICT_POINTS, replace=False))]
         ok_probability = OK_PROBABILITY if self.calibration is None \
             else self.calibration.ok_probability
-        return judge_registration(pts, T_ct_us, self.registrar.surface,
-                                  confidence=evidence.confidence, ambiguous=evidence.ambiguous,
-                                  p_correct=p_correct, short_sweep=extent < 0.5,
-                                  ok_probability=ok_probability, scale_scan=scale_scan)
+        verdict = judge_registration(pts, result.T_ct_us, self.registrar.surface,
+                                     confidence=evidence.confidence,
+                                     ambiguous=evidence.ambiguous, p_correct=p_correct,
+                                     short_sweep=extent < 0.5, ok_probability=ok_probability,
+                                     scale_scan=scale_scan)
+        return with_prior_reasons(verdict, result.info.get("prior"))
 
 
 def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:

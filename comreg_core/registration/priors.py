@@ -37,7 +37,7 @@ How the pose search uses it (:func:`comreg_core.registration.search.search_hypot
 3. **Record** (:func:`prior_record`, ``result.json``'s ``prior``): the chosen pose's rotation
    and shift from ``T_init``, each landmark's error, ``at_edge`` (beyond :data:`EDGE_SHARE` of
    the rotation's, the shift's or a landmark's tolerance) and ``reasons`` that make the verdict
-   CHECK (:func:`comreg_core.register_output.with_prior_reasons`): a result at the edge (when
+   CHECK (:func:`with_prior_reasons`): a result at the edge (when
    the prior excludes the truth the search can only find poses inside that fit worse, and they
    gather at its edge), a pose outside that fits clearly better, no pose within at all.
 """
@@ -52,7 +52,7 @@ import numpy as np
 
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.transforms import apply_transform, as_points, check_rigid, check_space, \
-    space_change
+    invert_rigid, space_change
 
 #: Tolerances when only an initial pose is given (``--init`` without ``--init-tolerance``).
 DEFAULT_MAX_DEG = 30.0
@@ -484,3 +484,26 @@ def match_landmarks(ct, us, *, default_tolerance_mm: float = DEFAULT_LANDMARK_TO
 
 def _names(labels: list[str]) -> str:
     return ", ".join(f"'{label}'" for label in labels)
+
+
+def prior_allows(prior: Prior, result):
+    """``(4, 4) T -> bool``: whether ``prior`` (in the result's space) allows a pose of
+    ``result`` (a :class:`~comreg_core.registration.result.RegistrationResult`; the US centroid:
+    that of the points it registered)."""
+    points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
+    centroid = points.mean(axis=0)
+    return lambda T: bool(prior.allows(np.asarray(T)[None], centroid)[0])
+
+
+def with_prior_reasons(verdict, record: dict | None):
+    """``verdict`` (:class:`~comreg_core.registration.verdict.Verdict`) with the prior's
+    ``reasons`` (:func:`~comreg_core.registration.priors.prior_record`: a result at the edge of
+    a tolerance, a clearly better pose outside the prior, no pose within it) appended and
+    then ``"check"``; unchanged without a prior or reasons. The figures gain ``prior_at_edge``.
+    """
+    if not record:
+        return verdict
+    figures = {**verdict.figures, "prior_at_edge": bool(record.get("at_edge"))}
+    reasons = [*verdict.reasons, *record.get("reasons", [])]
+    return replace(verdict, verdict="check" if reasons else verdict.verdict, reasons=reasons,
+                   figures=figures)

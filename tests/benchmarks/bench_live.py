@@ -2,7 +2,8 @@
 OpenIGTLink on 127.0.0.1 into ``comreg live``, real server and client in their own processes.
 
 ``.venv/bin/python -m tests.benchmarks.bench_live [--rate 4] [--starts 0,15,30,45,60,75]
-[--model RUN_DIR] [--untrained RUN0] [--verdict-calibration FILE] [--out DIR]``
+[--model RUN_DIR] [--untrained RUN0] [--verdict-calibration FILE] [--prior none,landmark]
+[--out DIR]``
 
 Each replay serves the shared sweep (111 B-mode frames, every 10th of the recording) from one
 start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg live --until-end
@@ -19,6 +20,12 @@ start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg li
 - frames: served by the replay, received and registered by live, and lost without a report
   (sent but not received, or received but neither registered nor reported; target 0).
 
+Priors (``--prior``, each a row per method and start): ``none``; ``landmark``: what an operating
+room gives by touching the ankle with a tracked pointer, one landmark pair (``comreg live
+--landmarks``) at the CT's inferior end along its long axis (the lateral malleolus), the US
+point the pseudo ground truth's image of it moved 10 mm in a direction drawn per start (seeded),
+tolerance 15 mm.
+
 Controls: with ``--model RUN_DIR`` every replay runs twice, by the search alone and with the
 network (``--model``); ``--untrained RUN0`` adds a third, the same network untrained.
 Targets: never OK-and-wrong; OK within 150 mm; median update <= 0.2 s; no frame lost
@@ -28,6 +35,7 @@ unreported. Timings depend on the machine's load: state it with the figures.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import re
 import subprocess
@@ -66,8 +74,36 @@ def serving_port(replay: subprocess.Popen) -> int:
     raise RuntimeError(f"comreg replay did not start: {''.join(seen)[-2000:]}")
 
 
+def landmark_files(start: int, T_truth: np.ndarray, ct: Path, folder: Path) -> list[Path]:
+    """The ``landmark`` prior of replay ``start`` (module docstring): ``[ct.mrk.json,
+    us.mrk.json]`` written into ``folder`` (LPS)."""
+    from comreg_core.io import read_mesh
+    from comreg_core.transforms import apply_transform, invert_rigid
+
+    mesh = read_mesh(ct)
+    points = mesh.vertices if mesh.space == "LPS" else \
+        mesh.vertices * np.array([-1.0, -1.0, 1.0])
+    centred = points - points.mean(axis=0)
+    axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+    axis = axis if axis[2] < 0 else -axis  # towards inferior (LPS: -z)
+    ct_point = points[np.argmax(centred @ axis)]
+    direction = np.random.default_rng(1000 + start).normal(size=3)
+    us_point = apply_transform(invert_rigid(T_truth), ct_point[None])[0] \
+        + 10.0 * direction / np.linalg.norm(direction)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, point in (("ct", ct_point), ("us", us_point)):
+        markups = {"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "controlPoints": [
+            {"label": "malleolus", "position": [float(v) for v in point],
+             "description": "tol=15"}]}]}
+        paths.append(folder / f"{name}.mrk.json")
+        paths[-1].write_text(json.dumps(markups))
+    return paths
+
+
 def one_replay(start: int, rate: float, out: Path, ct: Path, model: Path | None,
-               verdict_calibration: Path | None, timeout_s: float = 900.0) -> dict:
+               verdict_calibration: Path | None, landmarks: list[Path] | None = None,
+               timeout_s: float = 900.0) -> dict:
     """Serve the sweep from frame ``start`` into ``comreg live``; the figures of the run."""
     cli = [sys.executable, "-m", "comreg_core.cli"]
     replay = subprocess.Popen(cli + ["replay", str(SHARED), "--port", "0", "--rate", str(rate),
@@ -81,6 +117,8 @@ def one_replay(start: int, rate: float, out: Path, ct: Path, model: Path | None,
             args += ["--model", str(model)]
         if verdict_calibration is not None:
             args += ["--verdict-calibration", str(verdict_calibration)]
+        if landmarks:
+            args += ["--landmarks", *map(str, landmarks)]
         began = time.monotonic()
         live = subprocess.run(args, cwd=REPO, capture_output=True, text=True,
                               timeout=timeout_s)
@@ -144,6 +182,7 @@ def main(argv=None) -> None:
     parser.add_argument("--untrained", type=Path, default=None, help="the same network before "
                         "its first step (the control), e.g. from bench_learning")
     parser.add_argument("--verdict-calibration", type=Path, default=None)
+    parser.add_argument("--prior", default="none", help="none,landmark (module docstring)")
     parser.add_argument("--out", type=Path, default=REPO / "out" / "bench_live")
     args = parser.parse_args(argv)
     ct = SHARED / "fibula.stl"
@@ -154,42 +193,49 @@ def main(argv=None) -> None:
     print(f"replays of {SHARED.name} at x{args.rate:g} from frames {starts}; verdict: "
           + (f"p_correct ({args.verdict_calibration})" if args.verdict_calibration
              else "the search's confidence (no --verdict-calibration)"), flush=True)
-    header = (f"{'method':9} {'start':>5} {'upd':>4} {'ok@mm':>6} {'ok?':>5} {'ok&wrong':>8} "
+    priors = args.prior.split(",")
+    if not set(priors) <= {"none", "landmark"}:
+        parser.error(f"--prior {args.prior}: none and/or landmark")
+    header = (f"{'method':9} {'prior':8} {'start':>5} {'upd':>4} {'ok@mm':>6} {'ok?':>5} {'ok&wrong':>8} "
               f"{'final':>11} {'lat_med':>7} {'lat_p95':>7} {'full':>4} {'served':>6} {'recv':>5} "
               f"{'used':>5} {'unrep':>5} {'wall_s':>6}")
     print(header, flush=True)
     summary = []
-    for name, model in methods:
-        for start in starts:
-            out = args.out / f"{name}_from{start:03d}"
-            if out.exists():
-                import shutil
+    for prior, (name, model), start in itertools.product(priors, methods, starts):
+        out = args.out / f"{name}_{prior}_from{start:03d}"
+        if out.exists():
+            import shutil
 
-                shutil.rmtree(out)
-            run = one_replay(start, args.rate, out, ct, model, args.verdict_calibration)
-            f = figures(out, T_truth, run)
-            summary.append({"method": name, "start": start, **f})
+            shutil.rmtree(out)
+        landmarks = None if prior == "none" else landmark_files(
+            start, T_truth, ct, args.out / f"landmarks_from{start:03d}")
+        run = one_replay(start, args.rate, out, ct, model, args.verdict_calibration,
+                         landmarks)
+        f = figures(out, T_truth, run)
+        summary.append({"method": name, "prior": prior, "start": start, **f})
 
-            def fmt(value, spec):
-                return "-" if value is None else format(value, spec)
-            right = None if f["ok_correct"] is None else ("yes" if f["ok_correct"] else "NO")
-            print(f"{name:9} {start:>5} {f['updates']:>4} {fmt(f['ok_at_mm'], '6.0f')} "
-                  f"{fmt(right, '>5')} {f['ok_and_wrong']:>8} {f['final']:>11} "
-                  f"{fmt(f['latency_median_s'], '7.2f')} {fmt(f['latency_p95_s'], '7.2f')} "
-                  f"{f['full_searches']:>4} {f['served']:>6} {f['received']:>5} "
-                  f"{f['used']:>5} {f['unreported']:>5} {f['wall_s']:>6.0f}", flush=True)
+        def fmt(value, spec):
+            return "-" if value is None else format(value, spec)
+        right = None if f["ok_correct"] is None else ("yes" if f["ok_correct"] else "NO")
+        print(f"{name:9} {prior:8} {start:>5} {f['updates']:>4} {fmt(f['ok_at_mm'], '6.0f')} "
+              f"{fmt(right, '>5')} {f['ok_and_wrong']:>8} {f['final']:>11} "
+              f"{fmt(f['latency_median_s'], '7.2f')} {fmt(f['latency_p95_s'], '7.2f')} "
+              f"{f['full_searches']:>4} {f['served']:>6} {f['received']:>5} "
+              f"{f['used']:>5} {f['unreported']:>5} {f['wall_s']:>6.0f}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_live.json").write_text(json.dumps(summary, indent=2) + "\n")
-    wrong = sum(s["ok_and_wrong"] for s in summary)
-    late = [s["ok_at_mm"] for s in summary if s["ok_at_mm"] is not None]
-    medians = [s["latency_median_s"] for s in summary if s["latency_median_s"] is not None]
-    print(f"targets: OK-and-wrong updates {wrong} (0); OK reached in "
-          f"{len(late)}/{len(summary)} replays, within 150 mm in "
-          f"{sum(v <= 150 for v in late)}; median update latency "
-          f"{np.median(medians) if medians else float('nan'):.2f} s (<= 0.2); frames lost "
-          f"unreported {sum(s['unreported'] for s in summary)} (0); figures in "
-          f"{args.out / 'bench_live.json'}")
-
+    for prior in priors:
+        rows = [row for row in summary if row["prior"] == prior]
+        wrong = sum(row["ok_and_wrong"] for row in rows)
+        late = [row["ok_at_mm"] for row in rows if row["ok_at_mm"] is not None]
+        medians = [row["latency_median_s"] for row in rows
+                   if row["latency_median_s"] is not None]
+        print(f"targets, prior {prior}: OK-and-wrong updates {wrong} (0); OK reached in "
+              f"{len(late)}/{len(rows)} replays, within 150 mm in "
+              f"{sum(v <= 150 for v in late)}; median update latency "
+              f"{np.median(medians) if medians else float('nan'):.2f} s (<= 0.2); frames lost "
+              f"unreported {sum(row['unreported'] for row in rows)} (0)")
+    print(f"figures in {args.out / 'bench_live.json'}")
 
 if __name__ == "__main__":
     main()

@@ -113,8 +113,8 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
     judged as ``comreg register`` judges (module docstring). ``T_truth``: where the runs' points
     truly lie in the CT (tracking -> CT; identity: as given)."""
     from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
-    from comreg_core.register_output import (prior_allows, registration_verdict,
-                                             with_prior_reasons)
+    from comreg_core.register_output import registration_verdict
+    from comreg_core.registration.priors import prior_allows, with_prior_reasons
     from comreg_core.registration.metrics import registration_metrics
     from comreg_core.registration.surface import CTSurface
     from comreg_core.simulation import sample_initial_pose
