@@ -6,7 +6,10 @@ points and registers the grown sweep (:class:`LiveSession`); ``updates.csv`` rec
 start, which refines the last result's chosen pose and its best distinct competitors on the
 grown cloud), unless the evidence changed, when it runs the *full* search (as ``comreg
 register`` does): the first registration; the bone covered along the CT's long axis grew by
-:attr:`LiveSession.full_every_mm` since the last full search; the warm pose moved beyond
+:attr:`LiveSession.full_every_mm` since the last full search (unless the last update was a full
+search: the frames that came while it ran are registered warm first, so a slow full search,
+during which more than ``full_every_mm`` of bone arrives, is not followed by another at once);
+the warm pose moved beyond
 :data:`WARM_TOLERANCE` from the last update's (it switched to another of its poses); or its
 verdict differs from the last update's (then the full search decides it, in the same update).
 So the verdict only ever turns OK, or back to CHECK, on a full search.
@@ -322,8 +325,9 @@ class LiveSession:
         """``(result, verdict, mode)`` by the policy of the module docstring: ``pts`` and
         ``origins`` are registered, ``everything`` (all points) measures the coverage."""
         covered = self.covered_mm(everything, None if self.last is None else self.last.T_ct_us)
-        if self.last is None or self._result is None or \
-                covered >= self._covered_at_full + self.full_every_mm:
+        if self.last is None or self._result is None or (
+                covered >= self._covered_at_full + self.full_every_mm
+                and self.last.mode == "warm"):
             return (*self._full(pts, origins, everything), "full")
         result = warm_register(self.registrar, pts, origins, self._result, self.seed, self.prior)
         verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts),

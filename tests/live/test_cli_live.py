@@ -49,6 +49,15 @@ def test_live_checks_its_inputs_before_connecting(tmp_path):
              "not a folder")
     _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--image-device", " "],
              "device name is empty")
+    # the prior, as 'comreg register' reads it, is read before connecting too
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--init-tolerance", "30,30"],
+             "--init-tolerance was given without an initial pose")
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--landmarks",
+              tmp_path / "ct.mrk.json", tmp_path / "us.mrk.json"], "does not exist")
+    (tmp_path / "ct.mrk.json").write_text("{not json")
+    (tmp_path / "us.mrk.json").write_text("{}")
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--landmarks",
+              tmp_path / "ct.mrk.json", tmp_path / "us.mrk.json"], "not valid JSON")
 
 
 def test_replay_refuses_bad_input(sweep2, tmp_path):

@@ -18,7 +18,7 @@ from tests.live.conftest import cut_sweep
 
 @pytest.fixture(scope="module")
 def sweep(shared_data, tmp_path_factory):
-    return read_tracked_sweep(cut_sweep(tmp_path_factory.mktemp("sweep_s"), 30, 14))
+    return read_tracked_sweep(cut_sweep(tmp_path_factory.mktemp("sweep_s"), 30, 22))
 
 
 def _frames(sweep, indices, first_index=None):
@@ -42,6 +42,12 @@ def test_full_first_then_warm_then_full_when_the_bone_covered_grows(sweep, searc
     grown = session.update(_frames(sweep, range(6, 14), first_index=7))
     assert grown.covered_mm >= first.covered_mm + session.full_every_mm
     assert grown.mode == "full" and grown.frames_used == 15
+    # grown again by full_every_mm right after a full search: warm first, then full
+    sooner = session.update(_frames(sweep, range(14, 20), first_index=15))
+    assert sooner.covered_mm >= grown.covered_mm + session.full_every_mm
+    assert sooner.mode == "warm"
+    later = session.update(_frames(sweep, [19], first_index=21))
+    assert later.mode in ("full", "warm+full") and later.frames_used == 22
 
     log = UpdatesLog(tmp_path / "updates.csv")
     for update in (first, again, grown):

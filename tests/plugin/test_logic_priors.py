@@ -74,3 +74,29 @@ def test_initial_pose_and_landmarks_from_the_scene_restrict_the_search(logic):
     p.usLandmarks = None
     with pytest.raises(ComRegError, match="both point lists"):
         logic.register(us, "search", ctModelNode=ct)
+
+
+def test_the_live_mode_takes_the_scene_prior(logic):
+    """The live mode's session keeps to the parameter node's prior: a landmark pair picked in
+    the scene (RAS) arrives in LPS with its tolerance."""
+    from comreg_plugin.live import LiveRegistration
+
+    logic.loadBoneMesh(FIBULA_STL)
+    imageNode = logic.scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "Image")
+    logic.scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "ImageToReference")
+    imageNode.SetAndObserveTransformNodeID(
+        logic.scene.GetFirstNodeByName("ImageToReference").GetID())
+    p = logic.getParameterNode()
+    p.method = "search"
+    p.ctLandmarks = _points_node(logic, "CT landmarks", [("ankle", (10.0, 20.0, 30.0))])
+    p.usLandmarks = _points_node(logic, "US landmarks", [("ankle", (-4.0, 5.0, 6.0))])
+    p.landmarkToleranceMm = 12.0
+    live = LiveRegistration.fromNodeNames(logic, "Image", "ImageToReference")
+    (landmark,) = live.session.prior.landmarks
+    np.testing.assert_allclose(landmark.ct, [-10.0, -20.0, 30.0])
+    np.testing.assert_allclose(landmark.us, [4.0, -5.0, 6.0])
+    assert landmark.tolerance_mm == 12.0 and live.session.prior.T_init is None
+    live.stop()
+    p.ctLandmarks = p.usLandmarks = None
+    assert LiveRegistration.fromNodeNames(logic, "Image", "ImageToReference").session.prior \
+        is None
