@@ -198,9 +198,9 @@ class LiveSession:
     """
 
     def __init__(self, registrar, *, calibration: Calibration | None = None,
-                 prior: Prior | None = None, extraction=None, seed: int = 0, max_frames_per_update: int = 16,
-                 max_backlog: int = 300, full_every_mm: float = 20.0,
-                 live_points: int = LIVE_POINTS, clock=None):
+                 prior: Prior | None = None, extraction=None, seed: int = 0,
+                 max_frames_per_update: int = 16, max_backlog: int = 300,
+                 full_every_mm: float = 20.0, live_points: int = LIVE_POINTS, clock=None):
         if registrar.surface is None:
             raise ComRegError("Live registration needs the CT mesh (its verdict is judged on "
                               "it).", "Give the CT bone mesh (--ct CT_MESH).")
@@ -356,8 +356,7 @@ class LiveSession:
 
     def _full(self, pts: np.ndarray, origins: np.ndarray | None, everything: np.ndarray):
         result = self.registrar.register(pts, seed=self.seed, beam_origins=origins,
-                                         prior=self.prior, residuals=False)  # (the verdict
-        # measures its own residuals)
+                                         prior=self.prior, residuals=False)  # verdict: own
         self._result = result
         self._covered_at_full = self.covered_mm(everything, result.T_ct_us)
         verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts)),

@@ -196,9 +196,9 @@ def main(argv=None) -> None:
     priors = args.prior.split(",")
     if not set(priors) <= {"none", "landmark"}:
         parser.error(f"--prior {args.prior}: none and/or landmark")
-    header = (f"{'method':9} {'prior':8} {'start':>5} {'upd':>4} {'ok@mm':>6} {'ok?':>5} {'ok&wrong':>8} "
-              f"{'final':>11} {'lat_med':>7} {'lat_p95':>7} {'full':>4} {'served':>6} {'recv':>5} "
-              f"{'used':>5} {'unrep':>5} {'wall_s':>6}")
+    header = (f"{'method':9} {'prior':8} {'start':>5} {'upd':>4} {'ok@mm':>6} {'ok?':>5} "
+              f"{'ok&wrong':>8} {'final':>11} {'lat_med':>7} {'lat_p95':>7} {'full':>4} "
+              f"{'served':>6} {'recv':>5} {'used':>5} {'unrep':>5} {'wall_s':>6}")
     print(header, flush=True)
     summary = []
     for prior, (name, model), start in itertools.product(priors, methods, starts):
