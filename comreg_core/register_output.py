@@ -21,11 +21,11 @@ from comreg_core.io._files import atomic_output, check_output_folder
 from comreg_core.io.transform_files import save_transform
 from comreg_core.registration.config import HypothesisConfig
 from comreg_core.registration.inputs import MAX_US_POINTS
-from comreg_core.registration.priors import Prior, prior_allows, with_prior_reasons
+from comreg_core.registration.priors import Prior, prior_allows
 from comreg_core.registration.calibration import (OK_PROBABILITY, Calibration,
                                                   result_evidence)
 from comreg_core.registration.surface import ct_length_mm
-from comreg_core.registration.verdict import judge_registration
+from comreg_core.registration.verdict import judge_registration, with_prior_reasons
 from comreg_core.registration.result import RegistrationResult
 from comreg_core.transforms import apply_transform, check_rigid, invert_rigid
 

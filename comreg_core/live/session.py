@@ -57,9 +57,9 @@ from comreg_core.registration.calibration import (OK_PROBABILITY, TOLERANCE_DEG,
                                                   clinical_competitor, extent_share)
 from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.registration.polish import halves_disagreement_deg
-from comreg_core.registration.priors import Prior, prior_allows, with_prior_reasons
+from comreg_core.registration.priors import Prior, prior_allows
 from comreg_core.registration.surface import ct_length_mm
-from comreg_core.registration.verdict import judge_registration
+from comreg_core.registration.verdict import judge_registration, with_prior_reasons
 from comreg_core.live.stream import Frame, SweepPoints, coalesce, covered_length_mm
 from comreg_core.transforms import apply_transform, space_change
 
@@ -332,7 +332,7 @@ class LiveSession:
         result = warm_register(self.registrar, pts, origins, self._result, self.seed, self.prior)
         verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts),
                                             scale_scan=False), result.T_ct_us, pts, covered)
-        verdict = self._consistent(verdict, pts, self._halves_deg)
+        verdict = self._consistent(verdict, pts)
         if self._moved(result.T_ct_us, self.last.T_ct_us, pts.mean(axis=0)) \
                 or verdict.verdict != self.last.verdict:
             return (*self._full(pts, origins, everything), "warm+full")
@@ -362,11 +362,7 @@ class LiveSession:
         verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts)),
                                 result.T_ct_us, pts, self._covered_at_full)
         self._halves_deg = None
-        if verdict.ok and extent_share(pts, self.ct_length) < 0.5:
-            self._halves_deg = halves_disagreement_deg(
-                pts, result.T_ct_us, self.target, self.registrar.hypothesis_config,
-                origins=origins)
-        verdict = self._consistent(verdict, pts, self._halves_deg)
+        verdict = self._consistent(verdict, pts, result, origins)
         self._fulls.append((self._covered_at_full, np.array(result.T_ct_us)))
         return result, verdict
 
@@ -389,12 +385,19 @@ class LiveSession:
             why = "No registration of less bone to confirm this pose yet."
         return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
 
-    def _consistent(self, verdict, pts: np.ndarray, halves_deg: float | None):
+    def _consistent(self, verdict, pts: np.ndarray, result=None, origins=None):
         """``verdict``, turned CHECK when it is OK for a sweep spanning under half the CT whose
-        halves fit best more than :data:`HALVES_TOLERANCE_DEG` apart (``halves_deg``, None
-        when not measured)."""
-        if not verdict.ok or extent_share(pts, self.ct_length) >= 0.5 or halves_deg is None \
-                or halves_deg <= HALVES_TOLERANCE_DEG:
+        halves fit best more than :data:`HALVES_TOLERANCE_DEG` apart. A full search's
+        ``result`` (with its beam ``origins``) has them measured; a warm update keeps the
+        last full search's measure (none: not checked)."""
+        if not verdict.ok or extent_share(pts, self.ct_length) >= 0.5:
+            return verdict
+        if result is not None:
+            self._halves_deg = halves_disagreement_deg(
+                pts, result.T_ct_us, self.target, self.registrar.hypothesis_config,
+                origins=origins)
+        halves_deg = self._halves_deg
+        if halves_deg is None or halves_deg <= HALVES_TOLERANCE_DEG:
             return verdict
         why = (f"The two halves of the sweep fit best turned {halves_deg:.1f} deg apart: the "
                f"bone seen so far does not pin the pose's rotation to {HALVES_TOLERANCE_DEG:g} "

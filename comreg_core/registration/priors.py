@@ -37,7 +37,7 @@ How the pose search uses it (:func:`comreg_core.registration.search.search_hypot
 3. **Record** (:func:`prior_record`, ``result.json``'s ``prior``): the chosen pose's rotation
    and shift from ``T_init``, each landmark's error, ``at_edge`` (beyond :data:`EDGE_SHARE` of
    the rotation's, the shift's or a landmark's tolerance) and ``reasons`` that make the verdict
-   CHECK (:func:`with_prior_reasons`): a result at the edge (when
+   CHECK (:func:`comreg_core.registration.verdict.with_prior_reasons`): a result at the edge (when
    the prior excludes the truth the search can only find poses inside that fit worse, and they
    gather at its edge), a pose outside that fits clearly better, no pose within at all.
 """
@@ -494,16 +494,3 @@ def prior_allows(prior: Prior, result):
     centroid = points.mean(axis=0)
     return lambda T: bool(prior.allows(np.asarray(T)[None], centroid)[0])
 
-
-def with_prior_reasons(verdict, record: dict | None):
-    """``verdict`` (:class:`~comreg_core.registration.verdict.Verdict`) with the prior's
-    ``reasons`` (:func:`~comreg_core.registration.priors.prior_record`: a result at the edge of
-    a tolerance, a clearly better pose outside the prior, no pose within it) appended and
-    then ``"check"``; unchanged without a prior or reasons. The figures gain ``prior_at_edge``.
-    """
-    if not record:
-        return verdict
-    figures = {**verdict.figures, "prior_at_edge": bool(record.get("at_edge"))}
-    reasons = [*verdict.reasons, *record.get("reasons", [])]
-    return replace(verdict, verdict="check" if reasons else verdict.verdict, reasons=reasons,
-                   figures=figures)

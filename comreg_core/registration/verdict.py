@@ -52,7 +52,7 @@ sweeps' worst and a 10 % calibration error.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -267,3 +267,17 @@ def _fit_score(points: np.ndarray, cloud, gate_mm: float) -> float:
 def thresholds_json(th: VerdictThresholds = DEFAULT_THRESHOLDS) -> dict:
     """The thresholds as a JSON-able dict."""
     return asdict(th)
+
+
+def with_prior_reasons(verdict, record: dict | None):
+    """``verdict`` (:class:`Verdict`) with the prior's
+    ``reasons`` (:func:`~comreg_core.registration.priors.prior_record`: a result at the edge of
+    a tolerance, a clearly better pose outside the prior, no pose within it) appended and
+    then ``"check"``; unchanged without a prior or reasons. The figures gain ``prior_at_edge``.
+    """
+    if not record:
+        return verdict
+    figures = {**verdict.figures, "prior_at_edge": bool(record.get("at_edge"))}
+    reasons = [*verdict.reasons, *record.get("reasons", [])]
+    return replace(verdict, verdict="check" if reasons else verdict.verdict, reasons=reasons,
+                   figures=figures)

@@ -92,7 +92,7 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
                                  else result.get("p_correct"),
                                  short_sweep=(result.get("extent_share") or 1.0) < 0.5)
     if transform is None:  # an initial pose or landmarks the result sits at the edge of
-        from comreg_core.registration.priors import with_prior_reasons
+        from comreg_core.registration.verdict import with_prior_reasons
 
         verdict = with_prior_reasons(verdict, result.get("prior"))
     metrics = registration_metrics_table(result, verdict.figures, judged_file=transform)

@@ -80,9 +80,7 @@ def landmark_files(start: int, T_truth: np.ndarray, ct: Path, folder: Path) -> l
     from comreg_core.io import read_mesh
     from comreg_core.transforms import apply_transform, invert_rigid
 
-    mesh = read_mesh(ct)
-    points = mesh.vertices if mesh.space == "LPS" else \
-        mesh.vertices * np.array([-1.0, -1.0, 1.0])
+    points = read_mesh(ct).in_space("LPS").vertices
     centred = points - points.mean(axis=0)
     axis = np.linalg.svd(centred, full_matrices=False)[2][0]
     axis = axis if axis[2] < 0 else -axis  # towards inferior (LPS: -z)

@@ -114,7 +114,8 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
     truly lie in the CT (tracking -> CT; identity: as given)."""
     from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
     from comreg_core.register_output import registration_verdict
-    from comreg_core.registration.priors import prior_allows, with_prior_reasons
+    from comreg_core.registration.priors import prior_allows
+    from comreg_core.registration.verdict import with_prior_reasons
     from comreg_core.registration.metrics import registration_metrics
     from comreg_core.registration.surface import CTSurface
     from comreg_core.simulation import sample_initial_pose

@@ -14,9 +14,9 @@ from comreg_core.inference import Registrar
 from comreg_core.io import save_transform
 from comreg_core.register_output import load_prior
 from comreg_core.registration.metrics import registration_metrics
-from comreg_core.registration.priors import Landmark, Prior, prior_record, with_prior_reasons
+from comreg_core.registration.priors import Landmark, Prior, prior_record
 from comreg_core.registration.search import rotation_about
-from comreg_core.registration.verdict import Verdict
+from comreg_core.registration.verdict import Verdict, with_prior_reasons
 from comreg_core.simulation import sample_initial_pose
 from comreg_core.transforms import apply_transform, invert_rigid, space_change
 from tests.helpers import FIBULA_STL, assert_close, random_rigid
