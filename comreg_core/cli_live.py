@@ -3,6 +3,7 @@ own module to keep the CLI file short). The work is in :mod:`comreg_core.live`."
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Optional
 
@@ -63,6 +64,9 @@ def live(
     init_tolerance: Optional[str] = INIT_TOLERANCE_OPTION,
     landmarks: Optional[tuple[Path, Path]] = LANDMARKS_OPTION,
     landmark_tolerance: Optional[float] = LANDMARK_TOLERANCE_OPTION,
+    background: bool = typer.Option(True, "--background-search/--inline-search",
+                                    help="Run the full searches in a second process while "
+                                    "warm updates go on (default), or in the update loop."),
 ) -> None:
     """Register while scanning: connect to an OpenIGTLink server, take its B-mode frames (IMAGE)
     and their poses (TRANSFORM, PLUS names such as ImageToReference), find the bone in each
@@ -81,6 +85,7 @@ def live(
     from comreg_core.errors import ComRegError
     from comreg_core.inference import Registrar
     from comreg_core.io._files import check_output_folder, require_input_file
+    from comreg_core.live.background import FullSearchWorker, RegistrarRecipe, one_thread
     from comreg_core.live.igtl import IMAGE_POSE_DEVICE, PROBE_POSE_DEVICE
     from comreg_core.live.run import FrameReceiver, finish_live, run_live, stop_on_sigterm
     from comreg_core.live.session import LiveSession
@@ -103,16 +108,22 @@ def live(
     registrar = (Registrar.from_ct(ct_mesh) if model is None
                  else Registrar.from_run(model, device.value, ct_mesh=ct_mesh))
     session = LiveSession(registrar, calibration=verdict, prior=prior, seed=seed)
-    typer.echo("preparing the CT side ...", err=True)
-    session.warm_up()
-    receiver = FrameReceiver(host, port, image_device, pose_device, T_probe_pixel,
-                             reconnect=not until_end)
-    typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "
-               f"'{pose_device}'; sending '{send_device}' (Ctrl-C to stop)", err=True)
-    with stop_on_sigterm():
-        summary = run_live(session, receiver, out_dir=out, until_end=until_end,
-                           send_device=send_device, on_status=typer.echo,
-                           on_note=lambda line: typer.echo(f"live: {line}", err=True))
+    with ExitStack() as stack:
+        if background:
+            recipe = RegistrarRecipe(str(ct_mesh), None if model is None else str(model),
+                                     device.value)
+            session.worker = stack.enter_context(FullSearchWorker(recipe, session.prior))
+            stack.enter_context(one_thread())
+        typer.echo("preparing the CT side ...", err=True)
+        session.warm_up()
+        receiver = FrameReceiver(host, port, image_device, pose_device, T_probe_pixel,
+                                 reconnect=not until_end)
+        typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "
+                   f"'{pose_device}'; sending '{send_device}' (Ctrl-C to stop)", err=True)
+        with stop_on_sigterm():
+            summary = run_live(session, receiver, out_dir=out, until_end=until_end,
+                               send_device=send_device, on_status=typer.echo,
+                               on_note=lambda line: typer.echo(f"live: {line}", err=True))
     typer.echo(summary.line())
     if out is not None:
         from comreg_core.register_output import summary_lines

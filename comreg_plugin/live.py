@@ -34,7 +34,8 @@ from vtk.util import numpy_support
 
 from comreg_core.errors import ComRegError
 from comreg_core.io.sweeps import frames_to_grey
-from comreg_core.live.session import LiveSession, LiveUpdate
+from comreg_core.live.session import LiveSession
+from comreg_core.live.updates import LiveUpdate
 from comreg_core.live.stream import Frame, pixel_pose
 from comreg_core.transforms import T_RAS_LPS
 from comreg_plugin.registration import TRANSFORM_NODE_NAME

@@ -5,7 +5,10 @@ sweep served as PLUS Server would (``comreg replay``). docs/live.md describes bo
 - :mod:`~comreg_core.live.stream`: frames, pairing images with poses, the growing sweep's bone
   points (``extract-us``'s detector and clean-up) and the bone they cover;
 - :mod:`~comreg_core.live.session`: the update loop's state: warm or full registration, the
-  verdict, the advice, ``updates.csv``;
+  verdict, the advice;
+- :mod:`~comreg_core.live.background`: the full search in a second process, so that warm
+  updates go on while it runs;
+- :mod:`~comreg_core.live.updates`: an update's record and ``updates.csv``;
 - :mod:`~comreg_core.live.igtl`: the pyigtl client and server, and the replay;
 - :mod:`~comreg_core.live.run`: the receiver thread, the update loop and the output folder.
 

@@ -35,7 +35,8 @@ from comreg_core.errors import ComRegError
 from comreg_core.io import PointCloud, write_points
 from comreg_core.io._files import atomic_output
 from comreg_core.live.igtl import LiveClient, UnknownMessage, SEND_DEVICE, STATUS_DEVICE
-from comreg_core.live.session import LiveSession, LiveUpdate, UpdatesLog
+from comreg_core.live.session import LiveSession
+from comreg_core.live.updates import LiveUpdate, UpdatesLog
 from comreg_core.live.stream import Frame, FrameAssembler
 from comreg_core.transforms import space_change
 

@@ -1,6 +1,5 @@
 """The live registration loop's state: each update takes the frames that arrived, adds their bone
-points and registers the grown sweep (:class:`LiveSession`); ``updates.csv`` records it
-(:class:`UpdatesLog`).
+points and registers the grown sweep (:class:`LiveSession`).
 
 **Warm or full.** An update registers *warm* (:func:`warm_register`: the registrar's warm
 start, which refines the last result's chosen pose and its best distinct competitors on the
@@ -13,6 +12,15 @@ the warm pose moved beyond
 :data:`WARM_TOLERANCE` from the last update's (it switched to another of its poses); or its
 verdict differs from the last update's (then the full search decides it, in the same update).
 So the verdict only ever turns OK, or back to CHECK, on a full search.
+
+**In the background.** With a :class:`~comreg_core.live.background.FullSearchWorker` (``comreg
+live`` starts one), every update after the first is warm, and the full search runs in the
+worker's process on the points of the update that asked for it (for the same reasons as above,
+one at a time) while the updates go on. The update after its answer came registers warm from
+the full search's result instead of the last update's (mode "warm+full"), checks the scale and
+records it as the full search of those points. A warm update whose verdict would turn OK, or
+whose OK pose moved, says CHECK until that answer came ("a full search is confirming"), so the
+verdict still only turns OK on a full search.
 
 **Verdict.** Every update is judged as ``comreg register`` judges a result
 (:func:`~comreg_core.registration.verdict.judge_registration`: residuals, refit, coverage, on
@@ -41,13 +49,10 @@ bone reversed end to end before the sweep reaches an end.
 
 from __future__ import annotations
 
-import csv
-import json
 import logging
 import math
 import time
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 
@@ -60,7 +65,10 @@ from comreg_core.registration.polish import halves_disagreement_deg
 from comreg_core.registration.priors import Prior, prior_allows
 from comreg_core.registration.surface import ct_length_mm
 from comreg_core.registration.verdict import judge_registration, with_prior_reasons
+from comreg_core.live.background import (FullSearchDone, FullSearchJob, FullSearchWorker,
+                                         warm_up_registrar)
 from comreg_core.live.stream import Frame, SweepPoints, coalesce, covered_length_mm
+from comreg_core.live.updates import LiveUpdate
 from comreg_core.transforms import apply_transform, space_change
 
 log = logging.getLogger(__name__)
@@ -83,12 +91,6 @@ VERDICT_POINTS = 1000
 MIN_FRAMES_WITH_BONE = 3
 #: An end of the bone counts as reached when the points come this close to it (mm).
 END_REACHED_MM = 15.0
-#: ``updates.csv``'s columns.
-UPDATE_COLUMNS = ("time_s", "frames_received", "frames_used", "covered_mm", "verdict",
-                  "p_correct", "latency_s", "centroid_x", "centroid_y", "centroid_z",
-                  *(f"T_ct_us_{r}{c}" for r in range(3) for c in range(4)))
-
-
 def warm_register(registrar, points: np.ndarray, origins: np.ndarray | None, last,
                   seed: int = 0, prior: Prior | None = None):
     """The warm start of a live update: register ``points`` ``(N, 3)`` (beam ``origins``
@@ -99,69 +101,6 @@ def warm_register(registrar, points: np.ndarray, origins: np.ndarray | None, las
     given. The one place to change how a live update registers warm."""
     return registrar.register(points, seed=seed, beam_origins=origins, warm_start=last,
                               prior=prior, residuals=False)
-
-
-@dataclass
-class LiveUpdate:
-    """One update: what was registered and judged, and what to tell the user.
-
-    Attributes:
-        time_s: since the session started (s). frames_received, frames_used: so far.
-        n_points: bone points registered. covered_mm: bone covered along the CT's long axis.
-        verdict: "ok"/"check"; reasons: why CHECK. p_correct: None without a calibration.
-        confidence: the registration's (the pose search's). advice: "enough" or where to scan.
-        T_ct_us: ``(4, 4)`` tracker reference -> CT (the CT's space, mm).
-        centroid: ``(3,)`` of the points (tracker frame, mm).
-        mode: "full", "warm" or "warm+full" (a warm result the full search replaced).
-        register_s: the update's time (s): detection, registration, verdict.
-        waiting: frames left in the backlog for later updates (the loop is lagging).
-        newest_s: arrival (``time.monotonic()``) of the newest frame registered; latency_s:
-            from it to the update being sent (set by whoever sends it).
-    """
-
-    time_s: float
-    frames_received: int
-    frames_used: int
-    n_points: int
-    covered_mm: float
-    verdict: str
-    reasons: list[str]
-    p_correct: float | None
-    confidence: float | None
-    advice: str
-    T_ct_us: np.ndarray
-    centroid: np.ndarray
-    mode: str
-    register_s: float
-    waiting: int
-    newest_s: float
-    latency_s: float = float("nan")
-
-    def csv_row(self) -> list:
-        """The ``updates.csv`` row (:data:`UPDATE_COLUMNS`)."""
-        p = "" if self.p_correct is None else f"{self.p_correct:.4f}"
-        return [f"{self.time_s:.3f}", self.frames_received, self.frames_used,
-                f"{self.covered_mm:.1f}", self.verdict, p, f"{self.latency_s:.3f}",
-                *(f"{v:.4f}" for v in self.centroid),
-                *(repr(float(v)) for v in self.T_ct_us[:3].reshape(-1))]
-
-    def status_line(self) -> str:
-        """One line for the terminal."""
-        p = "n/a" if self.p_correct is None else f"{self.p_correct:.2f}"
-        lag = f"; LAGGING: {self.waiting} frames waiting" if self.waiting else ""
-        late = f"; LATE by {self.latency_s:.1f} s" if self.latency_s > 1.0 else ""
-        return (f"[{self.time_s:7.1f} s] frames {self.frames_used}/{self.frames_received}, "
-                f"{self.n_points} points, {self.covered_mm:.0f} mm covered | {self.mode} "
-                f"{self.register_s:.2f} s, latency {self.latency_s:.2f} s | "
-                f"{self.verdict.upper()} p_correct {p} | {self.advice}{lag}{late}")
-
-    def message_text(self) -> str:
-        """The STRING sent back: JSON with ``verdict``, ``p_correct``, ``covered_mm``,
-        ``advice``, ``frames_used``, ``frames_received``, ``reasons``."""
-        return json.dumps({"verdict": self.verdict, "p_correct": self.p_correct,
-                           "covered_mm": round(self.covered_mm, 1), "advice": self.advice,
-                           "frames_used": self.frames_used,
-                           "frames_received": self.frames_received, "reasons": self.reasons})
 
 
 @dataclass
@@ -195,12 +134,15 @@ class LiveSession:
         full_every_mm: run the full search when the covered bone grew by this (mm).
         live_points: points registered per update at most.
         clock: the time source (s), ``time.monotonic`` by default.
+        worker: a :class:`~comreg_core.live.background.FullSearchWorker` of the same registrar
+            and prior, to run the full searches in the background (None: in the update).
     """
 
     def __init__(self, registrar, *, calibration: Calibration | None = None,
                  prior: Prior | None = None, extraction=None, seed: int = 0,
                  max_frames_per_update: int = 16, max_backlog: int = 300,
-                 full_every_mm: float = 20.0, live_points: int = LIVE_POINTS, clock=None):
+                 full_every_mm: float = 20.0, live_points: int = LIVE_POINTS, clock=None,
+                 worker: FullSearchWorker | None = None):
         if registrar.surface is None:
             raise ComRegError("Live registration needs the CT mesh (its verdict is judged on "
                               "it).", "Give the CT bone mesh (--ct CT_MESH).")
@@ -228,16 +170,17 @@ class LiveSession:
         self._covered_at_full = -math.inf
         self._fulls: list[tuple[float, np.ndarray]] = []  # (covered mm, T_ct_us) of each
         self._halves_deg: float | None = None  # the last full search's, when it measured it
+        self.worker = worker
+        self._job: tuple[int, float] | None = None  # (id, covered mm) of the worker's job
+        self._jobs = 0
+        self._done: FullSearchDone | None = None  # the worker's answer, not yet used
         self.last: LiveUpdate | None = None
 
     def warm_up(self) -> None:
         """Prepare the CT side once (search cloud, closest-point grid, verdict samples, the
         network's CT half) by registering a patch of the CT's own surface, so the first live
         update costs what later ones do."""
-        samples, _ = self.registrar.surface.samples(2000)
-        along = (samples - self.target.centre) @ self.target.axes[:, 0]
-        patch = samples[np.abs(along - np.median(along)) < 0.25 * self.ct_length]
-        result = self.registrar.register(patch, seed=self.seed)
+        patch, result = warm_up_registrar(self.registrar, self.seed)
         self._judge(patch, result, _Evidence(1.0, None, False))
 
     # -- one update ----------------------------------------------------------------------------
@@ -286,7 +229,8 @@ class LiveSession:
             p_correct=verdict.figures.get("p_correct"), confidence=self._evidence.confidence,
             advice=advice, T_ct_us=np.array(result.T_ct_us), centroid=cloud.points.mean(axis=0),
             mode=mode, register_s=self.clock() - start, waiting=len(self.backlog),
-            newest_s=max(record.received_s for record in self.points.records))
+            newest_s=max(record.received_s for record in self.points.records),
+            searching=self._job is not None)
         self.last = update
         self.updates.append(update)
         return update
@@ -325,9 +269,11 @@ class LiveSession:
         """``(result, verdict, mode)`` by the policy of the module docstring: ``pts`` and
         ``origins`` are registered, ``everything`` (all points) measures the coverage."""
         covered = self.covered_mm(everything, None if self.last is None else self.last.T_ct_us)
-        if self.last is None or self._result is None or (
-                covered >= self._covered_at_full + self.full_every_mm
-                and self.last.mode == "warm"):
+        if self.last is None or self._result is None:
+            return (*self._full(pts, origins, everything), "full")
+        if self._worker_ready():
+            return self._register_beside(pts, origins, covered)
+        if covered >= self._covered_at_full + self.full_every_mm and self.last.mode == "warm":
             return (*self._full(pts, origins, everything), "full")
         result = warm_register(self.registrar, pts, origins, self._result, self.seed, self.prior)
         verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts),
@@ -338,6 +284,55 @@ class LiveSession:
             return (*self._full(pts, origins, everything), "warm+full")
         self._result = result
         return result, verdict, "warm"
+
+    def _worker_ready(self) -> bool:
+        """Whether the full searches go to the worker (it is ready); a worker that failed is
+        let go, with a note (the full searches run in the update from then on)."""
+        if self.worker is None:
+            return False
+        done = self.worker.poll()
+        if done is not None:
+            self._done = done
+        if self.worker.failed is not None:
+            self._notes.append(f"{self.worker.failed}; full searches run in the update loop "
+                               "from now")
+            self.worker, self._job = None, None
+            return False
+        return self.worker.ready
+
+    def _register_beside(self, pts: np.ndarray, origins: np.ndarray | None, covered: float):
+        """``(result, verdict, mode)`` with the full search in the worker (module docstring);
+        ``covered``: the bone covered now (mm)."""
+        base, mode, done, self._done = self._result, "warm", self._done, None
+        if done is not None and self._job is not None and done.job == self._job[0]:
+            job_covered, self._job = self._job[1], None
+            if done.error is not None:
+                self._notes.append(f"a background full search failed: {done.error}")
+            else:
+                base, mode, self._halves_deg = done.result, "warm+full", done.halves_deg
+        result = warm_register(self.registrar, pts, origins, base, self.seed, self.prior)
+        verdict = self._judge(pts, result, self._evidence_of(result, pts),
+                              scale_scan=mode == "warm+full")
+        if mode == "warm+full":  # judged as that full search; its own pose is recorded
+            verdict = self._settled(verdict, result.T_ct_us, pts, job_covered)
+            self._fulls.append((job_covered, np.array(done.result.T_ct_us)))
+        else:
+            verdict = self._settled(verdict, result.T_ct_us, pts, covered)
+        verdict = self._consistent(verdict, pts)
+        moved = self._moved(result.T_ct_us, self.last.T_ct_us, pts.mean(axis=0))
+        asks = covered >= self._covered_at_full + self.full_every_mm or (
+            mode == "warm" and (moved or verdict.verdict != self.last.verdict))
+        if asks and self._job is None:
+            self._jobs += 1
+            self.worker.submit(FullSearchJob(self._jobs, pts, origins, self.seed,
+                                             extent_share(pts, self.ct_length) < 0.5))
+            self._job, self._covered_at_full = (self._jobs, covered), covered
+        if mode == "warm" and verdict.ok and (moved or self.last.verdict != "ok"):
+            verdict = replace(verdict, verdict="check", reasons=[
+                *verdict.reasons, "A full search is confirming this pose (its answer comes "
+                "with a later update)."])
+        self._result = result
+        return result, verdict, mode
 
     @staticmethod
     def _moved(T: np.ndarray, T_last: np.ndarray, centroid: np.ndarray) -> bool:
@@ -449,42 +444,3 @@ def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:
     limb = {"superior": "proximal", "inferior": "distal"}
     return f"scan towards the {limb.get(name, name)} end" + (
         f" ({name})" if name in limb else "")
-
-
-class UpdatesLog:
-    """``updates.csv``: the header, then one row per update (:data:`UPDATE_COLUMNS`), each
-    flushed as it is written, so the file is complete up to the last update at any moment."""
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "w", newline="", encoding="utf-8")
-        self._writer = csv.writer(self._file)
-        self._writer.writerow(UPDATE_COLUMNS)
-        self._file.flush()
-
-    def write(self, update: LiveUpdate) -> None:
-        self._writer.writerow(update.csv_row())
-        self._file.flush()
-
-    def close(self) -> None:
-        if not self._file.closed:
-            self._file.close()
-
-
-def read_updates(path: str | Path) -> list[dict]:
-    """The rows of an ``updates.csv`` as dicts of floats (``verdict`` a string, an empty
-    ``p_correct`` None)."""
-    rows = []
-    with open(path, newline="", encoding="utf-8") as f:
-        for row in csv.DictReader(f):
-            rows.append({k: (v if k == "verdict" else (None if v == "" else float(v)))
-                         for k, v in row.items()})
-    return rows
-
-
-def row_transform(row: dict) -> np.ndarray:
-    """``T_ct_us`` ``(4, 4)`` of an ``updates.csv`` row (:func:`read_updates`)."""
-    T = np.eye(4)
-    T[:3] = np.array([row[f"T_ct_us_{r}{c}"] for r in range(3) for c in range(4)]).reshape(3, 4)
-    return T

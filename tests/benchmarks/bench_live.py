@@ -142,7 +142,7 @@ def one_replay(start: int, rate: float, out: Path, ct: Path, model: Path | None,
 def figures(out: Path, T_truth: np.ndarray, run: dict) -> dict:
     """The figures of one replay from its folder (updates.csv, result.json)."""
     from comreg_core.io import read_points
-    from comreg_core.live.session import read_updates, row_transform
+    from comreg_core.live.updates import read_updates, row_transform
     from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
 
     rows = read_updates(out / "updates.csv")
