@@ -85,7 +85,8 @@ def live(
     from comreg_core.errors import ComRegError
     from comreg_core.inference import Registrar
     from comreg_core.io._files import check_output_folder, require_input_file
-    from comreg_core.live.background import FullSearchWorker, RegistrarRecipe, one_thread
+    from comreg_core.live.background import (WORKER_START_S, FullSearchWorker, RegistrarRecipe,
+                                             one_thread)
     from comreg_core.live.igtl import IMAGE_POSE_DEVICE, PROBE_POSE_DEVICE
     from comreg_core.live.run import FrameReceiver, finish_live, run_live, stop_on_sigterm
     from comreg_core.live.session import LiveSession
@@ -116,6 +117,9 @@ def live(
             stack.enter_context(one_thread())
         typer.echo("preparing the CT side ...", err=True)
         session.warm_up()
+        if session.worker is not None and not session.worker.wait_ready(WORKER_START_S):
+            typer.echo("live: the full-search worker is not ready; the update loop runs the "
+                       "full searches until it is", err=True)
         receiver = FrameReceiver(host, port, image_device, pose_device, T_probe_pixel,
                                  reconnect=not until_end)
         typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "

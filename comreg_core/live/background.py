@@ -34,6 +34,8 @@ log = logging.getLogger(__name__)
 #: Environment variables that set a library's thread count at its import.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                     "NUMBA_NUM_THREADS")
+#: Seconds ``comreg live`` waits for the worker to start (imports, the CT side, a first search).
+WORKER_START_S = 60.0
 #: Seconds :meth:`FullSearchWorker.close` waits for the worker to stop before killing it.
 CLOSE_WAIT_S = 5.0
 
@@ -229,6 +231,15 @@ class FullSearchWorker:
         if not self._process.is_alive():
             self._fail(f"the full-search worker stopped (exit code {self._process.exitcode})")
         return None
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for the worker to be :attr:`ready` (False: not yet, or it
+        :attr:`failed`)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.ready and self.failed is None and time.monotonic() < deadline:
+            self._connection.poll(0.05)
+            self.poll()
+        return self.ready
 
     def wait(self, timeout_s: float) -> bool:
         """Whether a message (an answer) waits to be read by :meth:`poll`, waiting up to

@@ -3,7 +3,7 @@ OpenIGTLink on 127.0.0.1 into ``comreg live``, real server and client in their o
 
 ``.venv/bin/python -m tests.benchmarks.bench_live [--rate 4] [--starts 0,15,30,45,60,75]
 [--model RUN_DIR] [--untrained RUN0] [--verdict-calibration FILE] [--prior none,landmark]
-[--out DIR]``
+[--search background,inline] [--out DIR]``
 
 Each replay serves the shared sweep (111 B-mode frames, every 10th of the recording) from one
 start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg live --until-end
@@ -13,6 +13,7 @@ start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg li
   first update whose verdict is OK, and whether that pose is correct: RTE < 4 mm and
   RRE < 5 deg at the points' centroid, against the pseudo ground truth (ICP of the whole
   sweep's points from the recorded pose: :func:`comreg_core.demo.pseudo_ground_truth`);
+  ``ok@img``: the images received by then;
 - ``ok&wrong``: updates whose verdict was OK and whose pose was not correct (target: none);
 - ``final``: the verdict and correctness of the registration written on stop;
 - latency of the updates (median, 95th percentile; target median <= 0.2 s) and how many
@@ -25,6 +26,10 @@ room gives by touching the ankle with a tracked pointer, one landmark pair (``co
 --landmarks``) at the CT's inferior end along its long axis (the lateral malleolus), the US
 point the pseudo ground truth's image of it moved 10 mm in a direction drawn per start (seeded),
 tolerance 15 mm.
+
+Full searches (``--search``, each a row per method and start): ``background`` (``comreg
+live``'s default: in a second process while warm updates go on) or ``inline`` (``comreg live
+--inline-search``: in the update).
 
 Controls: with ``--model RUN_DIR`` every replay runs twice, by the search alone and with the
 network (``--model``); ``--untrained RUN0`` adds a third, the same network untrained.
@@ -101,7 +106,7 @@ def landmark_files(start: int, T_truth: np.ndarray, ct: Path, folder: Path) -> l
 
 def one_replay(start: int, rate: float, out: Path, ct: Path, model: Path | None,
                verdict_calibration: Path | None, landmarks: list[Path] | None = None,
-               timeout_s: float = 900.0) -> dict:
+               search: str = "background", timeout_s: float = 900.0) -> dict:
     """Serve the sweep from frame ``start`` into ``comreg live``; the figures of the run."""
     cli = [sys.executable, "-m", "comreg_core.cli"]
     replay = subprocess.Popen(cli + ["replay", str(SHARED), "--port", "0", "--rate", str(rate),
@@ -110,7 +115,7 @@ def one_replay(start: int, rate: float, out: Path, ct: Path, model: Path | None,
     try:
         port = serving_port(replay)
         args = cli + ["live", "--igtl", f"127.0.0.1:{port}", "--ct", str(ct), "--out", str(out),
-                      "--until-end", "--no-report"]
+                      "--until-end", "--no-report", f"--{search}-search"]
         if model is not None:
             args += ["--model", str(model)]
         if verdict_calibration is not None:
@@ -164,6 +169,7 @@ def figures(out: Path, T_truth: np.ndarray, run: dict) -> dict:
         (run["received"] - run["used"] - run["reported"])
     return {"updates": len(rows),
             "ok_at_mm": None if first is None else rows[first]["covered_mm"],
+            "ok_at_images": None if first is None else int(rows[first]["frames_received"]),
             "ok_correct": None if first is None else correct[first],
             "ok_and_wrong": int(sum(o and not c for o, c in zip(ok, correct))),
             "final": f"{result['verdict']}/{'right' if final_correct else 'WRONG'}",
@@ -181,6 +187,8 @@ def main(argv=None) -> None:
                         "its first step (the control), e.g. from bench_learning")
     parser.add_argument("--verdict-calibration", type=Path, default=None)
     parser.add_argument("--prior", default="none", help="none,landmark (module docstring)")
+    parser.add_argument("--search", default="background", help="background,inline (module "
+                        "docstring)")
     parser.add_argument("--out", type=Path, default=REPO / "out" / "bench_live")
     args = parser.parse_args(argv)
     ct = SHARED / "fibula.stl"
@@ -194,13 +202,18 @@ def main(argv=None) -> None:
     priors = args.prior.split(",")
     if not set(priors) <= {"none", "landmark"}:
         parser.error(f"--prior {args.prior}: none and/or landmark")
-    header = (f"{'method':9} {'prior':8} {'start':>5} {'upd':>4} {'ok@mm':>6} {'ok?':>5} "
+    searches = args.search.split(",")
+    if not set(searches) <= {"background", "inline"}:
+        parser.error(f"--search {args.search}: background and/or inline")
+    header = (f"{'method':9} {'prior':8} {'search':10} {'start':>5} {'upd':>4} {'ok@mm':>6} "
+              f"{'ok@img':>6} {'ok?':>5} "
               f"{'ok&wrong':>8} {'final':>11} {'lat_med':>7} {'lat_p95':>7} {'full':>4} "
               f"{'served':>6} {'recv':>5} {'used':>5} {'unrep':>5} {'wall_s':>6}")
     print(header, flush=True)
     summary = []
-    for prior, (name, model), start in itertools.product(priors, methods, starts):
-        out = args.out / f"{name}_{prior}_from{start:03d}"
+    for prior, search, (name, model), start in itertools.product(priors, searches, methods,
+                                                                 starts):
+        out = args.out / f"{name}_{prior}_{search}_from{start:03d}"
         if out.exists():
             import shutil
 
@@ -208,27 +221,27 @@ def main(argv=None) -> None:
         landmarks = None if prior == "none" else landmark_files(
             start, T_truth, ct, args.out / f"landmarks_from{start:03d}")
         run = one_replay(start, args.rate, out, ct, model, args.verdict_calibration,
-                         landmarks)
+                         landmarks, search)
         f = figures(out, T_truth, run)
-        summary.append({"method": name, "prior": prior, "start": start, **f})
+        summary.append({"method": name, "prior": prior, "search": search, "start": start, **f})
 
         def fmt(value, spec):
             return "-" if value is None else format(value, spec)
         right = None if f["ok_correct"] is None else ("yes" if f["ok_correct"] else "NO")
-        print(f"{name:9} {prior:8} {start:>5} {f['updates']:>4} {fmt(f['ok_at_mm'], '6.0f')} "
-              f"{fmt(right, '>5')} {f['ok_and_wrong']:>8} {f['final']:>11} "
+        print(f"{name:9} {prior:8} {search:10} {start:>5} {f['updates']:>4} "
+              f"{fmt(f['ok_at_mm'], '6.0f')} {fmt(f['ok_at_images'], '6d')} {fmt(right, '>5')} {f['ok_and_wrong']:>8} {f['final']:>11} "
               f"{fmt(f['latency_median_s'], '7.2f')} {fmt(f['latency_p95_s'], '7.2f')} "
               f"{f['full_searches']:>4} {f['served']:>6} {f['received']:>5} "
               f"{f['used']:>5} {f['unreported']:>5} {f['wall_s']:>6.0f}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_live.json").write_text(json.dumps(summary, indent=2) + "\n")
-    for prior in priors:
-        rows = [row for row in summary if row["prior"] == prior]
+    for prior, search in itertools.product(priors, searches):
+        rows = [row for row in summary if row["prior"] == prior and row["search"] == search]
         wrong = sum(row["ok_and_wrong"] for row in rows)
         late = [row["ok_at_mm"] for row in rows if row["ok_at_mm"] is not None]
         medians = [row["latency_median_s"] for row in rows
                    if row["latency_median_s"] is not None]
-        print(f"targets, prior {prior}: OK-and-wrong updates {wrong} (0); OK reached in "
+        print(f"targets, prior {prior}, {search} search: OK-and-wrong updates {wrong} (0); OK reached in "
               f"{len(late)}/{len(rows)} replays, within 150 mm in "
               f"{sum(v <= 150 for v in late)}; median update latency "
               f"{np.median(medians) if medians else float('nan'):.2f} s (<= 0.2); frames lost "

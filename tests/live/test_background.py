@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import pytest
 
 from comreg_core.io.tracked_us import read_tracked_sweep
@@ -36,7 +35,7 @@ def sweep(shared_data, tmp_path_factory):
 @pytest.fixture(scope="module")
 def worker(shared_data):
     with FullSearchWorker(RegistrarRecipe(str(FIBULA_STL))) as running:
-        _wait(lambda: running.poll() is None and running.ready, "start")
+        assert running.wait_ready(WAIT_S), running.failed
         yield running
 
 
