@@ -91,6 +91,8 @@ VERDICT_POINTS = 1000
 MIN_FRAMES_WITH_BONE = 3
 #: An end of the bone counts as reached when the points come this close to it (mm).
 END_REACHED_MM = 15.0
+
+
 def warm_register(registrar, points: np.ndarray, origins: np.ndarray | None, last,
                   seed: int = 0, prior: Prior | None = None):
     """The warm start of a live update: register ``points`` ``(N, 3)`` (beam ``origins``

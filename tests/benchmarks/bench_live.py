@@ -229,7 +229,8 @@ def main(argv=None) -> None:
             return "-" if value is None else format(value, spec)
         right = None if f["ok_correct"] is None else ("yes" if f["ok_correct"] else "NO")
         print(f"{name:9} {prior:8} {search:10} {start:>5} {f['updates']:>4} "
-              f"{fmt(f['ok_at_mm'], '6.0f')} {fmt(f['ok_at_images'], '6d')} {fmt(right, '>5')} {f['ok_and_wrong']:>8} {f['final']:>11} "
+              f"{fmt(f['ok_at_mm'], '6.0f')} {fmt(f['ok_at_images'], '6d')} {fmt(right, '>5')} "
+              f"{f['ok_and_wrong']:>8} {f['final']:>11} "
               f"{fmt(f['latency_median_s'], '7.2f')} {fmt(f['latency_p95_s'], '7.2f')} "
               f"{f['full_searches']:>4} {f['served']:>6} {f['received']:>5} "
               f"{f['used']:>5} {f['unreported']:>5} {f['wall_s']:>6.0f}", flush=True)
@@ -241,8 +242,8 @@ def main(argv=None) -> None:
         late = [row["ok_at_mm"] for row in rows if row["ok_at_mm"] is not None]
         medians = [row["latency_median_s"] for row in rows
                    if row["latency_median_s"] is not None]
-        print(f"targets, prior {prior}, {search} search: OK-and-wrong updates {wrong} (0); OK reached in "
-              f"{len(late)}/{len(rows)} replays, within 150 mm in "
+        print(f"targets, prior {prior}, {search} search: OK-and-wrong updates {wrong} (0); OK "
+              f"reached in {len(late)}/{len(rows)} replays, within 150 mm in "
               f"{sum(v <= 150 for v in late)}; median update latency "
               f"{np.median(medians) if medians else float('nan'):.2f} s (<= 0.2); frames lost "
               f"unreported {sum(row['unreported'] for row in rows)} (0)")
