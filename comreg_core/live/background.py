@@ -21,6 +21,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -139,13 +140,19 @@ def _serve(recipe: RegistrarRecipe, prior, connection) -> None:
 
 
 @contextmanager
-def _one_thread_environment():
-    """While inside, the thread variables say 1 (a spawned process inherits them)."""
+def _child_environment():
+    """While inside, the thread variables say 1 and (in the main thread) Ctrl-C is ignored: a
+    process spawned then inherits both, so a Ctrl-C at the terminal, which reaches the whole
+    process group, stops ``live`` alone, even while the worker is still starting."""
     saved = {name: os.environ.get(name) for name in THREAD_VARIABLES}
     os.environ.update({name: "1" for name in THREAD_VARIABLES})
+    main = threading.current_thread() is threading.main_thread()
+    handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
     try:
         yield
     finally:
+        if main:
+            signal.signal(signal.SIGINT, handler)
         for name, value in saved.items():
             if value is None:
                 os.environ.pop(name, None)
@@ -189,7 +196,7 @@ class FullSearchWorker:
         self._connection, child = context.Pipe()
         self._process = context.Process(target=_serve, args=(recipe, prior, child),
                                         name="comreg-full-search", daemon=True)
-        with _one_thread_environment():
+        with _child_environment():
             self._process.start()
         child.close()
         self.ready = False

@@ -5,6 +5,8 @@ only there; a worker that cannot start is let go with a note and the session sea
 
 from __future__ import annotations
 
+import re
+import signal
 import time
 
 import pytest
@@ -95,6 +97,16 @@ def test_a_worker_that_cannot_start_is_let_go(shared_data, tmp_path, search_regi
                                               sweep):
     broken = FullSearchWorker(RegistrarRecipe(str(tmp_path / "missing.stl")))
     try:
+        # from its start (still importing): Ctrl-C, which a terminal sends to the whole
+        # process group, ignored (live alone handles it), and one thread
+        pid = broken._process.pid
+        _wait(lambda: b"multiprocessing" in open(f"/proc/{pid}/cmdline", "rb").read(),
+              "start Python")  # exec'd: what it has now, it inherited
+        ignored = int(re.search(r"SigIgn:\s*([0-9a-f]+)",
+                                open(f"/proc/{pid}/status").read()).group(1), 16)
+        assert ignored & (1 << (signal.SIGINT - 1))
+        assert b"NUMBA_NUM_THREADS=1" in open(f"/proc/{pid}/environ", "rb").read().split(b"\0")
+        assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN  # ours is back
         _wait(lambda: broken.poll() is None and broken.failed is not None, "fail")
         assert "could not start" in broken.failed and "missing.stl" in broken.failed
         session = LiveSession(search_registrar, worker=broken)
