@@ -83,10 +83,9 @@ def live(
     report.
     """
     from comreg_core.errors import ComRegError
-    from comreg_core.inference import Registrar
     from comreg_core.io._files import check_output_folder, require_input_file
     from comreg_core.live.background import (WORKER_START_S, FullSearchWorker, RegistrarRecipe,
-                                             one_thread)
+                                             build_registrar, one_thread)
     from comreg_core.live.igtl import IMAGE_POSE_DEVICE, PROBE_POSE_DEVICE
     from comreg_core.live.run import FrameReceiver, finish_live, run_live, stop_on_sigterm
     from comreg_core.live.session import LiveSession
@@ -106,13 +105,10 @@ def live(
         raise ComRegError("A device name is empty.", "Give --image-device, --transform-device "
                           "and --send-device names, e.g. Image and ImageToReference.")
     verdict = find_calibration(verdict_calibration, model)
-    registrar = (Registrar.from_ct(ct_mesh) if model is None
-                 else Registrar.from_run(model, device.value, ct_mesh=ct_mesh))
-    session = LiveSession(registrar, calibration=verdict, prior=prior, seed=seed)
+    recipe = RegistrarRecipe(str(ct_mesh), None if model is None else str(model), device.value)
+    session = LiveSession(build_registrar(recipe), calibration=verdict, prior=prior, seed=seed)
     with ExitStack() as stack:
         if background:
-            recipe = RegistrarRecipe(str(ct_mesh), None if model is None else str(model),
-                                     device.value)
             session.worker = stack.enter_context(FullSearchWorker(recipe, session.prior))
             stack.enter_context(one_thread())
         typer.echo("preparing the CT side ...", err=True)

@@ -327,7 +327,7 @@ class LiveSession:
         if asks and self._job is None:
             self._jobs += 1
             self.worker.submit(FullSearchJob(self._jobs, pts, origins, self.seed,
-                                             extent_share(pts, self.ct_length) < 0.5))
+                                             self._short(pts)))
             self._job, self._covered_at_full = (self._jobs, covered), covered
         if mode == "warm" and verdict.ok and (moved or self.last.verdict != "ok"):
             verdict = replace(verdict, verdict="check", reasons=[
@@ -382,12 +382,17 @@ class LiveSession:
             why = "No registration of less bone to confirm this pose yet."
         return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
 
+    def _short(self, pts: np.ndarray) -> bool:
+        """Whether the sweep ``pts`` spans under half the CT (a short sweep, for the verdict and
+        the halves check)."""
+        return extent_share(pts, self.ct_length) < 0.5
+
     def _consistent(self, verdict, pts: np.ndarray, result=None, origins=None):
         """``verdict``, turned CHECK when it is OK for a sweep spanning under half the CT whose
         halves fit best more than :data:`HALVES_TOLERANCE_DEG` apart. A full search's
         ``result`` (with its beam ``origins``) has them measured; a warm update keeps the
         last full search's measure (none: not checked)."""
-        if not verdict.ok or extent_share(pts, self.ct_length) >= 0.5:
+        if not verdict.ok or not self._short(pts):
             return verdict
         if result is not None:
             self._halves_deg = halves_disagreement_deg(
