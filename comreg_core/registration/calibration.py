@@ -34,7 +34,7 @@ import numpy as np
 
 from comreg_core.errors import ComRegError
 from comreg_core.registration.metrics import rotation_error_deg
-from comreg_core.registration.surface import principal_frame
+from comreg_core.registration.surface import principal_frame, spread_mm
 from comreg_core.transforms import apply_transform
 
 #: Clinical tolerance: target error over the sweep (mm) and rotation (deg).
@@ -106,8 +106,7 @@ def extent_share(points_us: np.ndarray, ct_length_mm: float) -> float:
     """The sweep's spread along its largest principal axis (5th-95th percentile, mm) over the
     CT's length, clipped to [0, 1]."""
     centre, axes = principal_frame(points_us)
-    along = (points_us - centre) @ axes[:, 0]
-    spread = float(np.percentile(along, 95) - np.percentile(along, 5))
+    spread = spread_mm((points_us - centre) @ axes[:, 0])
     return float(np.clip(spread / max(ct_length_mm, 1e-9), 0.0, 1.0))
 
 

@@ -25,8 +25,9 @@ MESH_REFINE_TRIM = 0.1
 #: US points and most iterations of the quick polish that compares poses tied with the best.
 QUICK_POLISH_POINTS = 512
 QUICK_POLISH_ITERATIONS = 30
-#: Sweeps spanning less than this share of the CT's length get the slide probe
-#: (``HypothesisConfig.slide_probe_mm``); whole clouds do not need it.
+#: Sweeps spanning less than this share of the CT's length (5th-95th percentile along its
+#: long axis) get the slide probe (``HypothesisConfig.slide_probe_mm``); whole clouds do not
+#: need it.
 SLIDE_PROBE_MAX_SHARE = 0.8
 #: A slid pose replaces the chosen one when its exact score is lower by at least this share
 #: (less is noise: the same basin, polished from elsewhere).

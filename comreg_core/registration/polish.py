@@ -18,7 +18,7 @@ from comreg_core.registration.icp import apply_poses, point_to_plane_icp, stride
 from comreg_core.registration.metrics import rotation_error_deg
 from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
                                               trimmed_mean)
-from comreg_core.registration.surface import SurfaceCloud, ct_length_mm, facing_away
+from comreg_core.registration.surface import SurfaceCloud, ct_length_mm, facing_away, spread_mm
 from comreg_core.transforms import apply_transform
 
 
@@ -93,12 +93,13 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
     :data:`SLIDE_PROBE_GAIN` lower: ``(pose, exact score, polish record)``, the record with
     ``slid_mm``, ``probe_shift_mm`` (of the US centroid from ``T``) and ``moved_mm`` (from
     before the first polish, as the norms combine). None otherwise, when the sweep spans at
-    least :data:`SLIDE_PROBE_MAX_SHARE` of the CT's length (a whole cloud), or when
-    ``slide_probe_mm`` is 0."""
+    least :data:`SLIDE_PROBE_MAX_SHARE` of the CT's length (a whole cloud; the span is
+    :func:`~comreg_core.registration.surface.spread_mm`'s, so that a few stray points do not
+    make a partial sweep whole), or when ``slide_probe_mm`` is 0."""
     if config.slide_probe_mm <= 0:
         return None
     axis = target.axes[:, 0]
-    if np.ptp(apply_transform(T, subset_mm) @ axis) >= SLIDE_PROBE_MAX_SHARE * ct_length_mm(
+    if spread_mm(apply_transform(T, subset_mm) @ axis) >= SLIDE_PROBE_MAX_SHARE * ct_length_mm(
             target):
         return None
     best = None

@@ -2,7 +2,8 @@
 fibula sweep's first 28 frames: the search alone stops in the basin next to the right one, 4-5
 mm along the shaft; polished again from 5 mm along the CT's long axis, it reaches the pose that
 ICP from the recorded tracking finds (the pseudo ground truth of these frames), with a better
-exact score. A whole sweep is not probed."""
+exact score. A whole sweep is not probed; a sweep whose stray points reach further than its bone
+is still probed (frames 0-50)."""
 
 from __future__ import annotations
 
@@ -15,20 +16,29 @@ from comreg_core.demo import pseudo_ground_truth
 from comreg_core.inference import Registrar
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.stream import Frame, SweepPoints
+from comreg_core.registration.config import SLIDE_PROBE_MAX_SHARE
 from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+from comreg_core.registration.surface import ct_length_mm, spread_mm
+from comreg_core.transforms import apply_transform
 from tests.helpers import FIBULA_STL
 
 
-@pytest.fixture(scope="module")
-def first_frames(shared_data):
-    """``(points (N, 3), beam origins (N, 3))`` of the sweep's frames 0-27, as extract-us."""
+def sweep_start(shared_data, frames: int):
+    """``(points (N, 3), beam origins (N, 3))`` of the sweep's first ``frames``, as
+    extract-us."""
     sweep = read_tracked_sweep(shared_data / "ultrabones100k-fibula")
     points = SweepPoints()
-    for i in range(28):
+    for i in range(frames):
         points.add(Frame(i, sweep.frames[i], sweep.spacing, sweep.T_ref_image[i],
                          float(sweep.timestamps[i]), 0.0))
     cloud = points.cloud()
     return cloud.points, points.beam_origins(cloud)
+
+
+@pytest.fixture(scope="module")
+def first_frames(shared_data):
+    """The sweep's frames 0-27 (:func:`sweep_start`)."""
+    return sweep_start(shared_data, 28)
 
 
 def test_the_probe_moves_a_slid_pose_into_the_right_basin(first_frames):
@@ -51,3 +61,22 @@ def test_the_probe_moves_a_slid_pose_into_the_right_basin(first_frames):
     # a sweep along the whole bone is not probed (its basin is not in doubt)
     everything = registrar.register(registrar.surface.samples(3000)[0])
     assert "slid_mm" not in everything.hypotheses.best.polish
+
+
+def test_stray_points_do_not_make_a_partial_sweep_whole(shared_data):
+    # frames 0-50: the bone spans 0.79 of the CT (5th-95th percentile), stray points 0.86;
+    # judged by the stray points the probe was skipped, and `register` said OK on the pose
+    # slid 4.2 mm along the shaft
+    pts, origins = sweep_start(shared_data, 51)
+    registrar = Registrar.from_ct(FIBULA_STL)
+    truth = pseudo_ground_truth(pts, registrar.surface)
+    along = apply_transform(truth, pts) @ registrar.hypothesis_target(
+        registrar.hypothesis_config.target_points).axes[:, 0]
+    length = ct_length_mm(registrar.hypothesis_target(registrar.hypothesis_config.target_points))
+    assert np.ptp(along) > SLIDE_PROBE_MAX_SHARE * length > spread_mm(along)
+
+    result = registrar.register(pts, beam_origins=origins)
+    assert "slid_mm" in result.hypotheses.best.polish
+    centroid = pts.mean(axis=0)
+    assert translation_error_mm(result.T_ct_us, truth, centroid) < 2.0
+    assert rotation_error_deg(result.T_ct_us, truth) < 2.0
