@@ -1,0 +1,126 @@
+"""Benchmark: ``comreg register``'s verdict on the real fibula sweep as it grows, the offline
+twin of ``bench_live`` (no stream, no settling gate, no halves check: the verdict a user gets
+from ``register`` on a partial recording).
+
+``.venv/bin/python -m tests.benchmarks.bench_growing [--starts 0,15,30,45,60,75] [--step 3]
+[--model RUN_DIR] [--untrained RUN0] [--verdict-calibration FILE]``
+
+For each start frame, the bone points of frames ``start..end`` (the live session's detector and
+clean-up, :class:`~comreg_core.live.stream.SweepPoints`) are registered for every ``step``-th
+``end`` to the sweep's last frame, in the tracker's frame (the CT's: the registration does not
+start from it), with their beam origins, by the search alone (``Registrar.from_ct``) and, with
+``--model`` / ``--untrained``, by the network then the search (``Registrar.from_run``: the
+trained run and its untrained control). Each registration is judged as ``register`` judges it
+(:func:`comreg_core.register_output.registration_verdict`; by ``p_correct`` with
+``--verdict-calibration``) and is right when RTE < 4 mm and RRE < 5 deg at the points' centroid
+against the pseudo ground truth (ICP of the whole sweep from its recorded pose, as
+``bench_live``). Per start and method it prints the bone covered at the first OK (mm along the
+CT's long axis, as ``comreg live``'s ``covered_mm``, the points placed by the pseudo ground
+truth), whether it was right, how many
+registrations were OK and wrong (target: none), how many were right but CHECK, and how many
+``register`` refused (the network needs 256 points; the first frames of a start give fewer).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+from pathlib import Path
+
+import numpy as np
+
+from tests.benchmarks.bench_live import SHARED, pseudo_truth
+
+
+def prefixes(start: int, step: int):
+    """``(end frame, points (N, 3), beam origins (N, 3))`` of the sweep's frames
+    ``start..end`` for every ``step``-th end with at least 3 frames with bone."""
+    from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.live.stream import Frame, SweepPoints
+
+    sweep = read_tracked_sweep(SHARED)
+    points = SweepPoints()
+    for k in range(start, sweep.n_frames):
+        points.add(Frame(k, sweep.frames[k], sweep.spacing, sweep.T_ref_image[k],
+                         float(sweep.timestamps[k]), 0.0))
+        if (k - start) % step != step - 1 and k != sweep.n_frames - 1:
+            continue
+        cloud = points.cloud() if points.frames_with_bone >= 3 else None
+        if cloud is not None:
+            yield k, cloud.points, points.beam_origins(cloud)
+
+
+def covered_mm(points: np.ndarray, T_ct_us: np.ndarray, target) -> float:
+    """Bone covered by ``points`` placed by ``T_ct_us``, along the CT's long axis (mm)."""
+    from comreg_core.live.stream import covered_length_mm
+    from comreg_core.transforms import apply_transform
+
+    moved = apply_transform(T_ct_us, points)
+    return covered_length_mm((moved - target.centre) @ target.axes[:, 0])
+
+
+def main(argv=None) -> None:
+    from comreg_core.errors import ComRegError
+    from comreg_core.inference import Registrar
+    from comreg_core.register_output import registration_verdict
+    from comreg_core.registration.calibration import Calibration
+    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--starts", default="0,15,30,45,60,75")
+    parser.add_argument("--step", type=int, default=3, help="frames between registrations")
+    parser.add_argument("--model", type=Path, default=None)
+    parser.add_argument("--untrained", type=Path, default=None)
+    parser.add_argument("--verdict-calibration", type=Path, default=None)
+    args = parser.parse_args(argv)
+    ct = SHARED / "fibula.stl"
+    T_truth = pseudo_truth(ct)
+    calibration = (Calibration.load(args.verdict_calibration) if args.verdict_calibration
+                   else None)
+    registrars = {"search": Registrar.from_ct(ct)}
+    for name, run in (("comreg", args.model), ("untrained", args.untrained)):
+        if run is not None:
+            registrars[name] = Registrar.from_run(run, device="cpu", ct_mesh=ct)
+    target = registrars["search"].hypothesis_target(
+        registrars["search"].hypothesis_config.target_points)
+    starts = [int(s) for s in args.starts.split(",")]
+    print(f"register on growing prefixes of {SHARED.name} from frames {starts}, every "
+          f"{args.step} frames; verdict: " + (f"p_correct ({args.verdict_calibration})"
+                                              if calibration else "uncalibrated"), flush=True)
+    print(f"{'method':9} {'start':>5} {'regs':>4} {'ok@mm':>6} {'ok?':>4} {'ok&wrong':>8} "
+          f"{'right&check':>11} {'refused':>7}", flush=True)
+    totals = {name: [0, 0, 0, 0] for name in registrars}  # registrations, ok&wrong,
+    # right&check, refused
+    grown = {}
+    for start, name in itertools.product(starts, registrars):
+        if start not in grown:
+            grown = {start: list(prefixes(start, args.step))}
+        registrar = registrars[name]
+        first, first_right, wrong, checked, count, refused = None, None, 0, 0, 0, 0
+        for _, points, origins in grown[start]:
+            try:
+                result = registrar.register(points, seed=0, beam_origins=origins)
+            except ComRegError:  # too few points for the network: register refuses
+                refused += 1
+                continue
+            verdict, _ = registration_verdict(result, registrar, calibration)
+            centroid = points.mean(axis=0)
+            right = (translation_error_mm(result.T_ct_us, T_truth, centroid) < 4.0
+                     and rotation_error_deg(result.T_ct_us, T_truth) < 5.0)
+            count += 1
+            wrong += verdict.ok and not right
+            checked += right and not verdict.ok
+            if verdict.ok and first is None:
+                first, first_right = covered_mm(points, T_truth, target), right
+        totals[name] = [a + b for a, b in zip(totals[name], (count, wrong, checked, refused))]
+        print(f"{name:9} {start:>5} {count:>4} "
+              + ("     -" if first is None else f"{first:6.0f}")
+              + f" {'-' if first_right is None else ('yes' if first_right else 'NO'):>4} "
+              f"{wrong:>8} {checked:>11} {refused:>7}", flush=True)
+    for name, (count, wrong, checked, refused) in totals.items():
+        print(f"{name}: {count} registrations, OK and wrong {wrong} (target 0), right but "
+              f"CHECK {checked}, refused {refused}")
+
+
+if __name__ == "__main__":
+    main()
