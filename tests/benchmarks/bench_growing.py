@@ -24,7 +24,6 @@ registrations were OK and wrong (target: none), how many were right but CHECK, a
 from __future__ import annotations
 
 import argparse
-import itertools
 from pathlib import Path
 
 import numpy as np
@@ -89,34 +88,32 @@ def main(argv=None) -> None:
                                               if calibration else "uncalibrated"), flush=True)
     print(f"{'method':9} {'start':>5} {'regs':>4} {'ok@mm':>6} {'ok?':>4} {'ok&wrong':>8} "
           f"{'right&check':>11} {'refused':>7}", flush=True)
-    totals = {name: [0, 0, 0, 0] for name in registrars}  # registrations, ok&wrong,
-    # right&check, refused
-    grown = {}
-    for start, name in itertools.product(starts, registrars):
-        if start not in grown:
-            grown = {start: list(prefixes(start, args.step))}
-        registrar = registrars[name]
-        first, first_right, wrong, checked, count, refused = None, None, 0, 0, 0, 0
-        for _, points, origins in grown[start]:
-            try:
-                result = registrar.register(points, seed=0, beam_origins=origins)
-            except ComRegError:  # too few points for the network: register refuses
-                refused += 1
-                continue
-            verdict, _ = registration_verdict(result, registrar, calibration)
-            centroid = points.mean(axis=0)
-            right = (translation_error_mm(result.T_ct_us, T_truth, centroid) < 4.0
-                     and rotation_error_deg(result.T_ct_us, T_truth) < 5.0)
-            count += 1
-            wrong += verdict.ok and not right
-            checked += right and not verdict.ok
-            if verdict.ok and first is None:
-                first, first_right = covered_mm(points, T_truth, target), right
-        totals[name] = [a + b for a, b in zip(totals[name], (count, wrong, checked, refused))]
-        print(f"{name:9} {start:>5} {count:>4} "
-              + ("     -" if first is None else f"{first:6.0f}")
-              + f" {'-' if first_right is None else ('yes' if first_right else 'NO'):>4} "
-              f"{wrong:>8} {checked:>11} {refused:>7}", flush=True)
+    # per method: registrations, OK and wrong, right but CHECK, refused
+    totals = {name: [0, 0, 0, 0] for name in registrars}
+    for start in starts:
+        grown = list(prefixes(start, args.step))
+        for name, registrar in registrars.items():
+            first, first_right, wrong, checked, count, refused = None, None, 0, 0, 0, 0
+            for _, points, origins in grown:
+                try:
+                    result = registrar.register(points, seed=0, beam_origins=origins)
+                except ComRegError:  # too few points for the network: register refuses
+                    refused += 1
+                    continue
+                verdict, _ = registration_verdict(result, registrar, calibration)
+                centroid = points.mean(axis=0)
+                right = (translation_error_mm(result.T_ct_us, T_truth, centroid) < 4.0
+                         and rotation_error_deg(result.T_ct_us, T_truth) < 5.0)
+                count += 1
+                wrong += verdict.ok and not right
+                checked += right and not verdict.ok
+                if verdict.ok and first is None:
+                    first, first_right = covered_mm(points, T_truth, target), right
+            totals[name] = [a + b for a, b in zip(totals[name], (count, wrong, checked, refused))]
+            print(f"{name:9} {start:>5} {count:>4} "
+                  + ("     -" if first is None else f"{first:6.0f}")
+                  + f" {'-' if first_right is None else ('yes' if first_right else 'NO'):>4} "
+                  f"{wrong:>8} {checked:>11} {refused:>7}", flush=True)
     for name, (count, wrong, checked, refused) in totals.items():
         print(f"{name}: {count} registrations, OK and wrong {wrong} (target 0), right but "
               f"CHECK {checked}, refused {refused}")

@@ -70,9 +70,9 @@ def test_stray_points_do_not_make_a_partial_sweep_whole(shared_data):
     pts, origins = sweep_start(shared_data, 51)
     registrar = Registrar.from_ct(FIBULA_STL)
     truth = pseudo_ground_truth(pts, registrar.surface)
-    along = apply_transform(truth, pts) @ registrar.hypothesis_target(
-        registrar.hypothesis_config.target_points).axes[:, 0]
-    length = ct_length_mm(registrar.hypothesis_target(registrar.hypothesis_config.target_points))
+    target = registrar.hypothesis_target(registrar.hypothesis_config.target_points)
+    along = apply_transform(truth, pts) @ target.axes[:, 0]
+    length = ct_length_mm(target)
     assert np.ptp(along) > SLIDE_PROBE_MAX_SHARE * length > spread_mm(along)
 
     result = registrar.register(pts, beam_origins=origins)
