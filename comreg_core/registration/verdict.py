@@ -179,7 +179,7 @@ def _reasons(f: dict, ambiguous: bool, th: VerdictThresholds, ok_probability: fl
                    f"scaled by {f['refit_scale']:.2f}: check the US probe calibration (image "
                    "spacing, speed of sound).")
     if f["p_correct"] is not None:
-        if f["p_correct"] < ok_probability:
+        if not f["p_correct"] >= ok_probability:  # a NaN p_correct is never OK
             out.append(f"The pose is within 4 mm / 5 deg of the truth with an estimated "
                        f"probability of only {f['p_correct']:.2f} (OK needs "
                        f"{ok_probability:g}): a clinically different pose fits the US points "
