@@ -24,7 +24,7 @@ import numpy as np
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration import kernels
 from comreg_core.io.meshes import SurfaceMesh, read_mesh
-from comreg_core.transforms import as_points
+from comreg_core.transforms import as_points, symmetric_eigen3
 
 #: Dense samples of the exact closest-point search (:meth:`CTSurface.closest`) by default.
 CLOSEST_POINT_SAMPLES = 200_000
@@ -54,8 +54,10 @@ def principal_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     right-handed) of ``(N, 3)`` points."""
     pts = as_points(points, "points")
     centre = pts.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts - centre, full_matrices=False)
-    axes = vt.T.copy()
+    centred = pts - centre
+    scatter = np.array([[np.sum(centred[:, i] * centred[:, j]) for j in range(3)]
+                        for i in range(3)])
+    _, axes = symmetric_eigen3(scatter)  # the same bits on every CPU (no LAPACK)
     axes[:, 2] = np.cross(axes[:, 0], axes[:, 1])
     return centre, axes
 
