@@ -42,7 +42,8 @@ import numpy as np
 
 from comreg_core import runs
 from comreg_core.errors import ComRegError
-from comreg_core.io._files import atomic_output, check_output_folder
+from comreg_core.io._files import check_output_folder
+from comreg_core.io.json_files import write_json
 
 log = logging.getLogger(__name__)
 
@@ -252,6 +253,5 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
                "runtime_s": demo.runtime_s, "model": str(model), "trained": trained,
                "n_us_points": demo.n_us_points, "success_rate": success_rate,
                "flip_rate": flip_rate, "report": str(report)}
-    with atomic_output(out / "demo.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    write_json(summary, out / "demo.json")
     return demo

@@ -31,7 +31,7 @@ import time
 from contextlib import redirect_stderr
 from pathlib import Path
 
-from comreg_core.io._files import atomic_output
+from comreg_core.io.json_files import write_json
 
 OK = "ok"
 FAILED = "failed"
@@ -44,11 +44,7 @@ def read_status(path: str | Path) -> dict:
 
 def write_status(path: str | Path, record: dict) -> Path:
     """Write a status record atomically (the rule's output appears complete or not at all)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_output(path) as tmp:
-        tmp.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
-    return path
+    return write_json(record, path)
 
 
 class _Tee(io.TextIOBase):

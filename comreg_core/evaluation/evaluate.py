@@ -49,7 +49,6 @@ the seed *and* the spawn key into its state).
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -62,6 +61,7 @@ import numpy as np
 from comreg_core.progress import Progress
 from comreg_core.config import ConfigError
 from comreg_core.errors import ComRegError, InvalidGeometryError
+from comreg_core.io.json_files import strict_json, write_json
 from comreg_core.registration.metrics import (DEFAULT_CT_SAMPLES, as_surface, completion_metrics,
                                             registration_metrics, rotation_error_deg,
                                             translation_error_mm)
@@ -258,7 +258,7 @@ def _trial(k, name, method, moved, truth, cloud_index, surface, initial, n_ct_sa
     if out.completion is not None:
         row.update(completion_metrics(out.completion, truth, surface, n_ct_samples=n_ct_samples))
     row.update(runtime_s=out.runtime_s, wall_s=wall, T_ct_us=out.T_ct_us.tolist(),
-               confidence=out.confidence, ambiguous=out.ambiguous, info=_jsonable(out.info))
+               confidence=out.confidence, ambiguous=out.ambiguous, info=strict_json(out.info)[0])
     log.info("Trial %d %s: RTE %.2f mm, RRE %.2f deg, %.2f s", k, name, row["RTE_mm"],
              row["RRE_deg"], out.runtime_s)
     return row
@@ -295,33 +295,10 @@ def summarize(rows: list[dict[str, Any]], methods: list[str] | None = None) -> d
     return summary
 
 
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if value is None or isinstance(value, str):
-        return value
-    return str(value)
-
-
 def write_metrics(result: dict[str, Any], path: str | Path) -> Path:
-    """Write the :func:`evaluate` result as JSON (indented, NaN/inf as null), atomically."""
-    from comreg_core.io._files import atomic_output
-
-    path = Path(path)
-    text = json.dumps(_jsonable(result), indent=2, allow_nan=False)
-    with atomic_output(path) as tmp:
-        tmp.write_text(text + "\n", encoding="utf-8")
-    return path
+    """Write the :func:`evaluate` result as strict JSON, atomically: NaN/inf as null, with
+    ``null_reasons`` (:func:`comreg_core.io.json_files.write_json`)."""
+    return write_json(result, path)
 
 
 def summary_line(summary: dict) -> str:

@@ -18,7 +18,6 @@ resumes the same way at any number of processes. Rank 0 alone writes it.
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import pickle
 from pathlib import Path
@@ -30,6 +29,7 @@ import torch
 from comreg_core import runs
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import atomic_output
+from comreg_core.io.json_files import write_json
 
 CHECKPOINT_FORMAT = "comreg-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -64,9 +64,7 @@ def mesh_fingerprint(mesh) -> dict[str, Any]:
 
 def write_fingerprint(fingerprint: dict[str, Any], run_dir: Path) -> Path:
     path = Path(run_dir) / runs.FINGERPRINT
-    with atomic_output(path) as tmp:
-        tmp.write_text(json.dumps(fingerprint, indent=2) + "\n", encoding="utf-8")
-    return path
+    return write_json(fingerprint, path)
 
 
 def save_checkpoint(state: dict[str, Any], path: str | Path) -> Path:
