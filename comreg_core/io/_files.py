@@ -10,7 +10,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from comreg_core import runs
-from comreg_core.errors import InputFileNotFoundError, OutputPlaceError, UnsupportedFormatError
+import numpy as np
+
+from comreg_core.errors import (InputFileNotFoundError, InvalidGeometryError, OutputPlaceError,
+                              UnsupportedFormatError)
 
 # Multi-part extensions first so ".seg.nrrd" wins over ".nrrd".
 _COMPOUND_SUFFIXES = (".seg.nrrd", ".igs.nrrd", ".seq.nrrd", ".igs.mha", ".seq.mha", ".nii.gz",
@@ -44,6 +47,22 @@ def require_input_file(path: str | Path, what: str = "input file") -> Path:
     if not path.is_file():
         raise InputFileNotFoundError(path, what)
     return path
+
+
+#: The farthest (mm) a coordinate or a translation given to ComReg may lie from the origin:
+#: 1 km, beyond any scanner or tracked room. Larger finite numbers are a wrong unit or a broken
+#: file, and would overflow the squared distances of the registration.
+MAX_COORDINATE_MM = 1e6
+
+
+def require_near_origin(values, what: str) -> None:
+    """Raise :class:`InvalidGeometryError` when any of ``values`` (finite, mm; any shape) lies
+    beyond :data:`MAX_COORDINATE_MM`; ``what`` names them (and their file)."""
+    largest = float(np.abs(np.asarray(values, dtype=np.float64)).max(initial=0.0))
+    if largest > MAX_COORDINATE_MM:
+        raise InvalidGeometryError(f"The {what}: a coordinate of {largest:.3g} mm, more than "
+                                   "1 km from the origin.",
+                                   "Coordinates are millimetres; check the units and the file.")
 
 
 #: Files ``comreg pretrain`` writes first into a run folder; a folder holding one of them is a run

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from comreg_core.errors import CorruptFileError, InvalidGeometryError, UnsupportedFormatError
-from comreg_core.io._files import file_extension, require_input_file
+from comreg_core.io._files import file_extension, require_input_file, require_near_origin
 from comreg_core.transforms import apply_transform, check_space, space_change
 
 MARKUPS_EXTENSIONS = [".mrk.json", ".json", ".fcsv"]
@@ -103,6 +103,7 @@ def read_markups(path: str | Path) -> Markups:
     array = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if not np.isfinite(array).all():
         raise CorruptFileError(path, "a point has a coordinate that is not a finite number")
+    require_near_origin(array, f"points in '{path}'")
     return Markups(tuple(labels), array, space, tuple(descriptions),
                    tuple(description_tolerance(d, path, lab)
                          for d, lab in zip(descriptions, labels)),
@@ -142,7 +143,10 @@ def _read_json(path: Path):
     markup = markups[0]
     space = _space(markup.get("coordinateSystem", "LPS"), path)
     points, labels, descriptions = [], [], []
-    for i, point in enumerate(markup.get("controlPoints") or []):
+    control_points = markup.get("controlPoints") or []
+    if not isinstance(control_points, list):
+        raise CorruptFileError(path, "its 'controlPoints' is not a list")
+    for i, point in enumerate(control_points):
         if not isinstance(point, dict):
             raise CorruptFileError(path, f"control point {i + 1} is not an object")
         if str(point.get("positionStatus", "defined")).lower() in ("undefined", "missing"):
@@ -205,10 +209,10 @@ def _space(value, path: Path) -> str:
 
 
 def _xyz(position, path: Path, index: int) -> list[float]:
-    try:
-        values = [float(v) for v in position]
-    except (TypeError, ValueError):
-        values = []
-    if len(values) != 3:
-        raise CorruptFileError(path, f"control point {index} has no position [x, y, z]")
-    return values
+    """A control point's ``position``: a list of three JSON numbers (not strings or
+    booleans)."""
+    if not (isinstance(position, list) and len(position) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in position)):
+        raise CorruptFileError(path, f"control point {index} has no position [x, y, z] of "
+                               "three numbers")
+    return [float(v) for v in position]

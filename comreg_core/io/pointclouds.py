@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from comreg_core.errors import CorruptFileError, InvalidGeometryError
-from comreg_core.io._files import atomic_output, require_extension, require_input_file
+from comreg_core.io._files import (atomic_output, require_extension, require_input_file,
+                                   require_near_origin)
 from comreg_core.transforms import apply_transform, as_points, check_space, space_change
 
 POINT_CLOUD_EXTENSIONS = [".xyz", ".txt", ".csv", ".ply", ".pcd", ".npy"]
@@ -44,11 +45,13 @@ class PointCloud:
         self.space = check_space(self.space)
         where = f" in '{self.path}'" if self.path else ""
         self.points = as_points(self.points, f"points{where}")
+        require_near_origin(self.points, f"points{where}")
         if len(self.points) == 0:
             raise InvalidGeometryError(f"The point cloud{where} is empty.",
                                        "Provide at least one point.")
         if self.beam_origins is not None:
             self.beam_origins = as_points(self.beam_origins, f"beam origins{where}")
+            require_near_origin(self.beam_origins, f"beam origins{where}")
             if self.beam_origins.shape != self.points.shape:
                 raise InvalidGeometryError(f"The point cloud{where} has "
                                            f"{len(self.beam_origins)} beam origins for "
