@@ -4,7 +4,6 @@ points, the completion, the settings and ``result.json`` (with the verdict)."""
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 from pathlib import Path
@@ -17,7 +16,8 @@ from comreg_core.config import to_dict
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.inference import Registrar
 from comreg_core.io import POINT_CLOUD_EXTENSIONS, PointCloud, read_points, write_points
-from comreg_core.io._files import atomic_output, check_output_folder
+from comreg_core.io._files import atomic_output, check_output_folder, require_near_origin
+from comreg_core.io.json_files import write_json
 from comreg_core.io.transform_files import save_transform
 from comreg_core.registration.config import HypothesisConfig
 from comreg_core.registration.inputs import MAX_US_POINTS
@@ -63,15 +63,20 @@ def registration_verdict(result: RegistrationResult, registrar: Registrar,
 
 def find_calibration(calibration: str | Path | None, run_dir: str | Path | None
                      ) -> Calibration | None:
-    """The calibration to judge with: the file given, else the run folder's own
+    """The calibration to judge with (:func:`calibration_path`), checked
+    (:meth:`Calibration.load`), or None."""
+    path = calibration_path(calibration, run_dir)
+    return None if path is None else Calibration.load(path)
+
+
+def calibration_path(calibration: str | Path | None, run_dir: str | Path | None
+                     ) -> Path | None:
+    """The calibration file to judge with: the one given, else the run folder's own
     ``calibration.json`` (written by ``pretrain``), else None."""
     if calibration is not None:
-        return Calibration.load(calibration)
-    if run_dir is not None and Path(run_dir).is_dir():
-        own = Path(run_dir) / runs.CALIBRATION
-        if own.is_file():
-            return Calibration.load(own)
-    return None
+        return Path(calibration)
+    own = None if run_dir is None else Path(run_dir) / runs.CALIBRATION
+    return own if own is not None and own.is_file() else None
 
 
 def register_inputs(arguments: Sequence[str | Path], model: str | Path | None = None
@@ -108,7 +113,8 @@ def register_to_directory(run_dir: str | Path | None,
     has them (else none are, with a warning). ``sweep``/``sweep_calibration``/``T_us_ref``
     describe one sweep's points, so they are refused with several files.
 
-    Files (each written atomically; ``result.json`` last):
+    Files (written once the registration and its verdict are done, each atomically;
+    ``result.json`` last):
 
     - ``transform.tfm``: ``T_ct_us`` as an ITK transform (LPS, ITK's resampling direction, as
       3D Slicer writes it: :func:`comreg_core.io.save_transform`).
@@ -132,7 +138,12 @@ def register_to_directory(run_dir: str | Path | None,
       registered CT contour; ``prior`` (null, or with a ``prior``: where the result lies in it,
       :func:`~comreg_core.registration.priors.prior_record`: ``init_file``, ``max_deg``,
       ``max_mm``, ``landmarks``, ``rotation_from_init_deg``, ``shift_from_init_mm``,
-      ``at_edge``, ``reasons``, ...).
+      ``at_edge``, ``reasons``, ...). Strict JSON: a number that is not finite is null, and
+      ``null_reasons`` says where and why (:mod:`comreg_core.io.json_files`).
+
+    ``calibration``: the verdict's calibration file (default: the run folder's own), checked
+    before any work (:meth:`Calibration.load`; and :meth:`Calibration.check_ct` against the
+    CT registered to, once it is loaded).
 
     ``prior``: an initial pose and/or landmarks (:func:`load_prior` reads them from files):
     the search keeps to it, and its reasons (a result at the edge of a tolerance, ...) are
@@ -142,8 +153,6 @@ def register_to_directory(run_dir: str | Path | None,
     ``out_dir`` is checked before any work (:func:`~comreg_core.io._files.check_output_folder`:
     never a run folder or inside one, never an input, writable).
     """
-    import yaml
-
     if run_dir is None and ct_mesh is None:
         raise ComRegError("Nothing to register to: no CT mesh and no pretrained run.",
                           "Give the CT bone mesh (--ct CT_MESH), and a run (--model RUN_DIR) "
@@ -155,17 +164,12 @@ def register_to_directory(run_dir: str | Path | None,
                           "Drop --sweep/--calibration, or register one US points file.")
     out = check_output_folder(out_dir, inputs=[run_dir, *paths, ct_mesh])
     sweep_record = _sweep_record(sweep, sweep_calibration, T_us_ref)
-    calibration_record = find_calibration(calibration, run_dir)
+    calibration_file = calibration_path(calibration, run_dir)
+    calibration_record = None if calibration_file is None else Calibration.load(calibration_file)
     clouds = [read_points(path) for path in paths]  # the cheap inputs first
-    if run_dir is None:
-        if hypotheses is False or getattr(hypotheses, "enabled", True) is False:
-            raise ComRegError("Without a pretrained run the pose search is the registration; "
-                              "it cannot be turned off.",
-                              "Drop --no-hypotheses, or give --model RUN_DIR.")
-        registrar = Registrar.from_ct(ct_mesh, hypotheses=hypotheses)
-    else:
-        registrar = Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
-                                       hypotheses=hypotheses)
+    registrar = _registrar(run_dir, ct_mesh, device, icp_points, hypotheses)
+    if calibration_record is not None:
+        calibration_record.check_ct(registrar.fingerprint, calibration_file)
     clouds = [cloud.in_space(registrar.space) for cloud in clouds]
     points, origins, note = join_clouds(clouds)
     result = registrar.register(points, seed=seed, beam_origins=origins, prior=prior)
@@ -173,22 +177,7 @@ def register_to_directory(run_dir: str | Path | None,
         result.info.setdefault("warnings", []).append(note)
     inputs_record = _input_records(paths, clouds, result, registrar)
     result.info["us_inputs"] = inputs_record
-    out.mkdir(parents=True, exist_ok=True)
-    files = {"transform": runs.TRANSFORM, "registered_us": runs.REGISTERED_US,
-             "completion_ct": runs.COMPLETION_CT, "config": runs.CONFIG}
-    if registrar.model is None:
-        del files["completion_ct"]
-    save_transform(result.T_ct_us, out / files["transform"], space=registrar.space)
-    write_points(PointCloud(result.registered_points, registrar.space),
-                 out / files["registered_us"])
-    if len(clouds) > 1:
-        files["registered_us_inputs"] = [record["registered_us"] for record in inputs_record]
-        for cloud, name in zip(clouds, files["registered_us_inputs"]):
-            write_points(PointCloud(apply_transform(result.T_ct_us, cloud.points),
-                                    registrar.space), out / name)
-    if "completion_ct" in files:
-        write_points(PointCloud(result.completion_ct, registrar.space),
-                     out / files["completion_ct"])
+    files = _output_files(registrar, inputs_record)
     given = [str(path) for path in paths]
     inputs = {"run_dir": None if run_dir is None else str(run_dir),
               "us_points": given[0] if len(given) == 1 else given,
@@ -199,8 +188,6 @@ def register_to_directory(run_dir: str | Path | None,
               "beam_origins": origins is not None,
               "prior": None if prior is None else prior_inputs(prior)}
     settings = {"hypotheses": to_dict(registrar.hypothesis_config), "inputs": inputs}
-    with atomic_output(out / files["config"]) as tmp:  # comreg register --config reads it
-        tmp.write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
     allowed = None
     if prior is not None:  # the competitor is looked for among the poses the prior allows
         allowed = prior_allows(prior.in_space(registrar.space), result)
@@ -220,8 +207,7 @@ def register_to_directory(run_dir: str | Path | None,
                "us_inputs": inputs_record,
                "ct_mesh": None if ct_mesh is None else str(Path(ct_mesh).absolute()),
                "sweep": sweep_record, "prior": result.info.get("prior"), "files": files}
-    with atomic_output(out / runs.RESULT) as tmp:
-        tmp.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
+    _write_outputs(out, files, result, registrar, clouds, settings, payload)
     log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
              result.runtime_s, result.device, out)
     for warning in registrar.warnings:
@@ -234,6 +220,52 @@ def register_to_directory(run_dir: str | Path | None,
                     result.hypotheses.runner_up, result.hypotheses.score_gap_mm,
                     result.hypotheses.chosen, result.confidence)
     return result
+
+
+def _registrar(run_dir, ct_mesh, device: str, icp_points, hypotheses) -> Registrar:
+    """The registrar of ``register_to_directory``: the run's network (``run_dir``) or the pose
+    search alone on ``ct_mesh``."""
+    if run_dir is not None:
+        return Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
+                                  hypotheses=hypotheses)
+    if hypotheses is False or getattr(hypotheses, "enabled", True) is False:
+        raise ComRegError("Without a pretrained run the pose search is the registration; "
+                          "it cannot be turned off.",
+                          "Drop --no-hypotheses, or give --model RUN_DIR.")
+    return Registrar.from_ct(ct_mesh, hypotheses=hypotheses)
+
+
+def _output_files(registrar: Registrar, inputs_record: list[dict]) -> dict:
+    """``result.json``'s ``files``: the name of each file written (module files of
+    :mod:`comreg_core.runs`)."""
+    files = {"transform": runs.TRANSFORM, "registered_us": runs.REGISTERED_US,
+             "completion_ct": runs.COMPLETION_CT, "config": runs.CONFIG}
+    if registrar.model is None:
+        del files["completion_ct"]
+    if len(inputs_record) > 1:
+        files["registered_us_inputs"] = [record["registered_us"] for record in inputs_record]
+    return files
+
+
+def _write_outputs(out: Path, files: dict, result: RegistrationResult, registrar: Registrar,
+                   clouds: list[PointCloud], settings: dict, payload: dict) -> None:
+    """Write the folder of ``register_to_directory``, once everything in it is known (each
+    file atomically, ``result.json`` last)."""
+    import yaml
+
+    out.mkdir(parents=True, exist_ok=True)
+    save_transform(result.T_ct_us, out / files["transform"], space=registrar.space)
+    write_points(PointCloud(result.registered_points, registrar.space),
+                 out / files["registered_us"])
+    for cloud, name in zip(clouds, files.get("registered_us_inputs", ())):
+        write_points(PointCloud(apply_transform(result.T_ct_us, cloud.points),
+                                registrar.space), out / name)
+    if "completion_ct" in files:
+        write_points(PointCloud(result.completion_ct, registrar.space),
+                     out / files["completion_ct"])
+    with atomic_output(out / files["config"]) as tmp:  # comreg register --config reads it
+        tmp.write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
+    write_json(payload, out / runs.RESULT)
 
 
 def summary_lines(result: RegistrationResult, out_dir, *, with_network: bool) -> list[str]:
@@ -382,6 +414,7 @@ def load_prior(init: str | Path | None = None, init_tolerance=None,
     T_init = None
     if init is not None:
         T_init = load_transform(init, space="LPS")
+        require_near_origin(T_init[:3, 3], f"initial pose in '{init}' (its translation)")
         try:
             check_rigid(T_init)
         except InvalidTransformError:

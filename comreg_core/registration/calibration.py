@@ -24,9 +24,8 @@ that a calibration set the search always gets right cannot teach that a tie is s
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -119,14 +118,18 @@ class Calibration:
     """``p_correct`` of one CT (module docstring), as written to ``calibration.json``.
 
     Attributes:
-        weights: ``(w0, w1, w2)``: intercept, margin, extent share.
-        sweeps: simulated sweeps it was fitted on; correct_share: the share the search got right.
+        weights: ``(w0, w1, w2)``: intercept, margin, extent share (finite; ``w1, w2 >= 0``).
+        sweeps: simulated sweeps it was fitted on (>= 1); correct_share: the share the search
+            got right, in [0, 1].
         reliability: rows ``{"p_low", "p_high", "count", "predicted", "observed"}``.
-        ok_probability: ``p_correct`` at or above which the verdict may be OK.
-        tolerance_mm, tolerance_deg: what "correct" means.
-        ct_length_mm: the CT's length, for the extent share.
+        ok_probability: ``p_correct`` at or above which the verdict may be OK, in [0.5, 1].
+        tolerance_mm, tolerance_deg: what "correct" means (> 0).
+        ct_length_mm: the CT's length, for the extent share (mm, > 0).
         settings: how the sweeps were made (lengths, seed, ...), for the record.
-        ct_fingerprint: the CT mesh it belongs to.
+        ct_fingerprint: the CT mesh it belongs to (``{"sha256", ...}``), or None.
+
+    Checked on construction: a ValueError says which entry is missing, of the wrong type,
+    not finite or out of range (:meth:`load` turns it into a :class:`ComRegError`).
     """
 
     weights: tuple[float, float, float]
@@ -140,38 +143,130 @@ class Calibration:
     settings: dict[str, Any] = field(default_factory=dict)
     ct_fingerprint: dict[str, Any] | None = None
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights", _weights(self.weights))
+        for name, low, high, low_open in _NUMBERS:
+            object.__setattr__(self, name, _number(getattr(self, name), name, low, high,
+                                                   low_open))
+        if isinstance(self.sweeps, bool) or not isinstance(self.sweeps, int) \
+                or self.sweeps < 1:
+            raise ValueError(f"'sweeps' is {self.sweeps!r}, not a whole number of at least 1")
+        if not isinstance(self.reliability, list):
+            raise ValueError("'reliability' is not a list of rows")
+        for row in self.reliability:
+            _reliability_row(row)
+        if not isinstance(self.settings, dict):
+            raise ValueError("'settings' is not an object")
+        _fingerprint(self.ct_fingerprint)
+
     def p_correct(self, margin: float, extent: float) -> float:
         """Estimated probability that a result with this margin and extent share is correct."""
         w0, w1, w2 = self.weights
         return float(_sigmoid(w0 + w1 * margin + w2 * extent))
 
+    def check_ct(self, fingerprint: str, source: str | Path) -> None:
+        """Refuse (:class:`ComRegError`) a calibration fitted on another CT mesh than the one
+        whose :func:`~comreg_core.training.checkpoint.ct_fingerprint` sha256 is
+        ``fingerprint``; ``source`` names the calibration in the message. A calibration
+        without a fingerprint is taken as it is."""
+        own = None if self.ct_fingerprint is None else self.ct_fingerprint["sha256"]
+        if own is not None and own != fingerprint:
+            raise ComRegError(f"The verdict calibration '{source}' was made for another CT "
+                              f"mesh (CT fingerprint {own[:12]}..., not {fingerprint[:12]}... "
+                              "of the CT registered to).",
+                              "Calibrate on this CT ('comreg calibrate CT_MESH --out DIR') or "
+                              "give that CT's calibration.")
+
     def to_json(self) -> dict[str, Any]:
         return {"format": CALIBRATION_FORMAT, **asdict(self)}
 
     def save(self, path: str | Path) -> Path:
-        from comreg_core.io._files import atomic_output
+        from comreg_core.io.json_files import write_json
 
-        path = Path(path)
-        with atomic_output(path) as tmp:
-            tmp.write_text(json.dumps(self.to_json(), indent=2) + "\n", encoding="utf-8")
-        return path
+        return write_json(self.to_json(), path)
 
     @classmethod
     def load(cls, path: str | Path) -> "Calibration":
-        """Read a ``calibration.json`` (``comreg calibrate``), with a clear error when it is not
-        one."""
-        from comreg_core.io._files import require_input_file
+        """Read a ``calibration.json`` (``comreg calibrate``): a :class:`ComRegError` naming
+        what is wrong when it is not one (not strict JSON, another format, a missing, unknown,
+        non-finite or out-of-range entry, weights not three)."""
+        from comreg_core.errors import CorruptFileError
+        from comreg_core.io.json_files import NULL_REASONS, read_json
 
-        path = require_input_file(path, "calibration file")
         try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-            if data.pop("format") != CALIBRATION_FORMAT:
-                raise ValueError("format")
-            data["weights"] = tuple(float(w) for w in data["weights"])
+            data = read_json(path, "calibration file")
+        except CorruptFileError as exc:
+            raise ComRegError(exc.problem, _CALIBRATE_HINT) from None
+        try:
+            if not isinstance(data, dict):
+                raise ValueError("it is not a JSON object")
+            data = {key: value for key, value in data.items() if key != NULL_REASONS}
+            if data.pop("format", None) != CALIBRATION_FORMAT:
+                raise ValueError(f"its 'format' is not {CALIBRATION_FORMAT}")
+            missing = [name for name in _REQUIRED if name not in data]
+            unknown = sorted(set(data) - {f.name for f in fields(cls)})
+            if missing or unknown:
+                raise ValueError(f"it lacks '{missing[0]}'" if missing
+                                 else f"it has an unknown entry '{unknown[0]}'")
             return cls(**data)
-        except (ValueError, KeyError, TypeError, AttributeError):
-            raise ComRegError(f"'{path}' is not a ComReg calibration file.",
-                              "Make one with 'comreg calibrate CT_MESH --out DIR'.") from None
+        except ValueError as exc:
+            raise ComRegError(f"'{path}' is not a ComReg calibration file: {exc}.",
+                              _CALIBRATE_HINT) from None
+
+
+_CALIBRATE_HINT = "Make one with 'comreg calibrate CT_MESH --out DIR'."
+#: Entries of a calibration without a default.
+_REQUIRED = ("weights", "sweeps", "correct_share", "ct_length_mm")
+#: ``(name, low, high, low excluded)`` of the calibration's single numbers.
+_NUMBERS = (("correct_share", 0.0, 1.0, False), ("ct_length_mm", 0.0, math.inf, True),
+            ("ok_probability", 0.5, 1.0, False), ("tolerance_mm", 0.0, math.inf, True),
+            ("tolerance_deg", 0.0, math.inf, True))
+_RELIABILITY_KEYS = ("p_low", "p_high", "count", "predicted", "observed")
+
+
+def _number(value, name: str, low: float = -math.inf, high: float = math.inf,
+            low_open: bool = False) -> float:
+    """``value`` as a float when it is a finite number in ``[low, high]`` (``(low, high]``
+    with ``low_open``), else a ValueError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) \
+            or not math.isfinite(value):
+        raise ValueError(f"'{name}' is {value!r}, not a finite number")
+    if value < low or (low_open and value == low) or value > high:
+        raise ValueError(f"'{name}' is {value:g}, outside {'(' if low_open else '['}{low:g}, "
+                         f"{high:g}]")
+    return float(value)
+
+
+def _weights(weights) -> tuple[float, float, float]:
+    """``(w0, w1, w2)`` as floats: three finite numbers, ``w1, w2 >= 0`` (module docstring)."""
+    if not isinstance(weights, (list, tuple)):
+        raise ValueError(f"'weights' is {weights!r}, not a list of 3 numbers")
+    if len(weights) != 3:
+        raise ValueError(f"'weights' has {len(weights)} numbers, not 3 (intercept, margin, "
+                         "extent)")
+    w0 = _number(weights[0], "weights[0]")
+    return w0, _number(weights[1], "weights[1]", 0.0), _number(weights[2], "weights[2]", 0.0)
+
+
+def _reliability_row(row) -> None:
+    """Check one reliability row: its five entries, finite, shares in [0, 1]."""
+    if not isinstance(row, dict) or set(row) != set(_RELIABILITY_KEYS):
+        raise ValueError(f"a 'reliability' row is not {{{', '.join(_RELIABILITY_KEYS)}}}")
+    for key in ("p_low", "p_high", "predicted", "observed"):
+        _number(row[key], f"reliability {key}", 0.0, 1.0)
+    if isinstance(row["count"], bool) or not isinstance(row["count"], int) or row["count"] < 0:
+        raise ValueError(f"a 'reliability' count is {row['count']!r}, not a whole number")
+
+
+def _fingerprint(fingerprint) -> None:
+    """Check a calibration's ``ct_fingerprint``: None, or an object with a ``sha256`` of 64
+    hexadecimal digits."""
+    if fingerprint is None:
+        return
+    sha = fingerprint.get("sha256") if isinstance(fingerprint, dict) else None
+    if not (isinstance(sha, str) and len(sha) == 64
+            and all(c in "0123456789abcdef" for c in sha)):
+        raise ValueError("its 'ct_fingerprint' has no 'sha256' of 64 hexadecimal digits")
 
 
 def fit_calibration(margins: np.ndarray, extents: np.ndarray, correct: np.ndarray, *,

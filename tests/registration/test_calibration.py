@@ -119,6 +119,42 @@ def test_calibration_file_round_trip_and_bad_files(tmp_path):
         Calibration.load(tmp_path / "missing.json")
 
 
+
+def test_a_saved_calibration_is_strict_json_and_loads_whatever_its_settings_hold(tmp_path):
+    cal = fit_calibration([0.1, 0.9, 0.5, 0.7], [0.1, 0.2, 0.1, 0.2], [False, True, True, True],
+                          ct_length_mm=380.0, settings={"trials": [{"RTE_mm": float("nan")}]})
+    path = cal.save(tmp_path / "calibration.json")
+    saved = json.loads(path.read_text(), parse_constant=lambda token: pytest.fail(token))
+    assert saved["null_reasons"] == {"/settings/trials/0/RTE_mm": "not finite (NaN)"}
+    again = Calibration.load(path)
+    assert again.weights == cal.weights and again.settings == {"trials": [{"RTE_mm": None}]}
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"weights": (1.0, float("nan"), 0.0)}, "'weights\\[1\\]' is nan"),
+    ({"weights": (1.0, 2.0)}, "has 2 numbers"),
+    ({"ok_probability": 1.2}, "'ok_probability' is 1.2"),
+    ({"sweeps": True}, "'sweeps' is True"),
+    ({"ct_fingerprint": {"n_vertices": 3}}, "'ct_fingerprint'"),
+])
+def test_a_calibration_with_a_wrong_entry_cannot_be_made(changes, message):
+    entries = dict(weights=(0.0, 1.0, 1.0), sweeps=4, correct_share=0.5, ct_length_mm=300.0)
+    with pytest.raises(ValueError, match=message):
+        Calibration(**{**entries, **changes})
+
+
+def test_a_p_correct_that_is_not_finite_is_never_ok():
+    from comreg_core.registration.verdict import DEFAULT_THRESHOLDS, _reasons
+
+    figures = {"median_mm": 0.2, "p90_mm": 0.5, "within_2mm": 1.0, "coverage": 0.5,
+               "refit_shift_mm": 0.5, "refit_scale": 1.0, "refit_scale_gain": 0.0,
+               "confidence": None, "p_correct": 0.99}
+    assert _reasons(figures, False, DEFAULT_THRESHOLDS, 0.95, short_sweep=False) == []
+    for value in (float("nan"), float("-inf")):
+        reasons = _reasons({**figures, "p_correct": value}, False, DEFAULT_THRESHOLDS, 0.95,
+                           short_sweep=False)
+        assert len(reasons) == 1 and "estimated probability of only" in reasons[0]
+
 def test_verdict_judges_by_p_correct_when_calibrated(shared_data):
     from tests.helpers import FIBULA_STL
     from comreg_core.registration.surface import CTSurface
