@@ -10,12 +10,17 @@ Every command of :data:`comreg_core.cli.app` is wrapped by :func:`user_errors` (
 - any other exception is a bug in ComReg: ``error: internal error ...`` on stderr, exit status 1,
   and the traceback only with ``comreg --verbose``.
 
+What click refuses before a command runs (an unknown command or option, a missing argument, a
+value out of range) is also one line, ``error: <click's message> (see 'comreg COMMAND
+--help')``, exit status 2: the app's group class, :class:`OneLineUsageErrors`, does it.
+
 Under ``torchrun`` every process prints its own line; those of ranks other than 0 say which
 (``error (rank 1): ...``). torchrun then stops the other processes and reports the failed one.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import inspect
@@ -24,6 +29,12 @@ import os
 import re
 
 import typer
+from typer.core import TyperGroup
+
+try:  # typer 0.20 and later carry their own copy of click
+    from typer._click.exceptions import ClickException, NoArgsIsHelpError
+except ImportError:  # earlier typer uses click itself
+    from click.exceptions import ClickException, NoArgsIsHelpError
 
 #: Exit status of errors a user can fix.
 USER_ERROR_EXIT = 2
@@ -134,14 +145,61 @@ def reflow_help(text: str | None) -> str | None:
     return "\n\n".join(paragraphs)
 
 
+def usage_error_line(exc: ClickException, command: str = "comreg") -> str:
+    """A usage error (bad option value, missing argument, unknown option or command) as one
+    line: ``error: <message> (see '<command> --help').``; ``command``: the command line's
+    command, where click's error does not name it."""
+    context = getattr(exc, "ctx", None)
+    where = context.command_path if context is not None else command
+    message = _one_line(exc.format_message()).rstrip(".")
+    return f"{_error_prefix()}: {message} (see '{where} --help')."
+
+
+@contextlib.contextmanager
+def _usage_errors_as_one_line(ctx=None):
+    try:
+        yield
+    except NoArgsIsHelpError:  # a bare 'comreg': its help, as before
+        raise
+    except ClickException as exc:
+        command = "comreg" if ctx is None else ctx.meta.get(_COMMAND, ctx.command_path)
+        typer.echo(usage_error_line(exc, command), err=True)
+        raise typer.Exit(USER_ERROR_EXIT) from None
+
+
+#: Where :class:`OneLineUsageErrors` keeps the command line's command (``comreg register``).
+_COMMAND = "comreg.command"
+
+
+class OneLineUsageErrors(TyperGroup):
+    """The ``comreg`` group: what click refuses while parsing the command line (the group's
+    options, the command's name, the command's arguments and options) is printed by
+    :func:`usage_error_line` and exits with status 2, instead of click's usage box."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        with _usage_errors_as_one_line():
+            return super().make_context(info_name, args, parent=parent, **extra)
+
+    def resolve_command(self, ctx, args):
+        name, command, rest = super().resolve_command(ctx, args)
+        ctx.meta[_COMMAND] = f"{ctx.command_path} {name}"
+        return name, command, rest
+
+    def invoke(self, ctx):
+        with _usage_errors_as_one_line(ctx):
+            return super().invoke(ctx)
+
+
 class CommandApp(typer.Typer):
-    """A ``typer.Typer`` whose commands are all wrapped by :func:`user_errors`, and whose help
-    texts (the app's, each command's docstring or ``help=``) are shown as reflowed paragraphs
-    (:func:`reflow_help`): the one place where that is done for every command."""
+    """A ``typer.Typer`` whose commands are all wrapped by :func:`user_errors`, whose usage
+    errors are one line (:class:`OneLineUsageErrors`), and whose help texts (the app's, each
+    command's docstring or ``help=``) are shown as reflowed paragraphs (:func:`reflow_help`):
+    the one place where that is done for every command."""
 
     def __init__(self, *args, **kwargs):
         if kwargs.get("help"):
             kwargs["help"] = reflow_help(kwargs["help"])
+        kwargs.setdefault("cls", OneLineUsageErrors)
         super().__init__(*args, **kwargs)
 
     def command(self, *args, **kwargs):
