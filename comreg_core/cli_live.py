@@ -13,6 +13,18 @@ from comreg_core.cli_shared import (INIT_OPTION, INIT_TOLERANCE_OPTION, LANDMARK
                                      LANDMARKS_OPTION, Device)
 
 
+def _check_connect_timeout(seconds: float) -> float:
+    """``seconds`` when it is a positive, finite number; a :class:`ComRegError` otherwise."""
+    import math
+
+    from comreg_core.errors import ComRegError
+
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise ComRegError(f"--connect-timeout {seconds:g} is not a positive, finite number of "
+                          "seconds.", "Give e.g. --connect-timeout 30 (the default).")
+    return seconds
+
+
 def _host_port(text: str) -> tuple[str, int]:
     """``HOST:PORT`` -> ``(host, port)``; a :class:`ComRegError` when it is not one."""
     from comreg_core.errors import ComRegError
@@ -56,6 +68,11 @@ def live(
                                     "device the registration is sent back as."),
     until_end: bool = typer.Option(False, "--until-end", help="Stop when the server closes "
                                    "the stream (default: reconnect and go on until Ctrl-C)."),
+    connect_timeout: float = typer.Option(
+        30.0, "--connect-timeout", metavar="SECONDS", help="Give up (exit 2, nothing written) "
+        "when no server answered within this many seconds of starting to connect. The first "
+        "connection only: a lost one is retried for as long as live runs (with --until-end, "
+        "a closed stream ends it)."),
     device: Device = typer.Option(Device.auto, help="Where to run the network."),
     seed: int = typer.Option(0, "--seed", min=0),
     report: bool = typer.Option(True, "--report/--no-report", help="With --out, also write "
@@ -80,7 +97,8 @@ def live(
     room (--init, --landmarks; as 'comreg register' takes them, in the stream's reference
     frame) bounds every update and the final registration. Stop with Ctrl-C (or
     --until-end, or SIGTERM); --out then gets the files of 'comreg register' and its
-    report.
+    report. When no server answers within --connect-timeout (30 s), live gives up with exit
+    status 2 and writes nothing.
     """
     from comreg_core.errors import ComRegError
     from comreg_core.io._files import check_output_folder, require_input_file
@@ -93,6 +111,7 @@ def live(
     from comreg_core.register_output import find_calibration, load_prior
 
     host, port = _host_port(igtl)
+    _check_connect_timeout(connect_timeout)
     inputs = [ct_mesh, model, calibration, verdict_calibration, init, *(landmarks or ())]
     if out is not None:
         check_output_folder(out, inputs=inputs)
@@ -117,7 +136,7 @@ def live(
             typer.echo("live: the full-search worker is not ready; the update loop runs the "
                        "full searches until it is", err=True)
         receiver = FrameReceiver(host, port, image_device, pose_device, T_probe_pixel,
-                                 reconnect=not until_end)
+                                 reconnect=not until_end, connect_timeout_s=connect_timeout)
         typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "
                    f"'{pose_device}'; sending '{send_device}' (Ctrl-C to stop)", err=True)
         with stop_on_sigterm():

@@ -142,7 +142,8 @@ def read_message(sock: socket.socket, wait_s: float):
     return message
 
 
-#: ``on_event(kind, text)``: kind is "connected", "refused", "closed", "lost", "malformed".
+#: ``on_event(kind, text)``: kind is "connected", "refused", "closed", "lost", "malformed",
+#: "timeout" (no first connection within the connect timeout; the client's thread then ends).
 EventCallback = Callable[[str, str], None]
 
 
@@ -152,15 +153,21 @@ class LiveClient(pyigtl.OpenIGTLinkClient):
     connection (``on_event``) and reconnects after a refusal, a close or an error. ``idle()``
     is called between reads (about every 20 ms). Messages to send are queued (pyigtl's
     outgoing queue, 100 at most; the oldest go first when it overflows) and sent while
-    connected. ``reconnect=False``: the thread ends when the server closes the stream."""
+    connected. ``reconnect=False``: the thread ends when the server closes the stream.
+    ``connect_timeout_s``: when no first connection was made within this many seconds of
+    :meth:`start`, the client gives up (``on_event("timeout", ...)``) and its thread ends; None:
+    it tries for ever. Reconnecting after a first connection is not limited."""
 
     def __init__(self, host: str, port: int, on_message: Callable, on_event: EventCallback,
-                 idle: Callable[[], None] | None = None, reconnect: bool = True):
+                 idle: Callable[[], None] | None = None, reconnect: bool = True,
+                 connect_timeout_s: float | None = None):
         super().__init__(host=host, port=port, start_now=False)
         self.reconnect = reconnect
+        self.connect_timeout_s = connect_timeout_s
         self._on_message, self._on_event = on_message, on_event
         self._idle = idle or (lambda: None)
         self._refused_told = False
+        self._last_failure = ""
 
     def _event(self, kind: str, text: str) -> None:
         try:
@@ -176,22 +183,39 @@ class LiveClient(pyigtl.OpenIGTLinkClient):
                 pass
         self.socket, self._connected = None, False
 
+    def _connect(self, where: str, deadline: float | None) -> bool:
+        """One try to connect (at most 1 s, and not past ``deadline``, a ``time.monotonic()``);
+        whether it worked. The first failure of a run of them gives one "refused" event."""
+        wait = 1.0 if deadline is None else min(1.0, max(deadline - time.monotonic(), 0.01))
+        try:
+            self.socket = socket.create_connection((self.host, self.port), timeout=wait)
+        except OSError as exc:
+            self._last_failure = str(exc.strerror or exc)
+            if not self._refused_told:
+                self._event("refused", f"cannot connect to {where} ({self._last_failure}); "
+                            "retrying")
+                self._refused_told = True
+            return False
+        self._connected, self._refused_told = True, False
+        self._event("connected", f"connected to {where}")
+        return True
+
     def _client_thread_function(self) -> None:
         where = f"{self.host}:{self.port}"
+        deadline = None if self.connect_timeout_s is None else \
+            time.monotonic() + self.connect_timeout_s
         while not self.communication_thread_stop_requested:
             if self.socket is None:
-                try:
-                    self.socket = socket.create_connection((self.host, self.port), timeout=1.0)
-                except OSError as exc:
-                    if not self._refused_told:
-                        self._event("refused", f"cannot connect to {where} "
-                                    f"({exc.strerror or exc}); retrying")
-                        self._refused_told = True
+                if deadline is not None and time.monotonic() >= deadline:
+                    self._event("timeout", f"no OpenIGTLink server answered at {where} within "
+                                f"{self.connect_timeout_s:g} s ({self._last_failure})")
+                    break
+                if not self._connect(where, deadline):
                     self._idle()
-                    time.sleep(0.2)
+                    time.sleep(0.2 if deadline is None else
+                               min(0.2, max(deadline - time.monotonic(), 0.0)))
                     continue
-                self._connected, self._refused_told = True, False
-                self._event("connected", f"connected to {where}")
+                deadline = None  # the timeout is the first connection's only
             try:
                 message = read_message(self.socket, 0.02)
                 if message is not None:

@@ -9,8 +9,11 @@ caller's thread) takes all queued frames at once (coalesced,
 STRING back, writes a row of ``updates.csv`` and a status line. A full queue
 (:data:`MAX_QUEUED` frames) drops its oldest frame, and says so.
 
-Losing the connection loses nothing registered: the points stay in the session and the client
-reconnects; ``--until-end`` stops when the server closes the stream. On stop,
+No server within the connect timeout (``--connect-timeout``, the first connection only) ends
+the loop with :class:`NoServerError` before anything is written. Losing the connection loses
+nothing registered: the points stay in the session and the client reconnects (for as long as
+it takes); ``--until-end`` stops when the server closes the stream. ``updates.csv`` is made at
+the first update. On stop,
 :func:`finish_live` writes what ``comreg register`` and ``comreg report`` would for the points
 (:func:`~comreg_core.register_output.register_to_directory`).
 """
@@ -59,15 +62,21 @@ def slicer_transform(T_ct_us: np.ndarray, space: str) -> np.ndarray:
     return space_change(space, "RAS") @ np.asarray(T_ct_us) @ space_change("LPS", space)
 
 
+class NoServerError(ComRegError):
+    """No OpenIGTLink server answered within the connect timeout (nothing was received)."""
+
+
 @dataclass
 class Batch:
     """What :meth:`FrameReceiver.take` hands over: ``frames`` (in order), one-line ``notes``,
-    ``received`` images so far, and ``ended`` (the server closed the stream)."""
+    ``received`` images so far, ``ended`` (the server closed the stream) and ``gave_up``
+    (why no first connection was made within the connect timeout; empty otherwise)."""
 
     frames: list[Frame] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     received: int = 0
     ended: bool = False
+    gave_up: str = ""
 
 
 class FrameReceiver:
@@ -80,11 +89,14 @@ class FrameReceiver:
         T_probe_pixel: the probe calibration when ``pose_device`` is the probe's pose.
         max_queued: frames held for the update loop at most.
         reconnect: connect again after the server closed the stream (``--until-end``: not).
+        connect_timeout_s: give up when no first connection was made within this many seconds
+            of :meth:`start` (None: try for ever); later reconnects are not limited.
     """
 
     def __init__(self, host: str, port: int, image_device: str, pose_device: str,
                  T_probe_pixel: np.ndarray | None = None, max_queued: int = MAX_QUEUED,
-                 reconnect: bool = True, clock: Callable[[], float] = time.monotonic):
+                 reconnect: bool = True, clock: Callable[[], float] = time.monotonic,
+                 connect_timeout_s: float | None = None):
         self.image_device, self.pose_device = image_device, pose_device
         self.clock = clock
         self.assembler = FrameAssembler(pose_device, T_probe_pixel)
@@ -93,10 +105,11 @@ class FrameReceiver:
         self._notes: list[str] = []
         self._told: set = set()
         self._ended = False
+        self._gave_up = ""
         self.max_queued = int(max_queued)
         self.dropped = 0
         self.client = LiveClient(host, port, self._on_message, self._on_event, self._idle,
-                                 reconnect=reconnect)
+                                 reconnect=reconnect, connect_timeout_s=connect_timeout_s)
 
     def start(self) -> None:
         self.client.start()
@@ -152,6 +165,10 @@ class FrameReceiver:
                             f"'{message.device_name}' ({expected})")
 
     def _on_event(self, kind: str, text: str) -> None:
+        if kind == "timeout":
+            with self._lock:
+                self._gave_up = text
+            return
         if kind == "closed":
             self._push(*self.assembler.expire(float("inf")))
             with self._lock:
@@ -168,9 +185,10 @@ class FrameReceiver:
         end = self.clock() + timeout_s
         while True:
             with self._lock:
-                if self._frames or self._notes or self._ended or self.clock() >= end:
+                if self._frames or self._notes or self._ended or self._gave_up or \
+                        self.clock() >= end:
                     batch = Batch(list(self._frames), self._notes, self.assembler.images,
-                                  self._ended)
+                                  self._ended, self._gave_up)
                     self._frames.clear()
                     self._notes = []
                     self._ended = False
@@ -245,14 +263,15 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
              on_note: Callable[[str], None] | None = None) -> LiveSummary:
     """The update loop (module docstring) until ``stop`` is set, Ctrl-C, or (``until_end``) the
     server closed the stream and the frames that came are registered. ``out_dir``: gets
-    ``updates.csv``, a row per update, flushed. ``on_status`` gets each update's status line,
-    ``on_note`` each one-line note. Frames the loop could not keep up with wait in the
-    session's backlog: they are registered when the stream pauses, and :func:`finish_live`
-    uses them all."""
+    ``updates.csv`` at the first update, then a row per update, flushed. ``on_status`` gets
+    each update's status line, ``on_note`` each one-line note. Frames the loop could not keep
+    up with wait in the session's backlog: they are registered when the stream pauses, and
+    :func:`finish_live` uses them all. Raises :class:`NoServerError` when the receiver's
+    connect timeout passed without a connection (``out_dir`` untouched then)."""
     on_status = on_status or (lambda line: log.info("%s", line))
     on_note = on_note or (lambda line: log.warning("%s", line))
     stop = stop or threading.Event()
-    updates_log = UpdatesLog(Path(out_dir) / UPDATES) if out_dir is not None else None
+    updates_log = None
     space = session.registrar.space
     waiting_told = ended = False
     receiver.start()
@@ -261,6 +280,10 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
             batch = receiver.take(0.0 if session.backlog else 0.1)
             for note in batch.notes:
                 on_note(note)
+            if batch.gave_up:
+                raise NoServerError(f"{batch.gave_up[0].upper()}{batch.gave_up[1:]}.",
+                                    "Start PLUS Server (or 'comreg replay') there first, check "
+                                    "--igtl, or wait longer (--connect-timeout).")
             if batch.frames or session.backlog:
                 update = session.update(batch.frames, received=batch.received)
                 for note in session.take_notes():
@@ -272,6 +295,8 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
                 elif update is not None:
                     receiver.send(update, space, send_device)
                     update.latency_s = session.clock() - update.newest_s
+                    if out_dir is not None and updates_log is None:
+                        updates_log = UpdatesLog(Path(out_dir) / UPDATES)
                     if updates_log is not None:
                         updates_log.write(update)
                     on_status(update.status_line())

@@ -1,16 +1,23 @@
 """Bad input to ``comreg live`` and ``comreg replay``: one ``error:`` line, exit status 2, no
-traceback, and nothing connected to or served first."""
+traceback, and nothing connected to or served first; and ``live`` giving up when no server
+answers within its connect timeout, with nothing written."""
 
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from tests.helpers import FIBULA_STL
-from tests.live.conftest import cut_sweep
+from tests.live.conftest import cut_sweep, free_port
+
+REPO = Path(__file__).resolve().parents[2]
 
 runner = CliRunner()
 
@@ -69,3 +76,42 @@ def test_replay_refuses_bad_input(sweep2, tmp_path):
         taken.listen()
         _refused(["replay", sweep2, "--port", taken.getsockname()[1]], "Cannot serve on")
     _refused(["replay", sweep2, "--port", "0", "--wait", "0.2"], "No client connected")
+
+
+@pytest.mark.parametrize("seconds", ["0", "-1", "nan", "inf"])
+def test_live_refuses_a_connect_timeout_that_is_not_a_positive_finite_number(seconds, tmp_path):
+    _refused(["live", "--igtl", "127.0.0.1:1", "--ct", FIBULA_STL, "--out", tmp_path / "out",
+              "--connect-timeout", seconds], f"--connect-timeout {seconds}",
+             "not a positive, finite number")
+    assert not (tmp_path / "out").exists()
+
+
+def test_live_gives_up_when_no_server_answers_and_writes_nothing(tmp_path):
+    """Nothing listens on the port: exit 2 and one error line within the timeout (counted from
+    the 'listening to' line, after the CT side is prepared) plus a little; --out not made."""
+    out, port = tmp_path / "out", free_port()
+    live = subprocess.Popen([sys.executable, "-m", "comreg_core.cli", "live", "--igtl",
+                             f"127.0.0.1:{port}", "--ct", str(FIBULA_STL), "--out", str(out),
+                             "--until-end", "--inline-search", "--connect-timeout", "1.5"],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        lines, listening = [], None
+        for line in iter(live.stderr.readline, ""):
+            lines.append(line.rstrip("\n"))
+            if line.startswith("listening to"):
+                listening = time.monotonic()
+        live.wait(timeout=60)
+        ended = time.monotonic()
+        stdout = live.stdout.read()
+    finally:
+        live.kill()
+        live.stdout.close()
+        live.stderr.close()
+    assert live.returncode == 2, lines
+    assert listening is not None and ended - listening < 1.5 + 3.0, lines
+    assert lines[-1] == (f"error: No OpenIGTLink server answered at 127.0.0.1:{port} within "
+                         "1.5 s (Connection refused). Start PLUS Server (or 'comreg replay') "
+                         "there first, check --igtl, or wait longer (--connect-timeout).")
+    assert sum(line.startswith("error:") for line in lines) == 1
+    assert "Traceback" not in "\n".join(lines) + stdout and stdout == ""
+    assert not out.exists()

@@ -2,7 +2,8 @@
 (packed by pyigtl) mixed with what a stream should not hold: a message type pyigtl does not
 know, a known type live does not read, a body whose CRC does not match, and bytes that are no
 OpenIGTLink header at all. Each gives one line; the client keeps going (and after the
-unreadable header reconnects)."""
+unreadable header reconnects). And the connect timeout: a client that never connected gives up
+after it; one that connected once retries for as long as it runs."""
 
 from __future__ import annotations
 
@@ -86,6 +87,57 @@ def test_unexpected_and_malformed_messages_give_one_line_and_the_client_goes_on(
         assert receiver.assembler.images == 3 and receiver.assembler.without_pose == 0
         conn.close()
         conn2.close()
+    finally:
+        receiver.stop()
+        listener.close()
+
+
+def _batches(receiver: FrameReceiver, seconds: float) -> tuple[list[str], str, float]:
+    """What the receiver hands over for ``seconds`` (or until it gave up): its notes, why it
+    gave up ("" if not) and when (s after the call)."""
+    notes, start = [], time.monotonic()
+    while time.monotonic() - start < seconds:
+        batch = receiver.take(0.05)
+        notes += batch.notes
+        if batch.gave_up:
+            return notes, batch.gave_up, time.monotonic() - start
+    return notes, "", time.monotonic() - start
+
+
+def test_the_connect_timeout_ends_a_client_that_never_connected(port):
+    receiver = FrameReceiver("127.0.0.1", port, "Image", "ImageToReference",
+                             connect_timeout_s=0.5)
+    receiver.start()
+    try:
+        notes, gave_up, after = _batches(receiver, 5.0)
+    finally:
+        receiver.stop()
+    assert gave_up == (f"no OpenIGTLink server answered at 127.0.0.1:{port} within 0.5 s "
+                       "(Connection refused)")
+    assert 0.4 < after < 1.5
+    assert notes == [f"cannot connect to 127.0.0.1:{port} (Connection refused); retrying"]
+
+
+def test_the_connect_timeout_is_the_first_connections_only(port):
+    """Connected once, then the server goes away: the client retries past the timeout (and
+    finds the server again when it comes back)."""
+    listener = _listen(port)
+    receiver = FrameReceiver("127.0.0.1", port, "Image", "ImageToReference",
+                             connect_timeout_s=0.3)
+    receiver.start()
+    try:
+        conn, _ = listener.accept()
+        listener.close()  # first, so that the client cannot come back before it
+        conn.close()
+        notes, gave_up, _ = _batches(receiver, 1.2)
+        assert gave_up == ""
+        assert notes == [f"connected to 127.0.0.1:{port}",
+                         f"127.0.0.1:{port} closed the connection; reconnecting",
+                         f"cannot connect to 127.0.0.1:{port} (Connection refused); retrying"]
+        listener = _listen(port)
+        listener.accept()[0].close()
+        notes, gave_up, _ = _batches(receiver, 0.5)
+        assert gave_up == "" and notes[0] == f"connected to 127.0.0.1:{port}"
     finally:
         receiver.stop()
         listener.close()
