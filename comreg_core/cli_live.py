@@ -166,21 +166,25 @@ def replay(
     rate: float = typer.Option(1.0, "--rate", help="Speed: 1 = as recorded, 4 = four times as "
                                "fast."),
     host: str = typer.Option("127.0.0.1", "--host", help="The address to serve on."),
-    calibration: Optional[Path] = typer.Option(None, "--calibration", help="Its calibration "
-                                               "(as 'comreg extract-us' takes it)."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration", help="Its probe "
+                                               "calibration (as 'comreg extract-us' takes it; "
+                                               "a frame folder's own by default): also gives "
+                                               "the ProbeToReference poses."),
     first_frame: int = typer.Option(0, "--first-frame", min=0, help="Begin at this frame "
                                     "(0 = the first)."),
     wait: Optional[float] = typer.Option(None, "--wait", min=0.0, help="Give up when no client "
                                          "connects within this many seconds (default: wait)."),
 ) -> None:
-    """Serve a recorded sweep over OpenIGTLink as PLUS Server would: per frame an IMAGE 'Image'
-    and its TRANSFORM 'ImageToReference' with the same time stamp, at the recorded rate (or
-    --rate times it), to the first client that connects; then close the connection, so that
-    'comreg live --until-end' stops.
+    """Serve a recorded sweep over OpenIGTLink as PLUS Server would for a tracked probe: per
+    frame an IMAGE 'Image', its TRANSFORM 'ImageToReference' and the probe's TRANSFORM
+    'ProbeToReference' (where the recording gives it or its calibration derives it) with the
+    same time stamp, at the recorded rate (or --rate times it), to the first client that
+    connects; then close the connection, so that 'comreg live --until-end' stops.
     """
     from comreg_core.errors import ComRegError
     from comreg_core.io.tracked_us import read_tracked_sweep
     from comreg_core.live.igtl import ReplayServer, replay_sweep
+    from comreg_core.live.stream import recorded_probe_poses
 
     if not rate > 0:
         raise ComRegError(f"--rate {rate:g} is not a positive speed.", "Give e.g. --rate 1.")
@@ -189,16 +193,23 @@ def replay(
         raise ComRegError(f"--first-frame {first_frame} is outside the sweep's "
                           f"{tracked.n_frames} frames.",
                           f"Give a frame number from 0 to {tracked.n_frames - 1}.")
+    probe_poses, source = recorded_probe_poses(tracked, calibration)
     server = ReplayServer(host, port)
     typer.echo(f"serving {sweep} ({tracked.n_frames - first_frame} frames from frame "
                f"{first_frame}, x{rate:g}) on {host}:{server.port}; waiting for a client",
                err=True)
+    if probe_poses is None:
+        typer.echo(f"replay: sending ImageToReference only, no ProbeToReference: {source}",
+                   err=True)
     try:
-        stats = replay_sweep(tracked, server, rate=rate, first_frame=first_frame, wait_s=wait)
+        stats = replay_sweep(tracked, server, rate=rate, first_frame=first_frame, wait_s=wait,
+                             probe_poses=probe_poses)
     except KeyboardInterrupt:
         server.close()
         typer.echo("stopped (Ctrl-C)", err=True)
         return
     typer.echo(f"served {stats.frames} frames in {stats.duration_s:.1f} s: {stats.sent} sent"
                + (f", {stats.unsent} while no client was connected" if stats.unsent else "")
-               + (f", {stats.without_pose} without a pose" if stats.without_pose else ""))
+               + (f", {stats.without_pose} without a pose" if stats.without_pose else "")
+               + (f", {stats.without_probe} without a probe pose"
+                  if stats.without_probe and probe_poses is not None else ""))

@@ -18,9 +18,10 @@ for what a live registration needs and pyigtl 0.3.4 lacks (measured with its own
   installs signal handlers (possible in the main thread only): :class:`ReplayServer` sends with
   :data:`SEND_TIMEOUT_S` and installs none.
 
-Wire conventions (PLUS Server's): an ``IMAGE`` (device ``Image``) whose matrix is the identity
-(pixel units) and a ``TRANSFORM`` ``ImageToReference`` (pixel -> reference mm, the pixel size
-included) with the same timestamp, one pair per frame.
+Wire conventions (PLUS Server's for a tracked probe): per frame an ``IMAGE`` (device ``Image``)
+whose matrix is the identity (pixel units), a ``TRANSFORM`` ``ImageToReference`` (pixel ->
+reference mm, the pixel size included) and a ``TRANSFORM`` ``ProbeToReference`` (probe mm ->
+reference mm; ImageToReference = ProbeToReference @ ImageToProbe), all with the same timestamp.
 """
 
 from __future__ import annotations
@@ -366,38 +367,47 @@ class ReplayServer(pyigtl.OpenIGTLinkServer):
 class ReplayStats:
     """What :func:`replay_sweep` did: ``frames`` served (sent or not), ``sent`` to a client,
     ``unsent`` (no client connected then), ``without_pose`` (invalid frames: IMAGE only),
-    ``duration_s``."""
+    ``without_probe`` (valid frames sent without a probe pose), ``duration_s``."""
 
     frames: int = 0
     sent: int = 0
     unsent: int = 0
     without_pose: int = 0
+    without_probe: int = 0
     duration_s: float = 0.0
 
 
-def frame_messages(sweep, index: int, timestamp: float, image_device: str = IMAGE_DEVICE,
-                   pose_device: str = IMAGE_POSE_DEVICE) -> list:
+def frame_messages(sweep, index: int, timestamp: float, T_ref_probe: np.ndarray | None = None,
+                   image_device: str = IMAGE_DEVICE, pose_device: str = IMAGE_POSE_DEVICE,
+                   probe_device: str = PROBE_POSE_DEVICE) -> list:
     """The messages of frame ``index`` of a :class:`~comreg_core.io.sweeps.TrackedSweep`, as
     PLUS Server sends a tracked frame: an IMAGE (``(1, H, W)``, identity matrix: pixel units)
     and, for a valid frame, a TRANSFORM ``pose_device`` = ``T_ref_pixel`` (pixel -> reference
-    mm), both stamped ``timestamp`` (s)."""
+    mm) and, when ``T_ref_probe`` ``(4, 4)`` (probe mm -> reference mm) is given and finite, a
+    TRANSFORM ``probe_device`` = it; all stamped ``timestamp`` (s)."""
     image = np.ascontiguousarray(sweep.frames[index])[None]
     messages = [pyigtl.ImageMessage(image, ijk_to_world_matrix=np.eye(4), timestamp=timestamp,
                                     device_name=image_device)]
     if sweep.valid[index]:
         messages.append(pyigtl.TransformMessage(sweep.T_ref_pixel[index], timestamp=timestamp,
                                                 device_name=pose_device))
+        if T_ref_probe is not None and np.isfinite(T_ref_probe).all():
+            messages.append(pyigtl.TransformMessage(T_ref_probe, timestamp=timestamp,
+                                                    device_name=probe_device))
     return messages
 
 
 def replay_sweep(sweep, server: ReplayServer, *, rate: float = 1.0, first_frame: int = 0,
                  wait_s: float | None = None, stop: threading.Event | None = None,
-                 on_frame: Callable[[int, bool], None] | None = None) -> ReplayStats:
+                 on_frame: Callable[[int, bool], None] | None = None,
+                 probe_poses: np.ndarray | None = None) -> ReplayStats:
     """Serve ``sweep`` (a :class:`~comreg_core.io.sweeps.TrackedSweep`) from frame
-    ``first_frame`` on through ``server`` as PLUS Server would (:func:`frame_messages`), at its
-    recorded rate times ``rate`` (timestamps in s; unknown ones at 10 frames/s), then close the
-    server. Waits for a client first (up to ``wait_s``; None: for ever); frames due while no
-    client is connected are counted ``unsent``, as a live server would lose them.
+    ``first_frame`` on through ``server`` as PLUS Server would (:func:`frame_messages`; with
+    ``probe_poses`` ``(N, 4, 4)``, probe mm -> reference mm, NaN where unknown, each frame's
+    ProbeToReference too), at its recorded rate times ``rate`` (timestamps in s; unknown ones
+    at 10 frames/s), then close the server. Waits for a client first (up to ``wait_s``; None:
+    for ever); frames due while no client is connected are counted ``unsent``, as a live
+    server would lose them.
     ``on_frame(index, sent)`` after each frame; ``stop`` ends it early."""
     if not 0 <= first_frame < sweep.n_frames:
         raise ComRegError(f"--first-frame {first_frame} is outside the sweep's "
@@ -424,11 +434,14 @@ def replay_sweep(sweep, server: ReplayServer, *, rate: float = 1.0, first_frame:
                 break
             stamp = sweep.timestamps[index]
             stamp = float(stamp) if np.isfinite(stamp) else time.time()
-            sent = server.send_now(*frame_messages(sweep, index, stamp))
+            probe = None if probe_poses is None else probe_poses[index]
+            sent = server.send_now(*frame_messages(sweep, index, stamp, probe))
             stats.frames += 1
             stats.sent += int(sent)
             stats.unsent += int(not sent)
             stats.without_pose += int(not sweep.valid[index])
+            stats.without_probe += int(bool(sweep.valid[index]) and (
+                probe is None or not np.isfinite(probe).all()))
             if on_frame is not None:
                 on_frame(index, sent)
         stats.duration_s = time.monotonic() - start

@@ -10,6 +10,8 @@
   USExtractionConfig`), and the cloud of all of them denoised together as ``extract-us`` does:
   after the last frame it is exactly ``extract-us``'s cloud of the frames used.
 - :func:`covered_length_mm`: the length of bone the points cover along an axis.
+- :func:`probe_calibration`, :func:`recorded_probe_poses`: the probe calibration of a file, and
+  the probe's poses of a recording (what ``comreg replay`` sends as ``ProbeToReference``).
 
 Coordinates: a frame's pixel (row r, column c) lies at ``T_ref_image @ (c sx, r sy, 0, 1)``
 (:mod:`comreg_core.io.sweeps`); points are in the tracker's reference frame, mm.
@@ -27,6 +29,7 @@ from comreg_core.errors import ComRegError
 from comreg_core.io._files import file_extension, require_input_file
 from comreg_core.io.frame_folders import read_frame_folder_calibration
 from comreg_core.io.plus_files import read_plus_calibration
+from comreg_core.io.plus_sequences import read_plus_sequence
 from comreg_core.io.sweeps import TrackedSweep, frames_to_grey
 from comreg_core.surfaces.us_config import USExtractionConfig
 from comreg_core.surfaces.us_denoise import denoise_points
@@ -321,3 +324,47 @@ def probe_calibration(path) -> np.ndarray:
     half = np.eye(4)
     half[:2, 3] = 0.5 * sx, 0.5 * sy
     return cal.T_probe_image @ half @ np.diag([sx, sy, 1.0, 1.0])
+
+
+def probe_poses(T_ref_pixel: np.ndarray, T_probe_pixel: np.ndarray) -> np.ndarray:
+    """``(N, 4, 4)`` the probe's poses ``T_ref_probe`` (probe mm -> reference mm) of frames whose
+    pixel -> reference maps are ``T_ref_pixel`` ``(N, 4, 4)`` (a unit normal as third column,
+    as :attr:`~comreg_core.io.sweeps.TrackedSweep.T_ref_pixel` has it), given the probe
+    calibration ``T_probe_pixel`` ``(4, 4)`` (pixel -> probe mm): ``T_ref_probe @
+    T_probe_pixel`` maps each pixel as ``T_ref_pixel`` does (PLUS's ImageToReference =
+    ProbeToReference @ ImageToProbe). NaN where ``T_ref_pixel`` is. Raises :class:`ComRegError`
+    when the calibration cannot be inverted."""
+    C = np.asarray(T_probe_pixel, dtype=np.float64).reshape(4, 4)
+    if not (np.isfinite(C).all() and abs(np.linalg.det(C)) > 1e-12):
+        raise ComRegError("The probe calibration (ImageToProbe) cannot be inverted, so the "
+                          "probe's poses cannot be derived from it.",
+                          "Pass the calibration made for this recording.")
+    normal = np.diag([1.0, 1.0, np.linalg.norm(C[:3, 2]), 1.0])  # ours is a unit normal
+    return np.asarray(T_ref_pixel, dtype=np.float64) @ normal @ np.linalg.inv(C)
+
+
+def recorded_probe_poses(sweep: TrackedSweep, calibration=None
+                         ) -> tuple[np.ndarray | None, str]:
+    """The probe's poses of a recorded ``sweep`` (read from ``sweep.path``) and where they came
+    from: ``((N, 4, 4) T_ref_probe, NaN where unknown, text)``, or ``(None, why not)``.
+
+    From the probe calibration when there is one (``calibration``, as ``comreg extract-us``
+    takes it, or a frame folder's own ``calibration.json``: :func:`probe_poses`); else from a
+    PLUS sequence's own per-frame transforms (its ProbeToReference chain); else None (a 3D
+    Slicer volume sequence, or a PLUS sequence giving only the image's poses)."""
+    path = sweep.path
+    if calibration is None and path is not None and path.is_dir():
+        calibration = path / "calibration.json"
+    if calibration is not None:
+        T = probe_poses(sweep.T_ref_pixel, probe_calibration(calibration))
+        return T, f"derived from the probe calibration '{calibration}'"
+    if path is not None and path.is_file():
+        try:
+            probe = read_plus_sequence(path, reference=sweep.reference, image="Probe")
+        except ComRegError:
+            probe = None
+        if probe is not None and probe.n_frames == sweep.n_frames:
+            T = np.where(probe.valid[:, None, None], probe.T_ref_image, np.nan)
+            return T, f"the recording's ProbeTo{probe.reference} transforms"
+    return None, ("the recording gives no probe pose and there is no probe calibration to "
+                  "derive it from (--calibration)")
