@@ -75,7 +75,10 @@ class DemoResult:
         verdict: the registration's verdict, ``"ok"`` or ``"check"`` (from its files alone).
         tracking_RTE_mm, tracking_RRE_deg: how far the recorded tracking lies from the truth.
         runtime_s: its registration time (s).
-        success_rate, flip_rate: over the ``trials`` extra random starts (None if 0 trials).
+        success_rate, flip_rate: over the ``trials`` extra random starts, with the network
+            (None if 0 trials).
+        search_success_rate, search_flip_rate: the same starts by the pose search alone (the
+            network's control: what the network adds is the difference).
         truth: what the errors are measured against, in words.
     """
 
@@ -93,6 +96,8 @@ class DemoResult:
     verdict: str
     tracking_RTE_mm: float
     tracking_RRE_deg: float
+    search_success_rate: float | None = None
+    search_flip_rate: float | None = None
     truth: str = TRUTH
 
 
@@ -105,8 +110,10 @@ def summary_lines(result: DemoResult, trials: int) -> list[str]:
              f"truth: {result.truth}; the tracking itself lies {result.tracking_RTE_mm:.2f} mm "
              f"/ {result.tracking_RRE_deg:.2f}° from it"]
     if result.success_rate is not None:
-        lines.append(f"{trials} more random starts: success {result.success_rate:.0%}, flips "
-                     f"{result.flip_rate:.0%}")
+        lines.append(f"{trials} more random starts: with the network success "
+                     f"{result.success_rate:.0%}, flips {result.flip_rate:.0%}; the search alone "
+                     f"success {result.search_success_rate:.0%}, flips "
+                     f"{result.search_flip_rate:.0%}")
     lines.append(f"report: {result.report}")
     return lines
 
@@ -228,7 +235,7 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
                                    T_us_ref=T_moved_ct)  # tracking and CT share one frame
     errors = registration_metrics(result.T_ct_us, T_ct_us_truth, moved, surface)
     verdict = json.loads((registration_dir / runs.RESULT).read_text(encoding="utf-8"))["verdict"]
-    success_rate = flip_rate = None
+    success_rate = flip_rate = search_success_rate = search_flip_rate = None
     # "registration.T_ct_us" marks metrics.json as made for this registration (the report
     # shows no other), with its errors against the truth, what that is, and the tracking's
     metrics = {"registration": {"T_ct_us": result.T_ct_us.tolist(), "errors_vs_truth": errors,
@@ -236,22 +243,27 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
                                 "tracking_vs_truth": tracking}}
     if trials > 0:
         step(f"evaluating {trials} more random starts")
-        registrar = Registrar.from_run(model, device, ct_mesh=ct)
-        metrics.update(evaluate({"comreg": registrar}, us_points, surface, trials=trials,
-                                seed=seed, T_gt=T_truth))
-        success_rate = metrics["summary"]["comreg"]["success_rate"]
-        flip_rate = metrics["summary"]["comreg"]["flip_rate"]
+        methods = {"search": Registrar.from_ct(ct),
+                   "comreg": Registrar.from_run(model, device, ct_mesh=ct)}
+        metrics.update(evaluate(methods, us_points, surface, trials=trials, seed=seed,
+                                T_gt=T_truth))
+        summary = metrics["summary"]
+        success_rate, flip_rate = (summary["comreg"][k] for k in ("success_rate", "flip_rate"))
+        search_success_rate, search_flip_rate = (summary["search"][k]
+                                                 for k in ("success_rate", "flip_rate"))
     write_metrics(metrics, registration_dir / runs.METRICS)
 
     step("rendering the report")
     report = write_report_for_registration(registration_dir, ct_mesh=ct_path)
     demo = DemoResult(out, report, Path(model), trained, result.n_points, errors["RTE_mm"],
                       errors["RRE_deg"], result.runtime_s, success_rate, flip_rate,
-                      bool(errors["success"]), verdict, tracking["RTE_mm"], tracking["RRE_deg"])
+                      bool(errors["success"]), verdict, tracking["RTE_mm"], tracking["RRE_deg"],
+                      search_success_rate, search_flip_rate)
     summary = {"RTE_mm": demo.RTE_mm, "RRE_deg": demo.RRE_deg, "success": demo.success,
                "verdict": demo.verdict, "truth": TRUTH, "tracking_vs_truth": tracking,
                "runtime_s": demo.runtime_s, "model": str(model), "trained": trained,
                "n_us_points": demo.n_us_points, "success_rate": success_rate,
-               "flip_rate": flip_rate, "report": str(report)}
+               "flip_rate": flip_rate, "search_success_rate": search_success_rate,
+               "search_flip_rate": search_flip_rate, "report": str(report)}
     write_json(summary, out / "demo.json")
     return demo

@@ -15,15 +15,13 @@ Two ways, one result type (:class:`~comreg_core.registration.result.Registration
    the completed bone in the CT frame, and residual statistics of the registered US points
    (exact distances to the CT mesh surface).
 
-4. unless turned off, the test-time **hypotheses** stage (:mod:`comreg_core.registration.search`): the
-   network's pose, its coarse pose and the principal-axes solve of the completion vs the CT,
-   each with its alternatives (flipped end to end, turned about and slid along the shaft),
-   screened together, the best few refined (one batched ICP) and scored by the trimmed distance
-   of the US points to the CT; the best is kept and its margin over the runner-up gives
-   ``confidence`` and the ``ambiguous`` flag; finally the chosen pose is polished by
-   point-to-plane ICP to the exact closest points of the CT mesh (outliers gated). It is on
-   by default; ``hypotheses=False`` (``comreg register --no-hypotheses``) is the paper's plain
-   pipeline, bit for bit.
+4. unless turned off, the **pose search** (:mod:`comreg_core.registration.search`) exactly as
+   without a network (every one of its starts), then the network's poses (after its ICP, its
+   coarse pose, the principal-axes solve of its completion) as further starts
+   (:mod:`comreg_core.registration.network_starts`): refined, the best polished, and kept only
+   when it scores better than the search's choice by more than a tie. The chosen score is
+   never worse than the search alone's. On by default; ``hypotheses=False`` (``comreg register
+   --no-hypotheses``) is the paper's plain pipeline, bit for bit.
 
 Timings per stage (seconds): ``preprocess`` (checks, normalisation, transfer),
 ``completion_and_coarse_pose`` (``f`` on the US cloud and ``g``), ``icp`` (FPS subset + ICP),
@@ -54,7 +52,9 @@ from comreg_core.registration.icp import refine_on_mesh
 from comreg_core.registration.inputs import beam_origins_for, limit_us_points, subset_notice
 from comreg_core.registration.result import RegistrationResult, residual_statistics
 from comreg_core.registration.priors import Prior, prior_record
-from comreg_core.registration.search import principal_axes_pose
+from comreg_core.registration.network_starts import add_network_starts
+from comreg_core.registration.scoring import HypothesisResult
+from comreg_core.registration.search import principal_axes_pose, us_subset_indices
 from comreg_core.registration.warm import warm_search
 from comreg_core.registration.surface import mesh_arrays
 from comreg_core.model.comreg import ComRegNet
@@ -329,8 +329,7 @@ class Registrar:
             t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
                      icp=0.0, postprocess=0.0)
         elif self.model is None:
-            T = T_coarse = principal_axes_pose(pts, target) if getattr(
-                prior, "T_init", None) is None else prior.T_init
+            T = T_coarse = search_start(pts, target, prior)
             dense, icp_rmse = None, float("nan")
             t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
                      icp=0.0, postprocess=0.0)
@@ -339,14 +338,12 @@ class Registrar:
         hyp, t["hypotheses"] = None, 0.0
         if hyp_cfg.enabled:
             mark = time.perf_counter()
-            hyp = warm_search(pts, warm_start.hypotheses, target, hyp_cfg,
-                              beam_origins=origins, prior=prior, space=self.space
-                              ) if warm_start is not None else search_hypotheses(
-                                    pts, T, target, dense, hyp_cfg,
-                                    T_coarse=None if self.model is None else T_coarse,
-                                    start_name="network" if self.model is not None else
-                                    "pca" if getattr(prior, "T_init", None) is None else "init",
-                                    beam_origins=origins, space=self.space, prior=prior)
+            if warm_start is not None:
+                hyp = warm_search(pts, warm_start.hypotheses, target, hyp_cfg,
+                                  beam_origins=origins, prior=prior, space=self.space)
+            else:
+                hyp = self._search(pts, target, hyp_cfg, origins, prior,
+                                   None if self.model is None else (T, T_coarse, dense))
             T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
             if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
                 icp_rmse = hyp.polish["rmse_mm"]
@@ -377,6 +374,27 @@ class Registrar:
             icp_rmse=icp_rmse, n_points=len(pts), hypotheses=hyp, info=info)
 
     __call__ = register
+
+    def _search(self, pts: np.ndarray, target: SurfaceCloud, config: HypothesisConfig,
+                origins: np.ndarray | None, prior: Prior | None,
+                network: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> HypothesisResult:
+        """The pose search alone (its own starts, always all of them), then with a network
+        its poses ``(T_ct_us after its ICP, coarse T_ct_us, completion (M, 3) US frame)`` as
+        further starts that win only by a clearly better score
+        (:mod:`~comreg_core.registration.network_starts`)."""
+        start_name = "pca" if getattr(prior, "T_init", None) is None else "init"
+        result = search_hypotheses(pts, search_start(pts, target, prior), target, None, config,
+                                   start_name=start_name, beam_origins=origins,
+                                   space=self.space, prior=prior)
+        if network is None:
+            return result
+        T_network, T_coarse, completion = network
+        starts = {"network": T_network, "coarse": T_coarse}
+        if completion is not None and len(completion) >= 4:
+            starts["completion"] = principal_axes_pose(completion, target)
+        return add_network_starts(result, starts, pts, target, config,
+                                  subset_indices=us_subset_indices(len(pts), config.icp_points),
+                                  beam_origins=origins, prior=prior, space=self.space)
 
     def _network_pose(self, pts: np.ndarray, seed: int, t: dict[str, float], start: float
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -430,6 +448,13 @@ class Registrar:
 
             d = cKDTree(self.ct_points).query(registered)[0]
         return residual_statistics(d)
+
+
+def search_start(pts: np.ndarray, target: SurfaceCloud, prior: Prior | None) -> np.ndarray:
+    """``(4, 4)`` the pose search's own base pose for ``(N, 3)`` US points (mm): the prior's
+    initial pose when it has one, else the principal-axes pose on the CT."""
+    T_init = getattr(prior, "T_init", None)
+    return principal_axes_pose(pts, target) if T_init is None else T_init
 
 
 def _check_finite_output(*tensors: torch.Tensor) -> None:

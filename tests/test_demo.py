@@ -62,7 +62,8 @@ def test_demo_errors_match_an_independent_computation(demo):
     summary = json.loads((out / "demo.json").read_text())
     assert summary["RTE_mm"] == pytest.approx(rte, abs=1e-6)
     metrics = json.loads((out / "registration" / "metrics.json").read_text())
-    assert len(metrics["trials"]) == 2
+    assert [(t["trial"], t["method"]) for t in metrics["trials"]] == [
+        (0, "search"), (0, "comreg"), (1, "search"), (1, "comreg")]  # 2 starts, both methods
 
 
 def test_the_truth_is_icp_from_the_recorded_tracking(demo):
@@ -114,6 +115,21 @@ def test_success_agrees_with_the_verdict_and_the_summary_says_what_the_truth_is(
     assert lines[-1] == f"report: {result.report}"
 
 
+def test_further_starts_compare_the_network_with_the_search_alone(demo):
+    """The demo's further starts are registered by the search alone and with the network, side
+    by side; with the network the chosen score is never worse, start for start."""
+    result, out, _ = demo
+    metrics = json.loads((out / "registration" / "metrics.json").read_text())
+    scores: dict = {}
+    for trial in metrics["trials"]:
+        scores.setdefault(trial["trial"], {})[trial["method"]] = \
+            trial["info"]["hypotheses"]["score_mm"]
+    assert scores and all(set(pair) == {"search", "comreg"} for pair in scores.values())
+    assert all(pair["comreg"] <= pair["search"] for pair in scores.values()), scores
+    assert result.search_success_rate == metrics["summary"]["search"]["success_rate"]
+    assert "the search alone success" in summary_lines(result, len(scores))[2]
+
+
 def test_registered_us_points_lie_on_the_ct_bone(demo):
     _, out, _ = demo
     registered = read_points(out / "registration" / "registered_us.ply").points
@@ -158,8 +174,8 @@ def test_demo_gives_the_same_figures_at_one_thread_on_a_busy_machine(demo, tmp_p
         busy.wait()
     again = json.loads((tmp_path / "demo" / "demo.json").read_text())
     first = json.loads((out / "demo.json").read_text())
-    for key in ("RTE_mm", "RRE_deg", "success_rate", "flip_rate", "n_us_points", "success",
-                "verdict", "tracking_vs_truth"):
+    for key in ("RTE_mm", "RRE_deg", "success_rate", "flip_rate", "search_success_rate",
+                "n_us_points", "success", "verdict", "tracking_vs_truth"):
         assert again[key] == first[key], key
     T_first = json.loads((out / "registration" / "result.json").read_text())["T_ct_us"]
     T_again = json.loads((tmp_path / "demo" / "registration" / "result.json").read_text())

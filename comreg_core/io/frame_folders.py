@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from comreg_core.transforms import matmul
 from comreg_core.errors import ComRegError, CorruptFileError, InputFileNotFoundError
 from comreg_core.io._files import file_extension, require_input_file
 from comreg_core.io.sweeps import (CalibrationMismatchError, NoValidFramesError, TrackedSweep,
@@ -141,7 +142,7 @@ def read_frame_folder_tracking(tracking_csv: str | Path, calibration_json: str |
     T_ref_probe = _euler_pose(np.nan_to_num(xyz), np.nan_to_num(euler))
     half = np.eye(4)
     half[:2, 3] = 0.5 * sx, 0.5 * sy
-    T = T_ref_probe @ T_probe_image @ half
+    T = matmul(matmul(T_ref_probe, T_probe_image), half)
     T[~valid] = np.nan
     return FrameFolderTracking(names, stamps, T, np.array([sx, sy]), (cols, rows), valid)
 

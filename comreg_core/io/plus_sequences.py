@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from comreg_core.transforms import matmul
 from comreg_core.errors import ComRegError, CorruptFileError
 from comreg_core.io._files import file_extension, require_extension, require_input_file
 from comreg_core.io.plus_files import (PLUS_FRAME_FIELD, PlusDeviceSet, frames_to_mf,
@@ -86,7 +87,7 @@ def read_plus_sequence(path: str | Path, *, calibration: str | Path | PlusDevice
                 reasons[reason] = reasons.get(reason, 0) + count
         if inverse:
             M = _safe_inverse(M)
-        T = M @ T
+        T = matmul(M, T)
         valid &= ok
     image_ok = np.array([(rec.get("ImageStatus") or rec.get("Status") or "OK").strip().upper()
                          == "OK" for rec in per_frame])
@@ -116,7 +117,7 @@ def read_plus_sequence(path: str | Path, *, calibration: str | Path | PlusDevice
         log.warning("%s: unusual pixel size %.3g x %.3g mm; is the calibration in mm per pixel?",
                     path, scale[0], scale[1])
     unscale = np.diag([1 / scale[0], 1 / scale[1], 1 / scale[2] if scale[2] > 0 else 1.0, 1.0])
-    T = T @ unscale
+    T = matmul(T, unscale)
     timestamps = np.array([parse_float(rec.get("Timestamp")) for rec in per_frame])
     return TrackedSweep(frames, scale[:2], T, timestamps, valid, reference,
                         [f"Frame{i:04d}" for i in range(n)], path)

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from comreg_core.transforms import matmul
 from comreg_core.errors import ComRegError
 
 #: Sequence files :func:`comreg_core.io.tracked_us.read_tracked_sweep` reads (a directory is a
@@ -90,7 +91,7 @@ class TrackedSweep:
     def T_ref_pixel(self) -> np.ndarray:
         """``(N, 4, 4)`` pixel index ``(col, row, 0, 1)`` -> reference mm (its third column is
         the unit plane normal)."""
-        return self.T_ref_image @ np.diag([self.spacing[0], self.spacing[1], 1.0, 1.0])
+        return matmul(self.T_ref_image, np.diag([self.spacing[0], self.spacing[1], 1.0, 1.0]))
 
     def pixel_to_reference(self, frame_index, rows, cols) -> np.ndarray:
         """Reference mm ``(M, 3)`` of pixel positions ``rows``/``cols`` ``(M,)`` (float allowed,
@@ -103,7 +104,7 @@ class TrackedSweep:
         frames, starts = np.unique(frame_index[order], return_index=True)
         for f, idx in zip(frames, np.split(order, starts[1:])):
             T = self.T_ref_image[f]
-            out[idx] = local[idx] @ T[:3, :2].T + T[:3, 3]
+            out[idx] = (local[idx, 0:1] * T[:3, 0] + local[idx, 1:2] * T[:3, 1]) + T[:3, 3]
         return out
 
     def frame_corners(self, clip_origin=(0, 0), clip_size=None) -> np.ndarray:

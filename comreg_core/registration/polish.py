@@ -19,7 +19,7 @@ from comreg_core.registration.metrics import rotation_error_deg
 from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
                                               trimmed_mean)
 from comreg_core.registration.surface import SurfaceCloud, ct_length_mm, facing_away, spread_mm
-from comreg_core.transforms import apply_transform
+from comreg_core.transforms import apply_transform, matmul, project
 
 
 def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.ndarray,
@@ -59,7 +59,7 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
     if within is not None:  # a polish may have moved a pose out of the prior
         allowed = within(poses)
         eligible = next((m for m in (eligible & allowed, allowed) if m.any()), eligible)
-    best = choose(scores, eligible)
+    best = choose(scores, eligible, config.score_floor_mm)
     if polishes[best] is not None and polishes[best]["quick"]:
         before = poses[best].copy(), scores[best], polishes[best]
         poses[best], scores[best], polishes[best] = polish_pose(
@@ -99,14 +99,14 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
     if config.slide_probe_mm <= 0:
         return None
     axis = target.axes[:, 0]
-    if spread_mm(apply_transform(T, subset_mm) @ axis) >= SLIDE_PROBE_MAX_SHARE * ct_length_mm(
-            target):
+    span = spread_mm(project(apply_transform(T, subset_mm), axis))
+    if span >= SLIDE_PROBE_MAX_SHARE * ct_length_mm(target):
         return None
     best = None
     for slide in (-config.slide_probe_mm, config.slide_probe_mm):
         shift = np.eye(4)
         shift[:3, 3] = slide * axis
-        pose, quick_score, info = polish_pose(subset_mm, centroid, shift @ T, target, config,
+        pose, quick_score, info = polish_pose(subset_mm, centroid, matmul(shift, T), target, config,
                                               quick=True, origins=origins)
         if quick_score < score and (best is None or quick_score < best[1]):
             best = pose, quick_score, info, slide
@@ -174,7 +174,7 @@ def halves_disagreement_deg(subset_mm: np.ndarray, T: np.ndarray, target: Surfac
     best turned several degrees apart, the data cannot pin the whole sweep's rotation closer
     than that (on the real fibula sweep's first 125 mm: halves 11 deg apart, the pose 7 deg
     from the whole sweep's, turned about the shaft). 0 when a half has under 6 points."""
-    along = apply_transform(T, subset_mm) @ target.axes[:, 0]
+    along = project(apply_transform(T, subset_mm), target.axes[:, 0])
     lower = along < np.median(along)
     poses = []
     for half in (lower, ~lower):

@@ -51,8 +51,8 @@ from typing import Any
 import numpy as np
 
 from comreg_core.errors import ComRegError, InvalidGeometryError
-from comreg_core.transforms import apply_transform, as_points, check_rigid, check_space, \
-    invert_rigid, space_change
+from comreg_core.transforms import (apply_transform, as_points, check_rigid, check_space,
+                                    invert_rigid, matmul, project, rotate, space_change)
 
 #: Tolerances when only an initial pose is given (``--init`` without ``--init-tolerance``).
 DEFAULT_MAX_DEG = 30.0
@@ -150,12 +150,13 @@ class Prior:
         rotation, shift = np.zeros(len(poses)), np.zeros(len(poses))
         if self.T_init is not None:
             rotation = rotation_between_deg(poses, self.T_init)
-            placed = poses[:, :3, :3] @ centroid + poses[:, :3, 3]
+            placed = rotate(centroid[None], poses[:, :3, :3])[:, 0] + poses[:, :3, 3]
             shift = np.linalg.norm(placed - apply_transform(self.T_init, centroid[None])[0],
                                    axis=1)
         landmark = np.zeros((len(poses), len(self.landmarks)))
         for k, lm in enumerate(self.landmarks):
-            landmark[:, k] = np.linalg.norm(poses[:, :3, :3] @ lm.us + poses[:, :3, 3] - lm.ct,
+            landmark[:, k] = np.linalg.norm(rotate(lm.us[None], poses[:, :3, :3])[:, 0]
+                                            + poses[:, :3, 3] - lm.ct,
                                             axis=1)
         return rotation, shift, landmark
 
@@ -183,17 +184,18 @@ class Prior:
         R0 = self.T_init[:3, :3]
         home = apply_transform(self.T_init, centroid[None])[0]
         for T in out:
-            turn = Rotation.from_matrix(T[:3, :3] @ R0.T).as_rotvec()
+            turn = Rotation.from_matrix(matmul(T[:3, :3], R0.T)).as_rotvec()
             angle = np.degrees(np.linalg.norm(turn))
             R = T[:3, :3]
             if angle > self.max_deg:
-                R = Rotation.from_rotvec(turn * (0.999 * self.max_deg / angle)).as_matrix() @ R0
-            placed = T[:3, :3] @ centroid + T[:3, 3]
+                R = matmul(Rotation.from_rotvec(turn * (0.999 * self.max_deg / angle))
+                           .as_matrix(), R0)
+            placed = rotate(centroid[None], T[:3, :3])[0] + T[:3, 3]
             offset = placed - home
             if np.linalg.norm(offset) > self.max_mm:
                 placed = home + offset * (0.999 * self.max_mm / np.linalg.norm(offset))
             T[:3, :3] = R
-            T[:3, 3] = placed - R @ centroid
+            T[:3, 3] = placed - rotate(centroid[None], R)[0]
         return out
 
     # -- starts ------------------------------------------------------------------------------
@@ -217,8 +219,8 @@ class Prior:
             for k, axis in enumerate(axes):
                 G = np.eye(4)
                 G[:3, :3] = Rotation.from_rotvec(axis * math.radians(angle)).as_matrix()
-                G[:3, 3] = home - G[:3, :3] @ home
-                out[f"init+r{angle:.3g}a{k}"] = G @ self.T_init
+                G[:3, 3] = home - rotate(home[None], G[:3, :3])[0]
+                out[f"init+r{angle:.3g}a{k}"] = matmul(G, self.T_init)
         return out
 
     def starts(self, rotations: dict[str, np.ndarray], centroid: np.ndarray,
@@ -241,7 +243,7 @@ class Prior:
         if kabsch is not None and not grid_offset:
             out["landmarks"] = kabsch
         for name, T in rotations.items():
-            placed = T[:3, :3] @ centroid + T[:3, 3]
+            placed = rotate(centroid[None], T[:3, :3])[0] + T[:3, 3]
             for label, shift in shift_vectors(placed, centre, axes, reach, slide_step_mm,
                                               grid_offset).items():
                 S = T.copy()
@@ -259,12 +261,12 @@ class Prior:
         if len(ct) >= 2:
             i, j = np.unravel_index(np.argmax(np.linalg.norm(ct[:, None] - ct[None], axis=2)),
                                     (len(ct), len(ct)))
-            a, b = R @ (us[j] - us[i]), ct[j] - ct[i]
+            a, b = rotate((us[j] - us[i])[None], R)[0], ct[j] - ct[i]
             if np.linalg.norm(a) > 1e-6 and np.linalg.norm(b) > 1e-6:
-                R = least_rotation(a, b) @ R
+                R = matmul(least_rotation(a, b), R)
         out = np.eye(4)
         out[:3, :3] = R
-        out[:3, 3] = ct.mean(axis=0) - R @ us.mean(axis=0)
+        out[:3, 3] = ct.mean(axis=0) - rotate(us.mean(axis=0)[None], R)[0]
         return out
 
     def kabsch_pose(self) -> np.ndarray | None:
@@ -298,13 +300,13 @@ def rotation_between_deg(poses: np.ndarray, T: np.ndarray) -> np.ndarray:
 def least_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``(3, 3)``: the smallest rotation turning direction ``a`` onto direction ``b``."""
     a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(a @ b)
+    v, c = np.cross(a, b), float(project(a, b))
     if c < -1.0 + 1e-9:  # opposite: half a turn about any axis across them
         axis = np.cross(a, np.eye(3)[np.argmin(np.abs(a))])
         axis /= np.linalg.norm(axis)
         return 2.0 * np.outer(axis, axis) - np.eye(3)
     K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + K + K @ K / (1.0 + c)
+    return np.eye(3) + K + matmul(K, K) / (1.0 + c)
 
 
 def sphere_points(count: int) -> np.ndarray:
@@ -353,7 +355,7 @@ def shift_vectors(placed: np.ndarray, centre: np.ndarray, axes: np.ndarray, reac
         steps = k[k * slide_step_mm <= reach_mm + 1e-9] * slide_step_mm
         slides += [s for step in steps for s in (step, -step)]
     offset = np.asarray(centre, dtype=np.float64) - placed
-    across = {"": np.zeros(3), "+onaxis": offset - (offset @ a0) * a0}
+    across = {"": np.zeros(3), "+onaxis": offset - project(offset, a0) * a0}
     for k in (1, 2):
         for sign in (1, -1):
             across[f"+a{k}{'+' if sign > 0 else '-'}{reach_mm / 2:g}"] = \

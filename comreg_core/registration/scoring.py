@@ -59,12 +59,30 @@ def confidence_over(score: float, others: np.ndarray | float, config: Hypothesis
     return np.maximum(others - score, 0.0) / np.maximum(others, config.score_floor_mm)
 
 
-def choose(scores: np.ndarray, eligible: np.ndarray) -> int:
+#: Two scores are *tied* when the worse leads the better by less than this share of itself
+#: (confidence below it): far above floating-point noise (1e-15) and far below the smallest
+#: lead that counts as evidence (``min_confidence``, 0.3). A decision between tied scores is
+#: made by the order of the hypotheses (fixed by the input's shape), never by their last bits.
+SCORE_TIE_SHARE = 1e-3
+
+
+def tied(score: float, other: float, config: HypothesisConfig) -> bool:
+    """Whether two scores (mm) are a tie (:data:`SCORE_TIE_SHARE`)."""
+    low, high = min(score, other), max(score, other)
+    return bool(confidence_over(low, high, config) < SCORE_TIE_SHARE)
+
+
+def choose(scores: np.ndarray, eligible: np.ndarray, score_floor_mm: float = 0.05) -> int:
     """Index of the chosen pose among the ``eligible`` ones ``(B,)`` bool: the best score
-    ``(B,)`` mm; the first minimum, so the network's own pose (index 0) wins exact ties. The
-    network's pose is one more start, never a narrowing: with it, the result is at least the
-    search's (docs/calibration.md)."""
-    return int(np.argmin(np.where(eligible, scores, np.inf)))
+    ``(B,)`` mm; of the scores tied with it (:func:`tied`), the first in generation order."""
+    masked = np.where(eligible, scores, np.inf)
+    best = float(masked.min())
+    if not math.isfinite(best):
+        return int(np.argmin(masked))
+    candidates = np.flatnonzero(eligible)
+    lead = np.maximum(scores[candidates] - best, 0.0) / np.maximum(scores[candidates],
+                                                                   score_floor_mm)
+    return int(candidates[np.flatnonzero(lead < SCORE_TIE_SHARE)[0]])
 
 
 def polish_candidates(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray,

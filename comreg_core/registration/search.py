@@ -74,14 +74,13 @@ alternatives at test time, with no extra training data:
    from that far along the CT's long axis both ways, a slid pose scoring >= 2 % better
    replaces it (the search can stop in the basin next to the right one along a shaft).
 
-6. **Choice and confidence**: the best score wins (exact ties go to the network's own pose).
+6. **Choice and confidence**: the best score wins; scores within a tie
+   (:func:`~comreg_core.registration.scoring.tied`, 0.1 %) go to the first in generation order.
    Two poses are *distinct* when rotated apart by more than ``distinct_deg`` or placing the US
    centroid more than ``distinct_mm`` apart. ``confidence(a over b) = max(score_b - score_a,
    0) / max(score_b, score_floor_mm)`` in [0, 1] (``score_floor_mm``, 0.05 mm: differences
    between near-perfect fits are noise, not evidence). Poses over which the best has a
-   confidence below ``min_confidence`` are *tied* with it (they get polished). The network's
-   pose is one more start and never decides a tie (on real fibula runs its tie-break lost a
-   result the search alone got, docs/results.md). The *runner-up* is
+   confidence below ``min_confidence`` are *close* to it (they get polished). The *runner-up* is
    the best-scoring pose distinct from the chosen one (converged duplicates never count);
    ``score_gap_mm = score(runner-up) - score(chosen)``; ``confidence`` = that of the chosen
    pose over the runner-up (1 without a runner-up); ``ambiguous = confidence <
@@ -112,12 +111,10 @@ Use it standalone (no network needed)::
     result = search_hypotheses(us_points, T_start, target)   # mm in, mm out
     result.T_ct_us, result.chosen, result.confidence, result.ambiguous
 
-:class:`comreg_core.inference.Registrar` runs it after the network's ICP unless it is turned off
-(``hypotheses=False``; ``comreg register --no-hypotheses``), which reproduces the paper's plain
-pipeline exactly; ``comreg evaluate --method comreg --method comreg-plain`` compares both in one
-run. The stage repairs symmetric confusions of a coarse pose that is otherwise near the truth;
-for arbitrary starting orientations the network itself must be trained for them (training
-config ``data.pose: full``, the full-rotation sampler; evaluate with ``--perturbation full``).
+:class:`comreg_core.inference.Registrar` runs it from the ``pca`` base (or the prior's) with or
+without a network; the network's poses then compete as further starts
+(:mod:`comreg_core.registration.network_starts`). ``hypotheses=False`` (``comreg register
+--no-hypotheses``) turns it off with a network: the paper's plain pipeline exactly.
 """
 
 from __future__ import annotations
@@ -138,7 +135,8 @@ from comreg_core.registration.screening import screen_starts
 from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, confidence_over,
                                               score_poses)
 from comreg_core.registration.surface import SurfaceCloud, ct_length_mm, principal_frame
-from comreg_core.transforms import apply_transform, as_points, check_rigid, orthonormalize
+from comreg_core.transforms import (apply_transform, as_points, check_rigid, matmul,
+                                    orthonormalize, project, rotate)
 
 
 def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -149,7 +147,7 @@ def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.nda
     R = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
     T = np.eye(4)
     T[:3, :3] = R
-    T[:3, 3] = centre - R @ centre
+    T[:3, 3] = centre - rotate(centre[None], R)[0]
     return T
 
 
@@ -159,8 +157,8 @@ def principal_axes_pose(points_us: np.ndarray, target: SurfaceCloud) -> np.ndarr
     the others in order (up to the axes' signs, which the search's flips and turns cover)."""
     c_us, a_us = principal_frame(points_us)  # right-handed, like the CT's
     T = np.eye(4)
-    T[:3, :3] = target.axes @ a_us.T
-    T[:3, 3] = target.centre - T[:3, :3] @ c_us
+    T[:3, :3] = matmul(target.axes, a_us.T)
+    T[:3, 3] = target.centre - rotate(c_us[None], T[:3, :3])[0]
     return T
 
 
@@ -201,9 +199,9 @@ def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
             for k in range(cfg.shaft_rotations):
                 angle = 360.0 * (k + grid_offset) / cfg.shaft_rotations
                 G = rotation_about(centre, axes[:, 0], math.radians(angle))
-                G = G @ flip if flipped else G
+                G = matmul(G, flip) if flipped else G
                 name = base + ("+flip" if flipped else "") + (f"+rot{angle:g}" if angle else "")
-                starts.update(slid_starts(name, G @ T_base, slides, axes[:, 0]))
+                starts.update(slid_starts(name, matmul(G, T_base), slides, axes[:, 0]))
     return starts
 
 
@@ -226,7 +224,7 @@ def is_patch(points_us: np.ndarray, target: SurfaceCloud, config: HypothesisConf
     """Whether ``(N, 3)`` US points (mm) are a patch of the bone: their largest spread along
     their own principal axes is under ``patch_max_share`` of the CT's length."""
     _, axes = principal_frame(points_us)
-    spread = float(np.ptp(points_us @ axes[:, 0]))
+    spread = float(np.ptp(project(points_us, axes[:, 0])))
     return spread < config.patch_max_share * ct_length_mm(target)
 
 
@@ -255,9 +253,9 @@ def patch_orientation_starts(points_us: np.ndarray, target: SurfaceCloud,
     for i, rotation in enumerate(group.as_matrix()):
         G = np.eye(4)
         G[:3, :3] = rotation
-        G[:3, 3] = target.centre - rotation @ target.centre
+        G[:3, 3] = target.centre - rotate(target.centre[None], rotation)[0]
         name = f"patch{i}" + ("+turned" if grid_offset else "")
-        starts.update(slid_starts(name, G @ T_base, slides, target.axes[:, 0]))
+        starts.update(slid_starts(name, matmul(G, T_base), slides, target.axes[:, 0]))
     return starts
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration import kernels
 from comreg_core.io.meshes import SurfaceMesh, read_mesh
-from comreg_core.transforms import as_points, symmetric_eigen3
+from comreg_core.transforms import as_points, project, symmetric_eigen3
 
 #: Dense samples of the exact closest-point search (:meth:`CTSurface.closest`) by default.
 CLOSEST_POINT_SAMPLES = 200_000
@@ -374,4 +374,4 @@ def spread_mm(along: np.ndarray) -> float:
 def ct_length_mm(target: SurfaceCloud) -> float:
     """The CT bone's extent along its long axis (mm): of ``target``'s points along
     ``axes[:, 0]``."""
-    return float(np.ptp((target.points - target.centre) @ target.axes[:, 0]))
+    return float(np.ptp(project(target.points - target.centre, target.axes[:, 0])))

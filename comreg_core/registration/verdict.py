@@ -58,6 +58,7 @@ from functools import partial
 import numpy as np
 
 from comreg_core.registration.icp import point_to_plane_icp
+from comreg_core.registration.scoring import SCORE_TIE_SHARE
 from comreg_core.registration.surface import as_surface
 from comreg_core.transforms import apply_transform, as_points, check_rigid
 
@@ -188,6 +189,10 @@ def _reasons(f: dict, ambiguous: bool, th: VerdictThresholds, ok_probability: fl
         out.append("Ambiguous pose: another, clearly different pose fits the US points nearly as "
                    f"well (confidence {f['confidence'] if f['confidence'] is not None else 0:.2f}"
                    f", below {th.min_confidence:g}).")
+    if f["confidence"] is not None and f["confidence"] < SCORE_TIE_SHARE:
+        out.append("Tie: a clearly different pose scores the same as this one (within "
+                   f"{100 * SCORE_TIE_SHARE:g} %): which of the two is kept is decided by their "
+                   "order, not by the data.")
     return out
 
 

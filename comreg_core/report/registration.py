@@ -173,16 +173,18 @@ def _metrics_for(path: Path, T_ct_us: np.ndarray) -> dict[str, Any] | None:
             group["Offset of the recorded tracking from the truth (rotation)"] = Quantity(
                 tracking.get("RRE_deg"), "deg")
         rows["Error against the truth"] = group
-    summary = (data.get("summary") or {}).get("comreg")
-    if summary:
-        rows["Further random starts (evaluation, against the same truth)"] = {
-            "Starts": summary.get("trials", summary.get("n")),
-            "Success rate": Quantity(_percent(summary.get("success_rate")), "%"),
-            "Flip rate": Quantity(_percent(summary.get("flip_rate")), "%"),
-            "Median translation error (RTE)": Quantity((summary.get("RTE_mm") or {})
-                                                       .get("median"), "mm"),
-            "Median rotation error (RRE)": Quantity((summary.get("RRE_deg") or {})
-                                                    .get("median"), "deg")}
+    for method, words in (("search", "the pose search alone"),
+                          ("comreg", "with the network")):
+        summary = (data.get("summary") or {}).get(method)
+        if summary:
+            rows[f"Further random starts, {words} (against the same truth)"] = {
+                "Starts": summary.get("trials", summary.get("n")),
+                "Success rate": Quantity(_percent(summary.get("success_rate")), "%"),
+                "Flip rate": Quantity(_percent(summary.get("flip_rate")), "%"),
+                "Median translation error (RTE)": Quantity((summary.get("RTE_mm") or {})
+                                                           .get("median"), "mm"),
+                "Median rotation error (RRE)": Quantity((summary.get("RRE_deg") or {})
+                                                        .get("median"), "deg")}
     return rows
 
 

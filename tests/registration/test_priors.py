@@ -225,17 +225,17 @@ def test_a_landmark_beyond_its_tolerance_rules_poses_out(search, short_run):
 
 
 def test_with_the_network_its_pose_is_one_more_start(tmp_path_factory, short_run):
-    """``--model``: the network's pose is refined first (the tiny test network's lands far off)
-    but, outside the prior, never chosen; the search around the initial pose finds the truth.
-    The prior needs the search: with ``hypotheses=False`` it is refused."""
+    """``--model``: the network's pose is refined as one more start (the tiny test network's
+    lands far off) but, outside the prior, never chosen; the search around the initial pose
+    finds the truth. The prior needs the search: with ``hypotheses=False`` it is refused."""
     from comreg_core.errors import ComRegError
     from tests.training.tiny import tiny_run
 
     registrar = Registrar.from_run(tiny_run(tmp_path_factory)[1], "cpu")
     prior = Prior(_turned(short_run.mean(axis=0), 25.0, 25.0, seed=2))
     result = registrar.register(short_run, prior=prior)
-    network = result.hypotheses.hypotheses[0]
-    assert network.name == "network" and result.info["prior"]["within"]
+    network = next(h for h in result.hypotheses.hypotheses if h.name == "network")
+    assert result.info["prior"]["within"]
     if not prior.allows(network.T_ct_us[None], short_run.mean(axis=0))[0]:
         assert result.hypotheses.chosen != "network"
     rte, rre = _errors(result.T_ct_us, np.eye(4), short_run)

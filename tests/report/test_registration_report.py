@@ -91,7 +91,9 @@ def test_metrics_are_labelled_in_words_with_units_apart(tmp_path, fibula, monkey
         "errors_vs_truth": {"RTE_mm": 1.25, "RRE_deg": 0.5, "success": True},
         "tracking_vs_truth": {"RTE_mm": 1.5, "RRE_deg": 0.08}},
         "summary": {"comreg": {"trials": 2, "success_rate": 0.5, "flip_rate": 0.5,
-                               "RTE_mm": {"median": 1.75}, "RRE_deg": {"median": 45.0}}}}
+                               "RTE_mm": {"median": 1.75}, "RRE_deg": {"median": 45.0}},
+                    "search": {"trials": 2, "success_rate": 1.0, "flip_rate": 0.0,
+                               "RTE_mm": {"median": 1.5}, "RRE_deg": {"median": 1.0}}}}
     (out / "metrics.json").write_text(json.dumps(metrics), encoding="utf-8")
     _render_small(monkeypatch)
     assert CliRunner().invoke(app, ["report", str(out)]).exit_code == 0
@@ -117,9 +119,12 @@ def test_metrics_are_labelled_in_words_with_units_apart(tmp_path, fibula, monkey
         "1.500", "mm")
     assert table[error + "Offset of the recorded tracking from the truth (rotation)"] == (
         "0.080", "deg")
-    starts = "Further random starts (evaluation, against the same truth) / "
+    starts = "Further random starts, with the network (against the same truth) / "
     assert table[starts + "Success rate"] == ("50.000", "%")
     assert table[starts + "Median rotation error (RRE)"] == ("45.000", "deg")
+    alone = "Further random starts, the pose search alone (against the same truth) / "
+    assert table[alone + "Success rate"] == ("100.000", "%")
+    assert table[alone + "Median rotation error (RRE)"] == ("1.000", "deg")
     assert table["Pose check / Trimmed mean distance of the kept pose"] == ("0.310", "mm")
     assert table["Pose check / Confidence (0-1; below 0.3 is ambiguous)"] == ("0.800", "")
     assert table["Time / Registration in all"] == ("0.500", "s")
