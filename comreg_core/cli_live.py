@@ -108,7 +108,7 @@ def live(
     from comreg_core.live.run import FrameReceiver, finish_live, run_live, stop_on_sigterm
     from comreg_core.live.session import LiveSession
     from comreg_core.live.stream import probe_calibration
-    from comreg_core.register_output import find_calibration, load_prior
+    from comreg_core.register_output import calibration_path, find_calibration, load_prior
 
     host, port = _host_port(igtl)
     _check_connect_timeout(connect_timeout)
@@ -125,7 +125,10 @@ def live(
                           "and --send-device names, e.g. Image and ImageToReference.")
     verdict = find_calibration(verdict_calibration, model)
     recipe = RegistrarRecipe(str(ct_mesh), None if model is None else str(model), device.value)
-    session = LiveSession(build_registrar(recipe), calibration=verdict, prior=prior, seed=seed)
+    registrar = build_registrar(recipe)
+    if verdict is not None:  # before any work: a calibration made for another CT is refused
+        verdict.check_ct(registrar.fingerprint, calibration_path(verdict_calibration, model))
+    session = LiveSession(registrar, calibration=verdict, prior=prior, seed=seed)
     with ExitStack() as stack:
         if background:
             session.worker = stack.enter_context(FullSearchWorker(recipe, session.prior))

@@ -117,6 +117,18 @@ def test_a_calibration_of_another_ct_is_refused_before_anything_is_written(case)
     _refused(_register(case, out, "--verdict-calibration", path), out, "another CT mesh")
 
 
+def test_live_refuses_a_calibration_of_another_ct_before_it_listens(case):
+    """``comreg live --verdict-calibration`` checks the calibration's CT before it connects:
+    one line, exit 2, nothing written (no server is needed to find out)."""
+    other = dict(case["calibration"], ct_fingerprint={"sha256": "0" * 64})
+    path = case["dir"] / "other_ct_live.json"
+    path.write_text(json.dumps(other))
+    out = case["dir"] / "out live other ct"
+    _refused(["live", "--igtl", "127.0.0.1:9", "--ct", FIBULA_STL, "--out", out,
+              "--verdict-calibration", path, "--inline-search", "--connect-timeout", "1"],
+             out, "another CT mesh")
+
+
 def test_a_calibration_that_is_not_a_json_object_is_refused(case):
     path = case["dir"] / "list.json"
     path.write_text("[1, 2, 3]")
