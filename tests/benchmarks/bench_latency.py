@@ -23,7 +23,8 @@ Sets (every trial moves the points by a random ``paper`` pose: one axis, +-90 de
 
 Columns: success (RTE < 4 mm and RRE < 5 deg), flagged (share of results the search calls
 ambiguous), RTE/RRE medians, latency median and 90th percentile (s, the registration call
-with the CT's structures built beforehand, as a ``Registrar`` reused across calls has them).
+with the CT's structures built beforehand, as a ``Registrar`` reused across calls has them),
+worse (trials whose chosen score is worse than the search alone's on the same case: 0 expected).
 The load average is printed: measure on an idle machine.
 """
 
@@ -87,7 +88,7 @@ def errors(T, T_truth, points) -> tuple[float, float]:
 
 def time_trials(registrar, cases) -> list:
     """Every case ``(points, beam origins or None, truth)``: rows ``(seconds, RTE mm, RRE deg,
-    flagged)``."""
+    flagged, chosen score mm)``."""
     rows = []
     registrar.register(cases[0][0], beam_origins=cases[0][1])  # CT structures, kernels
     for points, origins, T_truth in cases:
@@ -95,7 +96,7 @@ def time_trials(registrar, cases) -> list:
         result = registrar.register(points, beam_origins=origins)
         seconds = time.perf_counter() - start
         rows.append((seconds, *errors(result.T_ct_us, T_truth, points),
-                     bool(result.info.get("ambiguous"))))
+                     bool(result.info.get("ambiguous")), result.hypotheses.best.score_mm))
     return rows
 
 
@@ -110,17 +111,21 @@ def grown_trials(registrar, points, origins, frames, T_truth) -> list:
         last = registrar.register(points[used], beam_origins=origins[used], warm_start=last)
         seconds = time.perf_counter() - start
         rows.append((seconds, *errors(last.T_ct_us, T_truth, points[used]),
-                     bool(last.info.get("ambiguous"))))
+                     bool(last.info.get("ambiguous")), last.hypotheses.best.score_mm))
     return rows
 
 
-def print_rows(name: str, method: str, rows: list) -> None:
+def print_rows(name: str, method: str, rows: list, search: list | None = None) -> None:
+    """One line of figures; ``worse``: trials whose chosen score is worse than the search
+    alone's on the same case (``search``'s rows; paired)."""
     a = np.array(rows, dtype=np.float64)
     seconds, rte, rre, flagged = a[:, 0], a[:, 1], a[:, 2], a[:, 3]
+    worse = "-" if search is None or search is rows else str(
+        int(np.sum(a[:, 4] > np.array(search, dtype=np.float64)[:, 4])))
     success = np.mean((rte < SUCCESS_MM) & (rre < SUCCESS_DEG))
     print(f"{name:>17} {method:>9} {len(a):>6} {success:>7.0%} {flagged.mean():>7.0%} "
           f"{np.median(rte):>7.2f} {np.median(rre):>7.2f} {np.median(seconds):>7.3f} "
-          f"{np.percentile(seconds, 90):>6.3f}", flush=True)
+          f"{np.percentile(seconds, 90):>6.3f} {worse:>6}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -150,7 +155,7 @@ def main(argv: list[str] | None = None) -> None:
           f"{torch.get_num_threads()} threads, numba {numba.get_num_threads()}; "
           f"success: RTE < {SUCCESS_MM:g} mm and RRE < {SUCCESS_DEG:g} deg")
     print(f"{'set':>17} {'method':>9} {'trials':>6} {'success':>7} {'flagged':>7} "
-          f"{'RTE med':>7} {'RRE med':>7} {'median s':>7} {'p90 s':>6}")
+          f"{'RTE med':>7} {'RRE med':>7} {'median s':>7} {'p90 s':>6} {'worse':>6}")
     rng_pose = np.random.default_rng(args.seed)
     fibula = read_mesh(FIBULA_STL)
     for name in args.set.split(","):
@@ -185,8 +190,9 @@ def main(argv: list[str] | None = None) -> None:
             cases.append((apply_transform(T_move, points),
                           None if origins is None else apply_transform(T_move, origins),
                           T_truth @ invert_rigid(T_move)))
-        for method, registrar in methods.items():
-            print_rows(name, method, time_trials(registrar, cases))
+        rows = {method: time_trials(registrar, cases) for method, registrar in methods.items()}
+        for method, method_rows in rows.items():
+            print_rows(name, method, method_rows, rows["search"])
 
 
 if __name__ == "__main__":

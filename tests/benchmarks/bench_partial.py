@@ -25,7 +25,8 @@ Every trial moves a sweep by a random rigid pose (``paper``: one axis, +-90 deg,
 ``full``: any rotation, up to 500 mm). Success: RTE < 4 mm and RRE < 5 deg (the issue's
 criterion for partial sweeps); flips: RRE > 90 deg; unflagged flips: flips not flagged
 ambiguous. Latency: median and 90th percentile of the method's own time (machine load stated
-by the caller). ``--model BONE=RUN`` adds ``comreg`` / ``comreg-plain`` for that bone's sets (a run
+by the caller). ``worse``: trials in which the method's chosen score is worse than the search
+alone's on the same moved sweep (paired; the network must never make it worse: 0). ``--model BONE=RUN`` adds ``comreg`` / ``comreg-plain`` for that bone's sets (a run
 trained on that CT: the shared fibula, or ``tibia_like_mesh()``, e.g. from ``bench_learning
 --bone tibia-like``), ``--untrained BONE=RUN0`` the same network at 0 epochs (the control).
 """
@@ -106,7 +107,15 @@ def _methods(bone: str, ct, args) -> dict:
     return methods
 
 
-def _row(name: str, rows: list[dict]) -> str:
+def worse_than_search(rows: list[dict], search: list[dict] | None) -> str:
+    """How many trials the method's chosen score is worse than the search alone's on the same
+    trial (paired; ``-`` for a method without a score or the search itself)."""
+    if search is None or rows is search or any(r.get("score_mm") is None for r in rows):
+        return "-"
+    return str(sum(r["score_mm"] > s["score_mm"] for r, s in zip(rows, search)))
+
+
+def _row(name: str, rows: list[dict], search: list[dict] | None = None) -> str:
     rte = np.array([r["RTE_mm"] for r in rows])
     rre = np.array([r["RRE_deg"] for r in rows])
     ok = (rte < 4.0) & (rre < 5.0)
@@ -118,7 +127,7 @@ def _row(name: str, rows: list[dict]) -> str:
             f"{(f'{amb.mean():.0%}' if has_flag else '-'):>7} "
             f"{(f'{(flips & ~amb).mean():.0%}' if has_flag else '-'):>9} "
             f"{np.median(rte):8.2f} {np.median(rre):8.2f} {np.median(secs):7.2f} "
-            f"{np.percentile(secs, 90):6.2f}")
+            f"{np.percentile(secs, 90):6.2f} {worse_than_search(rows, search):>6}")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -150,7 +159,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"success: RTE < 4 mm and RRE < 5 deg; {args.trials} trials per set and perturbation; "
           f"seed {args.seed}; '+beams': the same method given each point's beam origin")
     print(f"{'method':>16} {'success':>8} {'flips':>6} {'ambig.':>7} {'unflagged':>9} "
-          f"{'RTE med':>8} {'RRE med':>8} {'median s':>7} {'p90 s':>6}")
+          f"{'RTE med':>8} {'RRE med':>8} {'median s':>7} {'p90 s':>6} {'worse':>6}")
     for name in args.set.split(","):
         bone = name.split("-", 1)[1]
         ct = (FIBULA_STL if bone == "fibula"
@@ -168,7 +177,7 @@ def main(argv: list[str] | None = None) -> None:
             rows = _trials(methods, runs, ct, args.trials, args.seed, perturbation)
             print(f"-- {name}, {perturbation} poses ({time.perf_counter() - start:.0f} s)")
             for method, method_rows in rows.items():
-                print(_row(method, method_rows), flush=True)
+                print(_row(method, method_rows, rows.get("search")), flush=True)
 
 
 def _trials(methods: dict, runs: list, ct, trials: int, seed: int, perturbation: str) -> dict:
@@ -196,8 +205,11 @@ def _trials(methods: dict, runs: list, ct, trials: int, seed: int, perturbation:
                 result = methods[name](moved)
             seconds = time.perf_counter() - start
             errors = registration_metrics(result.T_ct_us, invert_rigid(T_p), moved, surface)
+            hypotheses = getattr(result, "hypotheses", None)
             rows[name].append({**errors, "runtime_s": seconds,
-                               "ambiguous": getattr(result, "ambiguous", None)})
+                               "ambiguous": getattr(result, "ambiguous", None),
+                               "score_mm": None if hypotheses is None
+                               else hypotheses.best.score_mm})
     return rows
 
 
