@@ -1,5 +1,10 @@
 """Point clouds: XYZ (ASCII), PLY, PCD (ASCII, binary, binary_compressed) and NPY.
 
+PLY files are read and written by plyfile, PCD files by pypcd4 (its header model, binary and
+LZF-compressed data; ASCII rows are split here at any whitespace, and ASCII files are written
+with every bit of each float64). Sizes are checked against the header before either library
+allocates what a header claims.
+
 Coordinates are patient millimetres. ComReg writes a ``SPACE=LPS``/``SPACE=RAS`` comment into XYZ,
 PLY and PCD files (as 3D Slicer does for models); files without it, and NPY files, are taken as
 LPS.
@@ -7,12 +12,15 @@ LPS.
 
 from __future__ import annotations
 
+import io
 import re
 import struct
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from plyfile import (PlyData, PlyElement, PlyHeaderParseError, PlyListProperty,
+                     PlyParseError)
 
 from comreg_core.errors import CorruptFileError, InvalidGeometryError
 from comreg_core.io._files import (atomic_output, require_extension, require_input_file,
@@ -144,294 +152,236 @@ def _write_npy(cloud: PointCloud, tmp: Path, binary: bool) -> None:
         np.save(f, cloud.in_space("LPS").points)
 
 
-# --- PLY ----------------------------------------------------------------------------------------
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def _ply_header(path: Path) -> tuple[str, list[tuple[str, int, list]], list[str], int]:
-    """``(format, elements, header lines, data offset)`` of a PLY file; each element is
-    ``(name, count, properties)`` with properties ``(name, dtype code)`` or, for lists,
-    ``(name, ("list", count dtype code, item dtype code))``. Checks that the file is large
-    enough for the counts it declares (before anything is allocated)."""
-    with open(path, "rb") as f:
-        lines = _read_header_lines(f, path, end=b"end_header", first=b"ply")
-        data_start = f.tell()
-    fmt, elements = None, []
-    for line in lines:
-        words = line.split()
-        if not words:
-            continue
-        if words[0] == "format" and len(words) > 1:
-            fmt = words[1]
-        elif words[0] == "element":
-            try:
-                count = int(words[2])
-            except (IndexError, ValueError):
-                raise CorruptFileError(path, f"bad PLY element line {line[:60]!r}") from None
-            if count < 0:
-                raise CorruptFileError(path, f"the PLY header declares {count} {words[1]}s")
-            elements.append((words[1], count, []))
-        elif words[0] == "property" and elements and len(words) >= 3:
-            if words[1] == "list" and len(words) >= 5:
-                kind = ("list", _PLY_TYPES.get(words[2], ""), _PLY_TYPES.get(words[3], ""))
-                if not kind[1] or not kind[2]:
-                    raise CorruptFileError(path, "unknown PLY property type")
-                elements[-1][2].append((words[-1], kind))
-            else:
-                elements[-1][2].append((words[-1], _PLY_TYPES.get(words[1], "")))
-    if fmt is None:
-        raise CorruptFileError(path, "the PLY header has no 'format' line")
-    needed = sum(count * _ply_min_record_bytes(props, fmt == "ascii")
-                 for _, count, props in elements)
-    available = path.stat().st_size - data_start
-    if needed > available + 1:  # +1: an ASCII file may end without its last newline
-        declared = ", ".join(f"'{e}' x {n:,}" for e, n, _ in elements)
-        raise CorruptFileError(path, f"its header declares {declared}, which need at least "
-                                     f"{needed:,} bytes, but only {available:,} follow it")
-    return fmt, elements, lines, data_start
-
-
-def _ply_min_record_bytes(props: list, ascii_format: bool) -> int:
-    """The fewest bytes one record of these properties can take (an empty list for lists)."""
-    if ascii_format:  # one character and one separator per value
-        return 2 * len(props)
-    return sum(np.dtype(kind[1]).itemsize if isinstance(kind, tuple) else
-               np.dtype(kind or "u1").itemsize for _, kind in props)
-
-
-def check_ply_size(path: str | Path) -> None:
-    """Raise :class:`CorruptFileError` if a PLY file is shorter than its header's counts need
-    (run before handing it to VTK, whose reader allocates what the header says)."""
-    _ply_header(Path(path))
-
+# --- PLY (plyfile) -----------------------------------------------------------------------------
 
 #: PLY vertex properties of the beam origins.
 BEAM_PROPERTIES = ("beam_x", "beam_y", "beam_z")
+#: The most header bytes looked at: a file without 'end_header' in them is not a point cloud.
+_MAX_HEADER_BYTES = 1 << 20
+#: bytes.translate table: every byte outside ASCII becomes '?'.
+_ASCII_ONLY = bytes(range(128)) + b"?" * 128
 
 
-def _read_ply(path: Path) -> tuple[np.ndarray, str]:
-    """Vertices of a PLY file (faces, if any, are ignored)."""
-    points, space, _ = _read_ply_with_beams(path)
-    return points, space
+class _PlyFile(io.BufferedReader):
+    """A PLY file opened for plyfile, which decodes the header as ASCII: header bytes outside
+    ASCII (a '®' in a comment) read as '?'; the data from ``data_start`` on are untouched."""
+
+    def __init__(self, path: Path, data_start: int):
+        super().__init__(io.FileIO(path, "rb"))
+        self._data_start = data_start
+
+    def read(self, size: int | None = -1) -> bytes:
+        start = self.tell()
+        data = super().read(size)
+        if start < self._data_start:
+            cut = self._data_start - start
+            data = data[:cut].translate(_ASCII_ONLY) + data[cut:]
+        return data
+
+
+def _ply_header(path: Path) -> tuple[PlyData, int]:
+    """The header of a PLY file, parsed by plyfile (elements without data), and where its data
+    start. Checks that the file is large enough for the counts it declares, before anything is
+    allocated: plyfile and VTK allocate what the header says."""
+    with open(path, "rb") as f:
+        head = io.BytesIO(f.read(_MAX_HEADER_BYTES).translate(_ASCII_ONLY))
+    try:
+        # plyfile's own header parser; PlyData.read would go on to allocate and read the data.
+        header = PlyData._parse_header(head)
+    except PlyHeaderParseError as exc:
+        raise CorruptFileError(path, _header_problem(exc)) from None
+    data_start = head.tell()
+    needed = 0
+    for element in header.elements:
+        if element.count < 0:
+            raise CorruptFileError(path, f"the PLY header declares {element.count} "
+                                         f"{element.name}s")
+        needed += element.count * _ply_min_record_bytes(element.properties, header.text)
+    available = path.stat().st_size - data_start
+    if needed > available + 1:  # +1: an ASCII file may end without its last newline
+        declared = ", ".join(f"'{e.name}' x {e.count:,}" for e in header.elements)
+        raise CorruptFileError(path, f"its header declares {declared}, which need at least "
+                                     f"{needed:,} bytes, but only {available:,} follow it")
+    return header, data_start
+
+
+def _header_problem(exc: PlyHeaderParseError) -> str:
+    if exc.message == "expected 'ply'":
+        return "it does not start with 'ply'"
+    if exc.message == "early end-of-file":
+        return "the header has no 'end_header' line"
+    return f"bad PLY header ({exc})"
+
+
+def _ply_min_record_bytes(properties, text: bool) -> int:
+    """The fewest bytes one record of these properties can take (an empty list for lists)."""
+    if text:  # one character and one separator per value
+        return 2 * len(properties)
+    return sum(np.dtype(p.len_dtype if isinstance(p, PlyListProperty) else p.val_dtype).itemsize
+               for p in properties)
+
+
+def check_ply_size(path: str | Path) -> None:
+    """Raise :class:`CorruptFileError` if a PLY file is not a PLY file or is shorter than its
+    header's counts need (run before handing it to VTK, whose reader allocates what the header
+    says)."""
+    _ply_header(Path(path))
 
 
 def _read_ply_with_beams(path: Path) -> tuple[np.ndarray, str, np.ndarray | None]:
     """Vertices of a PLY file and their beam origins when it has them (faces are ignored)."""
-    fmt, elements, header_lines, data_start = _ply_header(path)
-    names = [e[0] for e in elements]
-    if "vertex" not in names:
+    header, data_start = _ply_header(path)
+    names = {p.name for p in header["vertex"].properties} if "vertex" in header else set()
+    if not {"x", "y", "z"} <= names:
         raise CorruptFileError(path, "the PLY header has no vertex element with x, y, z")
-    if names.index("vertex") > 0:
-        raise CorruptFileError(path, "elements before 'vertex' are not supported")
-    _, vertex_count, vertex_props = elements[0]
-    if any(isinstance(t, tuple) for _, t in vertex_props):
-        raise CorruptFileError(path, "list properties on vertices are not supported")
-    space = _space_from_comments(header_lines)
-    names = [name for name, _ in vertex_props]
-    if not {"x", "y", "z"} <= set(names):
-        raise CorruptFileError(path, "the PLY header has no vertex element with x, y, z")
-    if any(not t for _, t in vertex_props):
-        raise CorruptFileError(path, "unknown PLY property type")
-    if fmt == "ascii":
-        with open(path, "rb") as f:
-            f.seek(data_start)
-            text = f.read().decode("ascii", errors="replace").split("\n")
-        rows = [line.split() for line in text if line.strip()][:vertex_count]
-        if len(rows) < vertex_count:
-            raise CorruptFileError(path, f"expected {vertex_count} vertices, found {len(rows)}")
-        try:
-            table = np.asarray([[float(v) for v in row[:len(names)]] for row in rows])
-        except ValueError:
-            raise CorruptFileError(path, "non-numeric vertex values") from None
-        if table.ndim != 2 or table.shape[1] != len(names):
-            raise CorruptFileError(path, f"vertex rows do not hold {len(names)} values each")
-        columns = {name: table[:, i] for i, name in enumerate(names)}
-    else:
-        order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(fmt)
-        if order is None:
-            raise CorruptFileError(path, f"unknown PLY format '{fmt}'")
-        dtype = np.dtype([(name, order + t) for name, t in vertex_props])
-        columns = _read_binary_records(path, data_start, dtype, vertex_count)
-    points = np.column_stack([columns["x"], columns["y"], columns["z"]]).astype(np.float64)
+    try:
+        with _PlyFile(path, data_start) as f:
+            vertices = PlyData.read(f)["vertex"].data
+    except PlyParseError as exc:
+        raise CorruptFileError(path, f"bad PLY data ({exc})") from None
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise CorruptFileError(path, f"bad PLY data ({type(exc).__name__})") from None
+    points = np.column_stack([vertices[k] for k in ("x", "y", "z")]).astype(np.float64)
     origins = None
-    if set(BEAM_PROPERTIES) <= set(names):
-        origins = np.column_stack([columns[k] for k in BEAM_PROPERTIES]).astype(np.float64)
-    return points, space, origins
+    if set(BEAM_PROPERTIES) <= names:
+        origins = np.column_stack([vertices[k] for k in BEAM_PROPERTIES]).astype(np.float64)
+    comments = header.comments + [c for e in header.elements for c in e.comments]
+    return points, _space_from_comments([f"comment {c}" for c in comments]), origins
 
 
 def _write_ply(cloud: PointCloud, tmp: Path, binary: bool) -> None:
-    fmt = "binary_little_endian" if binary else "ascii"
-    names = ("x", "y", "z") + (BEAM_PROPERTIES if cloud.beam_origins is not None else ())
-    header = (f"ply\nformat {fmt} 1.0\ncomment ComReg point cloud, millimetres\n"
-              f"comment SPACE={cloud.space}\nelement vertex {len(cloud.points)}\n"
-              + "".join(f"property double {name}\n" for name in names) + "end_header\n")
-    table = cloud.points if cloud.beam_origins is None else \
-        np.hstack([cloud.points, cloud.beam_origins])
-    _write_header_and_xyz(tmp, header, table, binary)
+    columns = {"x": cloud.points[:, 0], "y": cloud.points[:, 1], "z": cloud.points[:, 2]}
+    if cloud.beam_origins is not None:
+        columns.update(zip(BEAM_PROPERTIES, cloud.beam_origins.T))
+    vertices = np.empty(len(cloud.points), dtype=[(name, "<f8") for name in columns])
+    for name, values in columns.items():
+        vertices[name] = values
+    PlyData([PlyElement.describe(vertices, "vertex")], text=not binary, byte_order="<",
+            comments=["ComReg point cloud, millimetres", f"SPACE={cloud.space}"]).write(str(tmp))
 
 
-# --- PCD ----------------------------------------------------------------------------------------
-
-_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4",
-              ("I", 8): "i8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
-
+# --- PCD (pypcd4) ------------------------------------------------------------------------------
 
 def _read_pcd(path: Path) -> tuple[np.ndarray, str]:
-    """Points of a PCD v0.7 file (ascii, binary or binary_compressed)."""
+    """Points of a PCD file (ascii, binary or binary_compressed); points PCL marks missing
+    (NaN, in organised clouds) are dropped."""
     with open(path, "rb") as f:
         lines = _read_header_lines(f, path, end=b"DATA")
         data_start = f.tell()
-    header = {}
-    for line in lines:
-        words = line.split()
-        if words and not line.startswith("#"):
-            header[words[0].upper()] = words[1:]
-    try:
-        fields = header["FIELDS"]
-        sizes = [int(s) for s in header["SIZE"]]
-        types = header["TYPE"]
-        counts = [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
-        n_points = int(header["POINTS"][0]) if "POINTS" in header else (
-            int(header["WIDTH"][0]) * int(header["HEIGHT"][0]))
-        data_kind = header["DATA"][0].lower()
-        dtype = np.dtype([(name, _PCD_TYPES[(t.upper(), s)], (c,) if c > 1 else ())
-                          for name, s, t, c in zip(fields, sizes, types, counts)])
-    except (KeyError, IndexError, ValueError) as exc:
-        raise CorruptFileError(path, f"incomplete PCD header ({exc})") from None
-    if not {"x", "y", "z"} <= set(fields):
-        raise CorruptFileError(path, "the PCD file has no x, y, z fields")
-    if n_points < 0:
-        raise CorruptFileError(path, f"the PCD header declares {n_points} points")
-    if data_kind == "ascii":
-        with open(path, "rb") as f:
-            f.seek(data_start)
-            text = f.read().decode("ascii", errors="replace")
-        try:
-            table = np.loadtxt(text.splitlines(), ndmin=2, dtype=np.float64)
-        except ValueError as exc:
-            raise CorruptFileError(path, f"non-numeric data ({exc})") from None
-        if len(table) < n_points:
-            raise CorruptFileError(path, f"expected {n_points} points, found {len(table)}")
-        offsets = np.cumsum([0] + counts)
-        columns = {name: table[:n_points, offsets[i]] for i, name in enumerate(fields)}
-    elif data_kind == "binary":
-        columns = _read_binary_records(path, data_start, dtype, n_points)
-    elif data_kind == "binary_compressed":
-        columns = _read_pcd_compressed(path, data_start, dtype, n_points)
+    meta = _pcd_metadata(path, lines)
+    if meta.data.value == "ascii":
+        columns = _read_pcd_ascii(path, data_start, meta)
     else:
-        raise CorruptFileError(path, f"unknown PCD DATA kind '{data_kind}'")
+        columns = _read_pcd_binary(path, data_start, meta)
     points = np.column_stack([columns["x"], columns["y"], columns["z"]]).astype(np.float64)
-    finite = np.isfinite(points).all(axis=1)  # PCL marks missing points of organised clouds NaN
+    finite = np.isfinite(points).all(axis=1)
     return points[finite], _space_from_comments(lines)
 
 
-def _read_pcd_compressed(path: Path, start: int, dtype: np.dtype, n_points: int) -> dict:
-    """PCL's binary_compressed: LZF-compressed, fields stored column after column."""
+def _pcd_metadata(path: Path, lines: list[str]):
+    """pypcd4's validated header. Any VERSION is read (pypcd4 knows only 0.7); a header without
+    POINTS has WIDTH x HEIGHT of them, one without WIDTH is one row of POINTS."""
+    from pydantic import ValidationError
+    from pypcd4 import MetaData  # imports pydantic: only when a PCD file is read or written
+
+    words = {line.split()[0].upper(): line.split()[1:] for line in lines
+             if line.split() and not line.startswith("#")}
+    lines = [line for line in lines if not line.upper().startswith("VERSION")]
+    try:
+        if "POINTS" not in words and {"WIDTH", "HEIGHT"} <= set(words):
+            lines.append(f"POINTS {int(words['WIDTH'][0]) * int(words['HEIGHT'][0])}")
+        elif "WIDTH" not in words and "POINTS" in words:
+            lines.append(f"WIDTH {int(words['POINTS'][0])}")
+    except (IndexError, ValueError):
+        pass  # pypcd4 says what is wrong
+    try:
+        meta = MetaData.parse_header(lines)
+        meta.build_dtype()
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
+                             for e in exc.errors())
+        missing = any(e["type"] == "missing" for e in exc.errors())
+        raise CorruptFileError(path, f"{'incomplete' if missing else 'invalid'} PCD header "
+                                     f"({problems})") from None
+    except (KeyError, ValueError) as exc:
+        raise CorruptFileError(path, f"invalid PCD header ({exc})") from None
+    if not {"x", "y", "z"} <= set(meta.fields):
+        raise CorruptFileError(path, "the PCD file has no x, y, z fields")
+    return meta
+
+
+def _read_pcd_ascii(path: Path, start: int, meta) -> dict:
+    """ASCII rows, split at any whitespace (pypcd4 takes single spaces only)."""
     with open(path, "rb") as f:
         f.seek(start)
-        sizes = f.read(8)
-        if len(sizes) < 8:
+        text = f.read().decode("ascii", errors="replace")
+    try:
+        table = np.loadtxt(text.splitlines(), ndmin=2, dtype=np.float64)
+    except ValueError as exc:
+        raise CorruptFileError(path, f"non-numeric data ({exc})") from None
+    if len(table) < meta.points:
+        raise CorruptFileError(path, f"expected {meta.points} points, found {len(table)}")
+    offsets = np.cumsum([0, *meta.count])
+    return {name: table[:meta.points, offsets[i]] for i, name in enumerate(meta.fields)}
+
+
+def _read_pcd_binary(path: Path, start: int, meta) -> np.ndarray:
+    """binary and binary_compressed data, decoded by pypcd4 once the sizes are checked."""
+    from pypcd4 import PointCloud as PcdCloud
+
+    record = meta.build_dtype().itemsize
+    needed, available = record * meta.points, path.stat().st_size - start
+    if meta.data.value == "binary" and needed > available:
+        raise CorruptFileError(path, f"its header declares {meta.points:,} points ({needed:,} "
+                                     f"bytes), but only {max(available, 0):,} bytes follow it")
+    with open(path, "rb") as f:
+        f.seek(start)
+        data = f.read()
+    if meta.data.value != "binary":
+        if len(data) < 8:
             raise CorruptFileError(path, "truncated compressed PCD data")
-        compressed_size, raw_size = struct.unpack("<II", sizes)
-        if raw_size != dtype.itemsize * n_points or compressed_size > path.stat().st_size - start:
+        compressed_size, raw_size = struct.unpack("<II", data[:8])
+        if raw_size != needed or compressed_size > available - 8:
             raise CorruptFileError(path, f"the compressed PCD data ({compressed_size:,} bytes "
                                          f"for {raw_size:,}) does not match the header's "
-                                         f"{n_points:,} points")
-        raw = _lzf_decompress(f.read(compressed_size), raw_size, path)
-    columns, offset = {}, 0
-    for name in dtype.names:
-        field = dtype.fields[name][0]
-        nbytes = field.itemsize * n_points
-        columns[name] = np.frombuffer(raw, field.base, count=n_points * max(1, field.itemsize //
-                                      field.base.itemsize), offset=offset)
-        offset += nbytes
-    return columns
-
-
-def _lzf_decompress(data: bytes, expected: int, path: Path) -> bytes:
-    """Decompress LZF (the liblzf format PCL uses)."""
-    out = bytearray()
-    i = 0
+                                         f"{meta.points:,} points")
     try:
-        while i < len(data):
-            ctrl = data[i]
-            i += 1
-            if ctrl < 32:  # literal run of ctrl + 1 bytes
-                out += data[i:i + ctrl + 1]
-                i += ctrl + 1
-            else:  # back reference
-                length = ctrl >> 5
-                if length == 7:
-                    length += data[i]
-                    i += 1
-                ref = len(out) - ((ctrl & 0x1F) << 8) - data[i] - 1
-                i += 1
-                if ref < 0:
-                    raise IndexError
-                for _ in range(length + 2):
-                    out.append(out[ref])
-                    ref += 1
-    except IndexError:
-        raise CorruptFileError(path, "corrupt LZF-compressed PCD data") from None
-    if len(out) != expected:
-        raise CorruptFileError(path, f"compressed PCD data gave {len(out)} bytes, "
-                                     f"expected {expected}")
-    return bytes(out)
+        return PcdCloud.from_fileobj(io.BytesIO(meta.compose_header().encode("ascii") + data)
+                                     ).pc_data
+    except (ValueError, TypeError, RuntimeError, struct.error) as exc:
+        detail = ("corrupt LZF-compressed PCD data" if meta.data.value != "binary" else
+                  f"corrupt PCD data ({type(exc).__name__}: {exc})")
+        raise CorruptFileError(path, detail) from None
 
 
 def _write_pcd(cloud: PointCloud, tmp: Path, binary: bool) -> None:
-    n = len(cloud.points)
-    header = (f"# .PCD v0.7 - ComReg point cloud, millimetres. SPACE={cloud.space}\n"
-              "VERSION 0.7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\n"
-              f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
-              f"DATA {'binary' if binary else 'ascii'}\n")
-    _write_header_and_xyz(tmp, header, cloud.points, binary)
+    from pypcd4 import Encoding, PointCloud as PcdCloud
+
+    pcd = PcdCloud.from_points(cloud.points, ("x", "y", "z"), (np.float64,) * 3)
+    with open(tmp, "wb") as f:
+        f.write(f"# .PCD v0.7 - ComReg point cloud, millimetres. SPACE={cloud.space}\n"
+                .encode("ascii"))
+        if binary:
+            pcd.save(f, Encoding.BINARY)
+        else:  # pypcd4's ASCII rows have 10 decimals: write every bit of each float64
+            f.write(pcd.metadata.compose_header(Encoding.ASCII).encode("ascii"))
+            np.savetxt(f, cloud.points, fmt="%.17g")
 
 
 # --- shared helpers ---------------------------------------------------------------------------
 
-def _read_header_lines(f, path: Path, *, end: bytes, first: bytes | None = None) -> list[str]:
-    """Read text header lines up to and including the one starting with ``end``."""
+def _read_header_lines(f, path: Path, *, end: bytes) -> list[str]:
+    """Read text header lines up to and including the one starting with ``end`` (comments may
+    be in any 8-bit encoding: MATLAB writes a UTF-8 '®')."""
     lines = []
     for _ in range(1000):
         raw = f.readline()
         if not raw:
             raise CorruptFileError(path, f"the header has no '{end.decode()}' line")
-        if first is not None and not lines and raw.strip() != first:
-            raise CorruptFileError(path, f"it does not start with '{first.decode()}'")
         lines.append(raw.decode("latin-1").strip())
         if raw.strip().startswith(end):
             return lines
     raise CorruptFileError(path, "the header is too long; this does not look like a point cloud")
-
-
-def _read_binary_records(path: Path, start: int, dtype: np.dtype, count: int) -> np.ndarray:
-    """``count`` records of ``dtype`` from ``start``; the file size is checked first, so a
-    header claiming billions of points is refused without allocating them."""
-    needed, available = dtype.itemsize * count, path.stat().st_size - start
-    if count < 0 or needed > available:
-        raise CorruptFileError(path, f"its header declares {count:,} points ({needed:,} "
-                                     f"bytes), but only {max(available, 0):,} bytes follow it")
-    with open(path, "rb") as f:
-        f.seek(start)
-        data = f.read(needed)
-    return np.frombuffer(data, dtype=dtype, count=count)
-
-
-def _write_header_and_xyz(tmp: Path, header: str, points: np.ndarray, binary: bool) -> None:
-    """A text header, then ``(N, C)`` rows (points, with their beam origins in a PLY) as
-    little-endian float64 or full-precision text."""
-    with open(tmp, "wb") as f:
-        f.write(header.encode("ascii"))
-        if binary:
-            f.write(points.astype("<f8").tobytes())
-        else:
-            np.savetxt(f, points, fmt="%.17g")
 
 
 def _space_from_comments(lines: list[str]) -> str:
