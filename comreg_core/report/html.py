@@ -1,4 +1,5 @@
-"""The HTML page of a report: pure string building, no rendering, every value HTML-escaped.
+"""The HTML page of a report: the values in words and units here, the markup in Jinja2 templates
+(``templates/report.html.j2``, rendered with autoescape on: every value is HTML-escaped).
 
 The page has no scripts, no external style sheets, fonts or CDN links: the inline ``<style>`` and
 the images are all it needs. Images are referenced by relative paths (``report_images/...``) by
@@ -9,12 +10,15 @@ default, so the run folder (``report.html`` + ``report_images/``) is the self-co
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import html
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+import jinja2
 import numpy as np
 
 
@@ -156,49 +160,39 @@ class Section:
     figures: Sequence[Figure]
 
 
-_STYLE = """
-body { font-family: -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; margin: 1.5em auto;
-       max-width: 1280px; color: #141414; padding: 0 1em; line-height: 1.4; }
-h1 { font-size: 1.6em; margin-bottom: 0.2em; }
-h2 { font-size: 1.25em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }
-.meta { color: #555; }
-table { border-collapse: collapse; margin: 0.5em 0; }
-th, td { border: 1px solid #ccc; padding: 0.25em 0.7em; text-align: left; vertical-align: top; }
-th { background: #f2f2f2; }
-td.num { text-align: right; font-variant-numeric: tabular-nums; }
-.figures { display: flex; flex-wrap: wrap; gap: 12px; }
-figure { margin: 0; flex: 1 1 300px; max-width: 420px; }
-figure img { width: 100%; height: auto; border: 1px solid #ddd; }
-figcaption { font-size: 0.9em; color: #333; }
-.swatch { display: inline-block; width: 0.9em; height: 0.9em; border-radius: 50%;
-          vertical-align: -0.1em; margin-right: 0.25em; }
-code { font-size: 0.95em; }
-.verdict { font-size: 1.8em; font-weight: bold; margin: 0.2em 0; }
-.verdict.ok { color: #007a3d; }
-.verdict.check { color: #b00020; }
-"""
+#: Where the page's Jinja2 templates live (package data: ``report/templates/*.j2``).
+TEMPLATES = Path(__file__).with_name("templates")
 
 
-def _table(rows: Sequence[tuple], header: tuple[str, ...], *, numbers: bool = False) -> str:
-    """Rows ``(label, value)``, or ``(label, value, unit)`` with a unit column."""
-    head = "".join(f"<th>{esc(h)}</th>" for h in header)
-    body = []
+@functools.lru_cache(maxsize=1)
+def _environment() -> jinja2.Environment:
+    """The templates' environment: autoescape on for every template (all are HTML), undefined
+    names are errors, block tags leave no blank lines."""
+    return jinja2.Environment(loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True,
+                              undefined=jinja2.StrictUndefined, trim_blocks=True,
+                              lstrip_blocks=True, keep_trailing_newline=True)
+
+
+@dataclass(frozen=True)
+class _Row:
+    """One table row as the template shows it: texts, and whether the value is a number."""
+
+    label: str
+    text: str
+    number: bool
+    units: tuple[str, ...]
+
+
+def _table_rows(rows: Sequence[tuple], *, numbers: bool = False) -> list[_Row]:
+    """Rows ``(label, value)``, or ``(label, value, unit)`` with a unit column; with ``numbers``
+    values are written by :func:`format_value` and numbers right-aligned."""
+    out = []
     for key, value, *unit in rows:
-        cells = [f"<td>{esc(key)}</td>"]
         text = format_value(value) if numbers else ("n/a" if value is None else str(value))
-        cls = ' class="num"' if numbers and isinstance(value, (int, float, np.number)) \
-            and not isinstance(value, (bool, np.bool_)) else ""
-        cells.append(f"<td{cls}>{esc(text)}</td>")
-        cells.extend(f"<td>{esc(u)}</td>" for u in unit)
-        body.append("<tr>" + "".join(cells) + "</tr>")
-    if not body:
-        return "<p class=\"meta\">None given.</p>"
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
-
-
-def swatch(rgb: Sequence[int]) -> str:
-    r, g, b = (int(c) for c in rgb)
-    return f'<span class="swatch" style="background: rgb({r}, {g}, {b})"></span>'
+        number = numbers and isinstance(value, (int, float, np.number)) \
+            and not isinstance(value, (bool, np.bool_))
+        out.append(_Row(str(key), text, number, tuple(str(u) for u in unit)))
+    return out
 
 
 def build_html(*, title: str, sections: Sequence[Section], metrics: Mapping[str, Any] | None,
@@ -207,7 +201,8 @@ def build_html(*, title: str, sections: Sequence[Section], metrics: Mapping[str,
                legend: Sequence[tuple[str, Sequence[int]]] = (),
                generated: _dt.datetime | None = None,
                verdict: tuple[str, Sequence[str]] | None = None) -> str:
-    """The whole page as a string. Everything given is escaped, keys and values alike.
+    """The whole page as a string, rendered from ``templates/report.html.j2`` with autoescape
+    on: everything given is escaped, keys and values alike.
 
     ``verdict``: ``(headline, reasons)``, e.g. ``("Verdict: CHECK", [...])``: the first line of
     the page, green for OK and red for CHECK, its reasons listed under it.
@@ -216,41 +211,17 @@ def build_html(*, title: str, sections: Sequence[Section], metrics: Mapping[str,
     ``legend`` names the colours (label, 0-255 RGB).
     """
     generated = generated or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0)
-    parts = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
-             '<meta name="viewport" content="width=device-width, initial-scale=1">',
-             f"<title>{esc(title)}</title>", f"<style>{_STYLE}</style>", "</head>", "<body>"]
     if verdict is not None:
-        headline, reasons = verdict
-        kind = "ok" if headline.upper().endswith("OK") else "check"
-        parts.append(f'<p class="verdict {kind}">{esc(headline)}</p>')
-        if reasons:
-            parts.append('<ul class="reasons">' + "".join(f"<li>{esc(r)}</li>" for r in reasons)
-                         + "</ul>")
-    parts += [f"<h1>{esc(title)}</h1>",
-             f'<p class="meta">Generated {esc(generated.isoformat())} by ComReg.</p>']
-    if legend:
-        items = " &nbsp; ".join(f"{swatch(rgb)}{esc(label)}" for label, rgb in legend)
-        parts.append(f'<p class="legend">{items}</p>')
-    parts.append("<h2>Metrics</h2>")
-    parts.append(_table(metric_rows(metrics or {}), ("Metric", "Value", "Unit"), numbers=True))
-    for section in sections:
-        parts.append(f"<h2>{esc(section.heading)}</h2>")
-        if section.text:
-            parts.append(f"<p>{esc(section.text)}</p>")
-        parts.append('<div class="figures">')
-        for fig in section.figures:
-            parts.append(
-                f'<figure><img src="{esc(fig.src)}" alt="{esc(fig.alt)}" width="{fig.width}" '
-                f'height="{fig.height}"><figcaption>{esc(fig.caption)}</figcaption></figure>')
-        parts.append("</div>")
-    parts.append("<h2>Inputs</h2>")
-    parts.append(_table(inputs, ("Input", "Value")))
-    parts.append("<h2>Run</h2>")
-    parts.append(_table(run, ("Setting", "Value")))
-    parts.append("<h2>Versions</h2>")
-    parts.append(_table(versions, ("Component", "Version")))
-    if notes:
-        parts.append("<h2>How to read the images</h2>")
-        parts.extend(f"<p>{esc(note)}</p>" for note in notes)
-    parts += ["</body>", "</html>", ""]
-    return "\n".join(parts)
+        headline, reasons = str(verdict[0]), [str(r) for r in verdict[1]]
+        verdict = {"headline": headline, "reasons": reasons,
+                   "kind": "ok" if headline.upper().endswith("OK") else "check"}
+    # Plain str everywhere: a value that says it is markup (``__html__``) is escaped too.
+    sections = [Section(str(s.heading), str(s.text), [
+        Figure(str(f.src), str(f.alt), str(f.caption), int(f.width), int(f.height))
+        for f in s.figures]) for s in sections]
+    return _environment().get_template("report.html.j2").render(
+        title=str(title), generated=generated.isoformat(), verdict=verdict,
+        legend=[(str(label), [int(c) for c in rgb]) for label, rgb in legend],
+        metrics=_table_rows(metric_rows(metrics or {}), numbers=True), sections=sections,
+        inputs=_table_rows(inputs), run=_table_rows(run), versions=_table_rows(versions),
+        notes=[str(note) for note in notes])
