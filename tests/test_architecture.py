@@ -11,21 +11,23 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 #: comreg_core's layers, lowest first: a module may import its own layer and those below.
 LAYERS = (
-    ("errors", "transforms", "runs", "choices", "progress", "pointsets"),
+    ("errors", "transforms", "runs", "choices", "progress", "pointsets", "normalization"),
     ("config", "io"),
     ("surfaces",),
     ("registration",),
     ("simulation",),
     ("model",),
     ("training",),
-    ("inference", "register_output"),
+    ("inference", "register_output", "register"),
     ("evaluation",),
     ("report",),
-    ("demo", "cli_errors", "cli_shared", "cli_calibrate", "cli_evaluate", "cli",
-     "live", "cli_live", "cli_batch", "batch"),
+    ("demo", "cli", "live", "batch"),
 )
 LAYER = {name: rank for rank, names in enumerate(LAYERS) for name in names}
 MAX_LINES = 500
+#: The ``comreg`` command (``comreg_core/cli/``): short modules of short functions.
+CLI_MAX_LINES = 400
+CLI_MAX_FUNCTION_LINES = 60
 
 
 def _modules(package: str) -> list[Path]:
@@ -33,7 +35,8 @@ def _modules(package: str) -> list[Path]:
 
 
 def _unit(path: Path) -> str:
-    """``comreg_core/registration/icp.py`` -> ``registration``; ``comreg_core/cli.py`` -> ``cli``."""
+    """``comreg_core/registration/icp.py`` -> ``registration``; ``comreg_core/demo.py`` ->
+    ``demo``."""
     return path.relative_to(ROOT / "comreg_core").parts[0].removesuffix(".py")
 
 
@@ -86,6 +89,39 @@ def test_no_module_over_500_lines(package):
     long = {str(p.relative_to(ROOT)): n for p in _modules(package)
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
     assert not long, f"split these by concern: {long}"
+
+
+def test_the_cli_is_short_modules_of_short_functions():
+    long = {}
+    for path in _modules("comreg_core/cli"):
+        text = path.read_text(encoding="utf-8")
+        if (n := len(text.splitlines())) > CLI_MAX_LINES:
+            long[str(path.relative_to(ROOT))] = n
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and \
+                    (n := node.end_lineno - node.lineno + 1) > CLI_MAX_FUNCTION_LINES:
+                long[f"{path.relative_to(ROOT)}:{node.lineno} {node.name}()"] = n
+    assert not long, f"split these into named steps (at most {CLI_MAX_LINES} lines a module, " \
+                     f"{CLI_MAX_FUNCTION_LINES} a function): {long}"
+
+
+def test_every_command_is_registered_one_way():
+    """``@app.command(NAME, rich_help_panel=PANEL)`` on the command's function; never
+    ``app.command(NAME)(function)``."""
+    other = []
+    for path in _modules("comreg_core/cli"):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        decorators = {id(d) for node in ast.walk(tree)
+                      if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+                      for d in node.decorator_list}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
+                    node.func.attr == "command" and (
+                        id(node) not in decorators
+                        or not any(k.arg == "rich_help_panel" for k in node.keywords)):
+                other.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not other, "register commands with @app.command(NAME, rich_help_panel=PANEL): " \
+                      + ", ".join(other)
 
 
 def test_the_named_choices_are_what_the_packages_implement():

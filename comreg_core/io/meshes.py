@@ -7,9 +7,11 @@ as 3D Slicer does. Readers keep the file's space; :meth:`SurfaceMesh.in_space` c
 
 from __future__ import annotations
 
+import hashlib
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -183,3 +185,24 @@ def _write_obj(mesh: SurfaceMesh, tmp: Path, tag: str) -> None:
         f.write(f"# ComReg output. {tag}\n")
         np.savetxt(f, mesh.vertices, fmt="v %.17g %.17g %.17g")
         np.savetxt(f, mesh.faces + 1, fmt="f %d %d %d")
+
+
+def ct_fingerprint(vertices: np.ndarray, faces: np.ndarray) -> dict[str, Any]:
+    """Identity of a CT mesh: sha256 over its float64 vertices, int64 faces and bounding box
+    (little-endian, C order), plus the sizes and the bounding box (mm) for people to read."""
+    v = np.ascontiguousarray(vertices, dtype="<f8")
+    f = np.ascontiguousarray(faces, dtype="<i8")
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    h = hashlib.sha256()
+    for part in (np.array(v.shape, "<i8"), v, np.array(f.shape, "<i8"), f, lo, hi):
+        h.update(np.ascontiguousarray(part).tobytes())
+    return {"sha256": h.hexdigest(), "n_vertices": int(len(v)), "n_faces": int(len(f)),
+            "bbox_min_mm": lo.tolist(), "bbox_max_mm": hi.tolist()}
+
+
+def mesh_fingerprint(mesh) -> dict[str, Any]:
+    """:func:`ct_fingerprint` of a mesh path or :class:`~comreg_core.io.SurfaceMesh`, exactly as
+    read from the file (no repair or merging)."""
+    if not isinstance(mesh, SurfaceMesh):
+        mesh = read_mesh(mesh)
+    return ct_fingerprint(mesh.vertices, mesh.faces)

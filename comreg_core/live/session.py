@@ -23,7 +23,7 @@ whose OK pose moved, says CHECK until that answer came ("a full search is confir
 verdict still only turns OK on a full search.
 
 **Verdict.** Every update is judged as ``comreg register`` judges a result
-(:func:`~comreg_core.registration.verdict.judge_registration`: residuals, refit, coverage, on
+(:func:`~comreg_core.register.judge.judge`: residuals, refit, coverage, on
 at most :data:`VERDICT_POINTS` of the points) with the result's own evidence: the margin of its
 best clinically different pose (and, with a calibration, ``p_correct`` at the sweep's extent)
 or its confidence. A warm result's evidence covers the competitors it carried over from the
@@ -52,19 +52,18 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
 from comreg_core.errors import ComRegError
 from comreg_core.registration.advice import end_names
-from comreg_core.registration.calibration import (OK_PROBABILITY, TOLERANCE_DEG, Calibration,
-                                                  clinical_competitor, extent_share)
+from comreg_core.register.judge import Evidence, is_short_sweep, judge
+from comreg_core.registration.calibration import TOLERANCE_DEG, Calibration, extent_share
 from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.registration.polish import halves_disagreement_deg
 from comreg_core.registration.priors import Prior, prior_allows
 from comreg_core.registration.surface import ct_length_mm
-from comreg_core.registration.verdict import judge_registration, with_prior_reasons
 from comreg_core.live.background import (FullSearchDone, FullSearchJob, FullSearchWorker,
                                          warm_up_registrar)
 from comreg_core.live.stream import Frame, SweepPoints, coalesce, covered_length_mm
@@ -103,15 +102,6 @@ def warm_register(registrar, points: np.ndarray, origins: np.ndarray | None, las
     given. The one place to change how a live update registers warm."""
     return registrar.register(points, seed=seed, beam_origins=origins, warm_start=last,
                               prior=prior, residuals=False)
-
-
-@dataclass
-class _Evidence:
-    """What a registration said about the clinically different poses."""
-
-    margin: float
-    confidence: float | None
-    ambiguous: bool
 
 
 class LiveSession:
@@ -167,7 +157,7 @@ class LiveSession:
         self.target = registrar.hypothesis_target(registrar.hypothesis_config.target_points)
         self.ct_length = (calibration.ct_length_mm if calibration is not None
                           else ct_length_mm(self.target))
-        self._evidence: _Evidence | None = None
+        self._evidence: Evidence | None = None
         self._result = None  # the last RegistrationResult (the warm start of the next)
         self._covered_at_full = -math.inf
         self._fulls: list[tuple[float, np.ndarray]] = []  # (covered mm, T_ct_us) of each
@@ -183,7 +173,7 @@ class LiveSession:
         network's CT half) by registering a patch of the CT's own surface, so the first live
         update costs what later ones do."""
         patch, result = warm_up_registrar(self.registrar, self.seed)
-        self._judge(patch, result, _Evidence(1.0, None, False))
+        self._judge(patch, result, Evidence())
 
     # -- one update ----------------------------------------------------------------------------
 
@@ -343,12 +333,11 @@ class LiveSession:
         return rotation_error_deg(T, T_last) > deg or \
             translation_error_mm(T, T_last, centroid) > mm
 
-    def _evidence_of(self, result, pts: np.ndarray) -> _Evidence:
-        margin = 1.0
-        if result.hypotheses is not None:
-            allowed = None if self.prior is None else prior_allows(self.prior, result)
-            margin = clinical_competitor(result.hypotheses, pts, allowed)["margin"]
-        self._evidence = _Evidence(float(margin), result.confidence, bool(result.ambiguous))
+    def _evidence_of(self, result, pts: np.ndarray) -> Evidence:
+        """The evidence of ``result`` for ``pts`` (:meth:`Evidence.of`; the competitor among the
+        poses the prior allows), kept for the update's record."""
+        allowed = None if self.prior is None else prior_allows(self.prior, result)
+        self._evidence = Evidence.of(result, pts, self.ct_length, self.calibration, allowed)
         return self._evidence
 
     def _full(self, pts: np.ndarray, origins: np.ndarray | None, everything: np.ndarray):
@@ -383,9 +372,9 @@ class LiveSession:
         return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
 
     def _short(self, pts: np.ndarray) -> bool:
-        """Whether the sweep ``pts`` spans under half the CT (a short sweep, for the verdict and
-        the halves check)."""
-        return extent_share(pts, self.ct_length) < 0.5
+        """Whether the sweep ``pts`` is short (:func:`is_short_sweep`: for the verdict and the
+        halves check)."""
+        return is_short_sweep(extent_share(pts, self.ct_length))
 
     def _consistent(self, verdict, pts: np.ndarray, result=None, origins=None):
         """``verdict``, turned CHECK when it is OK for a sweep spanning under half the CT whose
@@ -406,27 +395,17 @@ class LiveSession:
                "deg yet.")
         return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
 
-    def _judge(self, pts: np.ndarray, result, evidence: _Evidence, scale_scan: bool = True):
-        """The verdict of ``result`` (its ``T_ct_us``, and where it lies in the prior) for
-        ``pts`` with the registration's ``evidence``; without
-        ``scale_scan`` (a warm update) no scale check: the US calibration's scale is checked
-        by the full searches (a scale problem found there makes the warm verdicts differ, so
-        each update runs the full search again and stays CHECK)."""
-        extent = extent_share(pts, self.ct_length)
-        p_correct = None
-        if self.calibration is not None:
-            p_correct = self.calibration.p_correct(evidence.margin, extent)
+    def _judge(self, pts: np.ndarray, result, evidence: Evidence, scale_scan: bool = True):
+        """The verdict of ``result`` for ``pts`` by the one judge (:func:`judge`) on at most
+        :data:`VERDICT_POINTS` of them; without ``scale_scan`` (a warm update) no scale check:
+        the US calibration's scale is checked by the full searches (a scale problem found
+        there makes the warm verdicts differ, so each update runs the full search again and
+        stays CHECK)."""
         if len(pts) > VERDICT_POINTS:
             pts = pts[np.sort(np.random.default_rng(self.seed).choice(
                 len(pts), VERDICT_POINTS, replace=False))]
-        ok_probability = OK_PROBABILITY if self.calibration is None \
-            else self.calibration.ok_probability
-        verdict = judge_registration(pts, result.T_ct_us, self.registrar.surface,
-                                     confidence=evidence.confidence,
-                                     ambiguous=evidence.ambiguous, p_correct=p_correct,
-                                     short_sweep=extent < 0.5, ok_probability=ok_probability,
-                                     scale_scan=scale_scan)
-        return with_prior_reasons(verdict, result.info.get("prior"))
+        return judge(pts, result.T_ct_us, self.registrar.surface, evidence,
+                     scale_scan=scale_scan)
 
 
 def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:

@@ -3,7 +3,7 @@
 Modules: :mod:`.ops` (FPS, kNN, gather, Chamfer, quaternions), :mod:`.adapointr` (completion
 ``f``), :mod:`.pose_head` (registration ``g``), :mod:`.diff_icp` (differentiable ICP),
 :mod:`.comreg` (the whole network), :mod:`.losses`, :mod:`.config` (``ModelConfig``, presets
-``paper`` and ``cpu``), :mod:`.normalization` (the CT-based normalised coordinates).
+``paper`` and ``cpu``), :mod:`comreg_core.normalization` (the CT-based normalised coordinates).
 """
 
 from comreg_core.model.adapointr import AdaPoinTr, CompletionOutput
@@ -23,7 +23,7 @@ from comreg_core.model.losses import (
     pose_loss,
     rotation_angle,
 )
-from comreg_core.model.normalization import Normalization
+from comreg_core.normalization import Normalization
 from comreg_core.model.ops import chamfer_l1, furthest_point_sample, gather_points, knn
 from comreg_core.model.pose_head import CorrespondencePoseHead, PoseHead, build_pose_head
 

@@ -1,7 +1,7 @@
 """The ComReg network: completion ``f`` + coarse pose ``g`` + differentiable ICP, end to end.
 
 ``ComRegNet(config)(source, target)`` takes the (transformed, partial) US cloud ``S^t`` and the CT
-cloud ``T``, both in the CT's normalised coordinates (:mod:`comreg_core.model.normalization`),
+cloud ``T``, both in the CT's normalised coordinates (:mod:`comreg_core.normalization`),
 and returns the completion of ``S^t``, the coarse transform ``T_coarse^-1`` (source -> target)
 predicted from ``H(S^t) (+) H(T)``, and its ICP refinement ``T_fine^-1``.
 

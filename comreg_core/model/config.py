@@ -11,7 +11,7 @@ and the point counts; it was chosen by measuring forward + backward time at batc
 cores (see ``tests/benchmarks/bench_model.py``).
 
 All lengths (sigma) are in the network's normalised coordinates (see
-:mod:`comreg_core.model.normalization`).
+:mod:`comreg_core.normalization`).
 """
 
 from __future__ import annotations

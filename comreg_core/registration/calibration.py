@@ -34,7 +34,7 @@ import numpy as np
 from comreg_core.errors import ComRegError
 from comreg_core.registration.metrics import rotation_error_deg
 from comreg_core.registration.surface import principal_frame, spread_mm
-from comreg_core.transforms import apply_transform
+from comreg_core.transforms import apply_transform, project
 
 #: Clinical tolerance: target error over the sweep (mm) and rotation (deg).
 TOLERANCE_MM = 4.0
@@ -105,7 +105,7 @@ def extent_share(points_us: np.ndarray, ct_length_mm: float) -> float:
     """The sweep's spread along its largest principal axis (5th-95th percentile, mm) over the
     CT's length, clipped to [0, 1]."""
     centre, axes = principal_frame(points_us)
-    spread = spread_mm((points_us - centre) @ axes[:, 0])
+    spread = spread_mm(project(points_us - centre, axes[:, 0]))
     return float(np.clip(spread / max(ct_length_mm, 1e-9), 0.0, 1.0))
 
 

@@ -5,35 +5,19 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from comreg_core.progress import Progress
+from comreg_core.register.folder import read_result
+from comreg_core.register.judge import Evidence, judge
 from comreg_core import runs
-from comreg_core.errors import ComRegError
 from comreg_core.io._files import check_output_folder, require_input_file
 from comreg_core.report.html import Quantity
 from comreg_core.report.report import write_report
-
-
-def read_registration_result(out_dir: Path) -> dict[str, Any]:
-    """``out_dir/result.json`` checked to hold ``T_ct_us``, ``us_points`` and a ``run_dir`` or
-    a ``ct_mesh`` (a registration without a network has no run). Relative paths in it (results
-    written before they were stored absolute) are taken as relative to the current directory,
-    as they were written."""
-    path = require_input_file(Path(out_dir) / runs.RESULT, "registration result")
-    try:
-        result = json.loads(path.read_text(encoding="utf-8"))
-        np.asarray(result["T_ct_us"], dtype=np.float64).reshape(4, 4)
-        str(result["us_points"])
-        if result.get("run_dir") is None and result.get("ct_mesh") is None:
-            raise KeyError("run_dir or ct_mesh")
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ComRegError(f"'{path}' is not a ComReg registration result ({exc}).",
-                          "Run 'comreg register' into this folder first.") from None
-    return result
 
 
 def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | None = None,
@@ -57,13 +41,12 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     ``report.html``.
     """
     from comreg_core.io import read_mesh, read_points
-    from comreg_core.registration.verdict import judge_registration
     from comreg_core.transforms import apply_transform
 
     out_dir = Path(out_dir)
     require_input_file(out_dir / runs.RESULT, "registration result")
     check_output_folder(out_dir, what="report folder")  # before reading and rendering
-    result = read_registration_result(out_dir)
+    result = read_result(out_dir)
     run_dir, us_paths = result.get("run_dir"), result["us_points"]
     us_paths = [Path(path) for path in (us_paths if isinstance(us_paths, list) else [us_paths])]
     ct_path = ct_mesh or result.get("ct_mesh")
@@ -84,17 +67,10 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
 
         T_ct_us, completion = load_transform(transform, space=ct.space), None
     tracked, T_us_ref = _sweep_for(result, sweep, sweep_calibration)
-    hypotheses = result.get("hypotheses") or {}
-    verdict = judge_registration(us_points, T_ct_us, (ct.vertices, ct.faces),
-                                 confidence=hypotheses.get("confidence"),
-                                 ambiguous=hypotheses.get("ambiguous"),
-                                 p_correct=None if transform is not None
-                                 else result.get("p_correct"),
-                                 short_sweep=(result.get("extent_share") or 1.0) < 0.5)
-    if transform is None:  # an initial pose or landmarks the result sits at the edge of
-        from comreg_core.registration.verdict import with_prior_reasons
-
-        verdict = with_prior_reasons(verdict, result.get("prior"))
+    evidence = Evidence.from_json(result)
+    if transform is not None:  # another transform: judged by its fit alone
+        evidence = replace(evidence, p_correct=None, prior=None)
+    verdict = judge(us_points, T_ct_us, (ct.vertices, ct.faces), evidence)
     metrics = registration_metrics_table(result, verdict.figures, judged_file=transform)
     evaluation = _metrics_for(out_dir / runs.METRICS, T_ct_us)
     if evaluation is not None:

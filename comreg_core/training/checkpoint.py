@@ -17,17 +17,16 @@ resumes the same way at any number of processes. Rank 0 alone writes it.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import pickle
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from comreg_core import runs
 from comreg_core.errors import ComRegError
+from comreg_core.io.meshes import ct_fingerprint, mesh_fingerprint  # noqa: F401 (re-exported)
 from comreg_core.io._files import atomic_output
 from comreg_core.io.json_files import write_json
 
@@ -37,29 +36,6 @@ CHECKPOINT_VERSION = 1
 
 class CheckpointError(ComRegError):
     """A run folder or checkpoint is missing, unreadable, or was made for another CT."""
-
-
-def ct_fingerprint(vertices: np.ndarray, faces: np.ndarray) -> dict[str, Any]:
-    """Identity of a CT mesh: sha256 over its float64 vertices, int64 faces and bounding box
-    (little-endian, C order), plus the sizes and the bounding box (mm) for people to read."""
-    v = np.ascontiguousarray(vertices, dtype="<f8")
-    f = np.ascontiguousarray(faces, dtype="<i8")
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    h = hashlib.sha256()
-    for part in (np.array(v.shape, "<i8"), v, np.array(f.shape, "<i8"), f, lo, hi):
-        h.update(np.ascontiguousarray(part).tobytes())
-    return {"sha256": h.hexdigest(), "n_vertices": int(len(v)), "n_faces": int(len(f)),
-            "bbox_min_mm": lo.tolist(), "bbox_max_mm": hi.tolist()}
-
-
-def mesh_fingerprint(mesh) -> dict[str, Any]:
-    """:func:`ct_fingerprint` of a mesh path or :class:`~comreg_core.io.SurfaceMesh`, exactly as
-    read from the file (no repair or merging)."""
-    from comreg_core.io.meshes import SurfaceMesh, read_mesh
-
-    if not isinstance(mesh, SurfaceMesh):
-        mesh = read_mesh(mesh)
-    return ct_fingerprint(mesh.vertices, mesh.faces)
 
 
 def write_fingerprint(fingerprint: dict[str, Any], run_dir: Path) -> Path:

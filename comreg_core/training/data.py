@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
-from comreg_core.model.normalization import Normalization
+from comreg_core.normalization import Normalization
 from comreg_core.simulation.bone import BoneModel
 from comreg_core.simulation.config import SimulationConfig
 from comreg_core.simulation.poses import sample_initial_pose

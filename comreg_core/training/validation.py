@@ -21,7 +21,7 @@ import torch
 
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.losses import output_loss
-from comreg_core.model.normalization import Normalization
+from comreg_core.normalization import Normalization
 from comreg_core.registration.icp import refine_on_mesh
 from comreg_core.registration.metrics import (FLIP_RRE_DEG, completion_metrics, is_success,
                                               rotation_error_deg, translation_error_mm)

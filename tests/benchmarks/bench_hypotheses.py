@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> None:
     from comreg_core.evaluation.evaluate import simulated_us_clouds
     from comreg_core.registration import (CTSurface, HypothesisConfig, is_flip, is_success,
                                           search_hypotheses)
-    from comreg_core.model.normalization import Normalization
+    from comreg_core.normalization import Normalization
     from comreg_core.model.ops import subsample
     from comreg_core.transforms import apply_transform, invert_rigid
     from tests.helpers import FIBULA_STL

@@ -31,7 +31,7 @@ def _clouds(n_source: int, n_target: int, batch: int, seed: int = 0):
     from scipy.spatial.transform import Rotation
 
     from comreg_core.io.meshes import read_mesh
-    from comreg_core.model.normalization import Normalization
+    from comreg_core.normalization import Normalization
     from tests.helpers import FIBULA_STL
 
     mesh = read_mesh(FIBULA_STL).to_trimesh()

@@ -9,7 +9,7 @@ from comreg_core.errors import InvalidGeometryError
 from comreg_core.io.meshes import read_mesh
 from comreg_core.model import ComRegNet, comreg_loss, output_loss
 from comreg_core.training.config import model_preset
-from comreg_core.model.normalization import Normalization
+from comreg_core.normalization import Normalization
 from tests.helpers import FIBULA_STL, assert_close, random_rigid
 
 

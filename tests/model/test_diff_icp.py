@@ -15,7 +15,7 @@ from comreg_core.model.diff_icp import (
     procrustes_rotation,
     weighted_procrustes,
 )
-from comreg_core.model.normalization import Normalization
+from comreg_core.normalization import Normalization
 from tests.helpers import FIBULA_STL, assert_close, random_rigid
 
 

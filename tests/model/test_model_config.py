@@ -9,7 +9,7 @@ from comreg_core.config import ConfigError, load_config, write_config
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.model.config import ModelConfig
 from comreg_core.training.config import model_preset
-from comreg_core.model.normalization import Normalization
+from comreg_core.normalization import Normalization
 from comreg_core.transforms import apply_transform
 from tests.helpers import assert_close, random_rigid
 

@@ -1,0 +1,311 @@
+"""``comreg register``'s output folder: :func:`register_to_directory` registers US points files
+with :class:`~comreg_core.register.registrar.Registrar`, judges the result
+(:mod:`comreg_core.register.judge`) and writes the transform, the registered points, the
+completion, the settings and ``result.json``; :func:`read_result` reads it back."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from comreg_core import runs
+from comreg_core.config import to_dict
+from comreg_core.errors import ComRegError
+from comreg_core.io import PointCloud, read_points, write_points
+from comreg_core.io._files import atomic_output, check_output_folder, require_input_file
+from comreg_core.io.json_files import write_json
+from comreg_core.io.transform_files import save_transform
+from comreg_core.register.inputs import (calibration_path, input_paths, join_clouds,
+                                         prior_inputs, prior_lines)
+from comreg_core.register.judge import Evidence, judge
+from comreg_core.register.registrar import Registrar
+from comreg_core.registration.calibration import Calibration
+from comreg_core.registration.config import HypothesisConfig
+from comreg_core.registration.inputs import MAX_US_POINTS
+from comreg_core.registration.priors import Prior, prior_allows
+from comreg_core.registration.result import RegistrationResult
+from comreg_core.registration.surface import ct_length_mm
+from comreg_core.transforms import apply_transform, check_rigid, invert_rigid
+
+log = logging.getLogger(__name__)
+
+
+def registration_verdict(result: RegistrationResult, registrar: Registrar,
+                         calibration: Calibration | None = None, allowed=None):
+    """``(verdict, evidence)`` of ``result`` on the registrar's CT mesh (:func:`judge` with
+    :meth:`Evidence.of`): the points judged are the US points the registration used;
+    ``allowed``: which poses a prior allows (the competitor is looked for among them)."""
+    if registrar.surface is None:
+        raise ComRegError("No CT mesh is known for this model, so the registration cannot be "
+                          "judged.", "Load the run folder with its CT mesh.")
+    points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
+    length = (calibration.ct_length_mm if calibration is not None else
+              ct_length_mm(registrar.hypothesis_target(
+                  registrar.hypothesis_config.target_points)))
+    evidence = Evidence.of(result, points, length, calibration, allowed)
+    return judge(points, result.T_ct_us, registrar.surface, evidence), evidence
+
+
+def register_to_directory(run_dir: str | Path | None,
+                          us_points_path: str | Path | Sequence[str | Path],
+                          out_dir: str | Path, *, device: str = "auto", seed: int = 0,
+                          ct_mesh: str | Path | None = None, icp_points: int | None = None,
+                          hypotheses: HypothesisConfig | bool | None = None,
+                          sweep: str | Path | None = None,
+                          sweep_calibration: str | Path | None = None,
+                          T_us_ref: np.ndarray | None = None,
+                          calibration: str | Path | None = None,
+                          prior: Prior | None = None) -> RegistrationResult:
+    """Register the US cloud in ``us_points_path`` with the run in ``run_dir`` (or, with
+    ``run_dir`` None, by the pose search alone on the CT mesh ``ct_mesh``); write ``out_dir``.
+
+    ``us_points_path`` may be a list of files: several tracked sweeps in one tracker frame,
+    registered as one rigid body. Their points are joined into one cloud (each converted into
+    the CT's space first) and registered once; the beam origins are used only when every file
+    has them (else none are, with a warning). ``sweep``/``sweep_calibration``/``T_us_ref``
+    describe one sweep's points, so they are refused with several files.
+
+    Files (written once the registration and its verdict are done, each atomically;
+    ``result.json`` last):
+
+    - ``transform.tfm``: ``T_ct_us`` as an ITK transform (LPS, ITK's resampling direction, as
+      3D Slicer writes it: :func:`comreg_core.io.save_transform`).
+    - ``registered_us.ply``: the US points mapped into the CT frame (CT space tag); with several
+      inputs all of them, and each input's alone in ``registered_us_<k>.ply`` (k = 1, 2, ...).
+    - ``completion_ct.ply``: the completed bone in the CT frame (not without a network).
+    - ``config.yaml``: inputs and settings (run folder, US file, device, seed, ICP points, the
+      hypotheses settings).
+    - ``result.json``: ``T_ct_us``, ``T_ct_us_coarse`` (4x4 mm), ``timings_s`` (per stage),
+      ``runtime_s``, ``device``, ``seed``, ``n_points``, ``residuals_mm``, ``icp_rmse_mm``,
+      ``confidence``, ``ambiguous`` and ``hypotheses`` (:meth:`RegistrationResult.to_json`;
+      null with ``hypotheses=False``), ``verdict`` ("ok"/"check"), ``verdict_reasons`` and
+      ``verdict_figures`` (:mod:`comreg_core.registration.verdict`), ``space``,
+      ``ct_fingerprint``, ``run_dir``, ``us_points`` (a path; a list of paths with several
+      inputs) and ``ct_mesh`` (absolute paths, so ``comreg report`` works from any directory),
+      ``us_inputs`` (per input: ``path``, ``n_points``, ``beam_origins``, ``residuals_mm`` of its
+      points after registration, ``registered_us``), ``files``, and ``sweep`` (null, or the
+      tracked sweep the points came from: ``path``, ``calibration`` and ``T_us_ref``, the
+      ``(4, 4)`` map from its reference frame to the US points' frame, identity for points
+      straight from ``comreg extract-us``), from which the report draws B-mode frames with the
+      registered CT contour; ``prior`` (null, or with a ``prior``: where the result lies in it,
+      :func:`~comreg_core.registration.priors.prior_record`: ``init_file``, ``max_deg``,
+      ``max_mm``, ``landmarks``, ``rotation_from_init_deg``, ``shift_from_init_mm``,
+      ``at_edge``, ``reasons``, ...). Strict JSON: a number that is not finite is null, and
+      ``null_reasons`` says where and why (:mod:`comreg_core.io.json_files`).
+
+    ``calibration``: the verdict's calibration file (default: the run folder's own), checked
+    before any work (:meth:`Calibration.load`; and :meth:`Calibration.check_ct` against the
+    CT registered to, once it is loaded).
+
+    ``prior``: an initial pose and/or landmarks (:func:`load_prior` reads them from files):
+    the search keeps to it, and its reasons (a result at the edge of a tolerance, ...) are
+    added to the verdict's, which is then CHECK (:mod:`comreg_core.register.judge`).
+
+    The US cloud is converted into the CT's patient space first (PLY/PCD ``SPACE=`` tag).
+    ``out_dir`` is checked before any work (:func:`~comreg_core.io._files.check_output_folder`:
+    never a run folder or inside one, never an input, writable).
+    """
+    if run_dir is None and ct_mesh is None:
+        raise ComRegError("Nothing to register to: no CT mesh and no pretrained run.",
+                          "Give the CT bone mesh (--ct CT_MESH), and a run (--model RUN_DIR) "
+                          "to use the network too.")
+    paths = input_paths(us_points_path)
+    if len(paths) > 1 and any(x is not None for x in (sweep, sweep_calibration, T_us_ref)):
+        raise ComRegError(f"--sweep and --calibration describe one sweep's points, but "
+                          f"{len(paths)} US points files were given.",
+                          "Drop --sweep/--calibration, or register one US points file.")
+    out = check_output_folder(out_dir, inputs=[run_dir, *paths, ct_mesh])
+    sweep_record = _sweep_record(sweep, sweep_calibration, T_us_ref)
+    calibration_file = calibration_path(calibration, run_dir)
+    calibration_record = None if calibration_file is None else Calibration.load(calibration_file)
+    clouds = [read_points(path) for path in paths]  # the cheap inputs first
+    registrar = _registrar(run_dir, ct_mesh, device, icp_points, hypotheses)
+    if calibration_record is not None:
+        calibration_record.check_ct(registrar.fingerprint, calibration_file)
+    clouds = [cloud.in_space(registrar.space) for cloud in clouds]
+    points, origins, note = join_clouds(clouds)
+    result = registrar.register(points, seed=seed, beam_origins=origins, prior=prior)
+    if note:
+        result.info.setdefault("warnings", []).append(note)
+    inputs_record = input_records(paths, clouds, result, registrar)
+    result.info["us_inputs"] = inputs_record
+    files = _output_files(registrar, inputs_record)
+    given = [str(path) for path in paths]
+    inputs = {"run_dir": None if run_dir is None else str(run_dir),
+              "us_points": given[0] if len(given) == 1 else given,
+              "device": device, "seed": int(seed),
+              "icp_points": None if registrar.model is None
+              else registrar.model.config.icp.num_points,
+              "ct_mesh": None if ct_mesh is None else str(ct_mesh),
+              "beam_origins": origins is not None,
+              "prior": None if prior is None else prior_inputs(prior)}
+    settings = {"hypotheses": to_dict(registrar.hypothesis_config), "inputs": inputs}
+    allowed = None
+    if prior is not None:  # the competitor is looked for among the poses the prior allows
+        allowed = prior_allows(prior.in_space(registrar.space), result)
+    verdict, evidence = registration_verdict(result, registrar, calibration_record, allowed)
+    payload = {**result.to_json(), **verdict.to_json(), **evidence.to_json(),
+               "calibration": None if calibration_record is None else {
+                   "sweeps": calibration_record.sweeps,
+                   "correct_share": calibration_record.correct_share,
+                   "ok_probability": calibration_record.ok_probability},
+               "space": registrar.space,
+               "beam_origins_used": origins is not None,
+               "ct_fingerprint": registrar.fingerprint,
+               "run_dir": None if run_dir is None else str(Path(run_dir).absolute()),
+               "us_points": inputs_record[0]["path"] if len(paths) == 1
+               else [record["path"] for record in inputs_record],
+               "us_inputs": inputs_record,
+               "ct_mesh": None if ct_mesh is None else str(Path(ct_mesh).absolute()),
+               "sweep": sweep_record, "prior": result.info.get("prior"), "files": files}
+    _write_outputs(out, files, result, registrar, clouds, settings, payload)
+    log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
+             result.runtime_s, result.device, out)
+    for warning in registrar.warnings:
+        log.warning("%s", warning)
+    if not verdict.ok:
+        log.warning("%s: %s", verdict.headline, " ".join(verdict.reasons))
+    if result.ambiguous:
+        log.warning("Ambiguous registration: hypothesis '%s' fits the US points within %.2f mm "
+                    "of '%s' (confidence %.2f); check the result visually.",
+                    result.hypotheses.runner_up, result.hypotheses.score_gap_mm,
+                    result.hypotheses.chosen, result.confidence)
+    return result
+
+
+def _registrar(run_dir, ct_mesh, device: str, icp_points, hypotheses) -> Registrar:
+    """The registrar of ``register_to_directory``: the run's network (``run_dir``) or the pose
+    search alone on ``ct_mesh``."""
+    if run_dir is not None:
+        return Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
+                                  hypotheses=hypotheses)
+    if hypotheses is False or getattr(hypotheses, "enabled", True) is False:
+        raise ComRegError("Without a pretrained run the pose search is the registration; "
+                          "it cannot be turned off.",
+                          "Drop --no-hypotheses, or give --model RUN_DIR.")
+    return Registrar.from_ct(ct_mesh, hypotheses=hypotheses)
+
+
+def _output_files(registrar: Registrar, inputs_record: list[dict]) -> dict:
+    """``result.json``'s ``files``: the name of each file written (module files of
+    :mod:`comreg_core.runs`)."""
+    files = {"transform": runs.TRANSFORM, "registered_us": runs.REGISTERED_US,
+             "completion_ct": runs.COMPLETION_CT, "config": runs.CONFIG}
+    if registrar.model is None:
+        del files["completion_ct"]
+    if len(inputs_record) > 1:
+        files["registered_us_inputs"] = [record["registered_us"] for record in inputs_record]
+    return files
+
+
+def _write_outputs(out: Path, files: dict, result: RegistrationResult, registrar: Registrar,
+                   clouds: list[PointCloud], settings: dict, payload: dict) -> None:
+    """Write the folder of ``register_to_directory``, once everything in it is known (each
+    file atomically, ``result.json`` last)."""
+    import yaml
+
+    out.mkdir(parents=True, exist_ok=True)
+    save_transform(result.T_ct_us, out / files["transform"], space=registrar.space)
+    write_points(PointCloud(result.registered_points, registrar.space),
+                 out / files["registered_us"])
+    for cloud, name in zip(clouds, files.get("registered_us_inputs", ())):
+        write_points(PointCloud(apply_transform(result.T_ct_us, cloud.points),
+                                registrar.space), out / name)
+    if "completion_ct" in files:
+        write_points(PointCloud(result.completion_ct, registrar.space),
+                     out / files["completion_ct"])
+    with atomic_output(out / files["config"]) as tmp:  # comreg register --config reads it
+        tmp.write_text(yaml.safe_dump(settings, sort_keys=False), encoding="utf-8")
+    write_json(payload, out / runs.RESULT)
+
+
+def summary_lines(result: RegistrationResult, out_dir, *, with_network: bool) -> list[str]:
+    """What ``comreg register`` prints: the folder, points, time and residual; the chosen
+    hypothesis, the competing pose and confidence; what to scan when it is ambiguous."""
+    how = f"on {result.device}" if with_network else "by the pose search (no network)"
+    lines = [f"wrote {out_dir}: {result.n_points} points registered in {result.runtime_s:.2f} s "
+             f"{how}; median residual {result.residuals['median']:.2f} mm"]
+    h = result.hypotheses
+    if h is not None:
+        gap = "no competing pose" if h.score_gap_mm is None else \
+            f"next different pose ('{h.runner_up}') {h.score_gap_mm:.3f} mm worse"
+        lines.append(f"hypothesis '{h.chosen}' of {h.starts_tried} starts"
+                     + (" (a short sweep: all orientations tried)" if h.patch
+                        and not result.info.get("prior") else "")
+                     + f", {gap}; confidence {h.confidence:.2f}"
+                     + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
+        if h.advice:
+            lines.append(h.advice["advice"])
+    lines += prior_lines(result.info.get("prior"))
+    records = result.info.get("us_inputs") or []
+    for k, record in enumerate(records if len(records) > 1 else [], start=1):
+        lines.append(f"  input {k}: {Path(record['path']).name}: {record['n_points']} points, "
+                     f"median residual {record['residuals_mm']['median']:.2f} mm")
+    return lines
+
+
+def input_records(paths: list[Path], clouds: list[PointCloud], result: RegistrationResult,
+                   registrar: Registrar) -> list[dict]:
+    """``result.json``'s ``us_inputs``: per input file its absolute path, point count, whether
+    it has beam origins, the distance statistics of its points after registration (a single
+    input: the registration's own ``residuals_mm``; several: each file's points, at most
+    :data:`~comreg_core.registration.inputs.MAX_US_POINTS` of them, evenly strided) and the
+    file of its registered points."""
+    records = []
+    for k, (path, cloud) in enumerate(zip(paths, clouds), start=1):
+        if len(clouds) == 1:
+            residuals, name = dict(result.residuals), runs.REGISTERED_US
+        else:
+            step = -(-len(cloud.points) // MAX_US_POINTS)
+            residuals = registrar.residuals(apply_transform(result.T_ct_us,
+                                                            cloud.points[::step]))
+            name = runs.REGISTERED_US_INPUT.format(k)
+        records.append({"path": str(Path(path).absolute()), "n_points": len(cloud.points),
+                        "beam_origins": cloud.beam_origins is not None,
+                        "residuals_mm": residuals, "registered_us": name})
+    return records
+
+
+def _sweep_record(sweep, calibration, T_us_ref) -> dict | None:
+    """``result.json``'s ``sweep`` entry (absolute paths), checked before any work: the sweep
+    (a file or frame folder) and its calibration exist and ``T_us_ref`` is rigid."""
+    from comreg_core.errors import InputFileNotFoundError
+
+    if sweep is None:
+        if calibration is not None:
+            raise ComRegError("A sweep calibration was given without the sweep.",
+                              "Give --sweep too, or drop --calibration.")
+        return None
+    if not Path(sweep).exists():
+        raise InputFileNotFoundError(Path(sweep), "tracked sweep")
+    if calibration is not None and not Path(calibration).is_file():
+        raise InputFileNotFoundError(Path(calibration), "sweep calibration")
+    T = np.eye(4) if T_us_ref is None else check_rigid(np.asarray(T_us_ref, float))
+    return {"path": str(Path(sweep).absolute()),
+            "calibration": None if calibration is None else str(Path(calibration).absolute()),
+            "T_us_ref": T.tolist()}
+
+
+# ------------------------------------------------------------------------------------- priors
+
+
+def read_result(out_dir: str | Path) -> dict[str, Any]:
+    """``out_dir/result.json`` checked to hold ``T_ct_us``, ``us_points`` and a ``run_dir`` or
+    a ``ct_mesh`` (a registration without a network has no run). Relative paths in it (results
+    written before they were stored absolute) are taken as relative to the current directory,
+    as they were written."""
+    path = require_input_file(Path(out_dir) / runs.RESULT, "registration result")
+    try:
+        result = json.loads(path.read_text(encoding="utf-8"))
+        np.asarray(result["T_ct_us"], dtype=np.float64).reshape(4, 4)
+        str(result["us_points"])
+        if result.get("run_dir") is None and result.get("ct_mesh") is None:
+            raise KeyError("run_dir or ct_mesh")
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ComRegError(f"'{path}' is not a ComReg registration result ({exc}).",
+                          "Run 'comreg register' into this folder first.") from None
+    return result

@@ -1,0 +1,351 @@
+"""Registration of a US cloud to the CT: :class:`Registrar`, the one entry point.
+
+- ``Registrar.from_ct(ct_mesh).register(us_points)``: the pose search alone
+  (:mod:`comreg_core.registration.search`) from the principal-axes pose of the US cloud on the
+  CT (or the prior's initial pose), with its flips, turns and slides, chosen by score. This
+  path never imports torch.
+- ``Registrar.from_run(run_dir).register(us_points)``: the same search, then the pretrained
+  network's poses (:mod:`comreg_core.register.network`: completion, coarse pose, ICP) as
+  further starts (:mod:`comreg_core.registration.network_starts`): kept only when clearly
+  better, so never worse than the search alone. ``hypotheses=False`` is the paper's plain
+  pipeline (network and ICP only).
+
+Timings per stage (s): ``preprocess``, ``completion_and_coarse_pose``, ``icp``,
+``hypotheses`` (the search), ``postprocess``, ``total`` (their sum, ``runtime_s``), and
+``residuals`` (outside ``total``). Preparing the CT side (encoding, search cloud, grids) happens
+once per Registrar, outside the timings.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from comreg_core.errors import ComRegError, InvalidGeometryError
+from comreg_core.io.meshes import ct_fingerprint
+from comreg_core.normalization import Normalization
+from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
+                                      as_hypothesis_config, search_hypotheses)
+from comreg_core.registration.inputs import beam_origins_for, limit_us_points, subset_notice
+from comreg_core.registration.network_starts import add_network_starts
+from comreg_core.registration.priors import Prior, prior_record
+from comreg_core.registration.result import RegistrationResult, residual_statistics
+from comreg_core.registration.scoring import HypothesisResult
+from comreg_core.registration.search import principal_axes_pose, us_subset_indices
+from comreg_core.registration.surface import mesh_arrays
+from comreg_core.registration.warm import warm_search
+from comreg_core.transforms import apply_transform, as_points
+
+#: A US cloud whose largest bounding-box extent is below this (mm) is taken to be in metres.
+MIN_US_EXTENT_MM = 1.0
+
+
+class Registrar:
+    """The CT side of a registration, ready to register US clouds (search alone or network).
+
+    Build with :meth:`from_ct` (the pose search alone) or :meth:`from_run` (with the pretrained
+    network). Calling the object registers (``registrar(points)``), so it can be passed to
+    :func:`comreg_core.evaluation.evaluate` as a method.
+
+    Args:
+        network: the pretrained network (:class:`~comreg_core.register.network.Network`), or
+            None for the search alone.
+        ct_points: ``(M, 3)`` mm, the CT cloud.
+        normalization: the CT normalisation (the network's; the US cloud's size is checked
+            against its scale).
+        ct_vertices, ct_faces: the CT mesh (residual distances), or None to use the CT cloud.
+        fingerprint: the CT fingerprint (sha256).
+        space: the CT's patient space ("LPS"/"RAS").
+        hypotheses: the pose search: None or True = on with the defaults of
+            :class:`~comreg_core.registration.HypothesisConfig`, False = off (with a network:
+            the paper's plain pipeline), or a ``HypothesisConfig`` (its ``enabled`` decides).
+        warnings: what the run's own validation says against its network; copied into every
+            result's ``warnings``.
+    """
+
+    def __init__(self, network, ct_points: np.ndarray, normalization: Normalization, *,
+                 ct_vertices: np.ndarray | None = None, ct_faces: np.ndarray | None = None,
+                 fingerprint: str = "", space: str = "LPS",
+                 hypotheses: HypothesisConfig | bool | None = None,
+                 warnings: list[str] | None = None):
+        self.network = network
+        self.warnings = list(warnings or [])
+        self.ct_points = as_points(ct_points, "CT points")
+        self.normalization = normalization
+        self.fingerprint = fingerprint
+        self.space = space
+        self._ct_vertices, self._ct_faces = ct_vertices, ct_faces
+        self.hypothesis_config = self._search_config(hypotheses)
+        self._surface = None
+        self._bare_cloud: SurfaceCloud | None = None
+
+    @property
+    def model(self):
+        """The network's :class:`~comreg_core.model.comreg.ComRegNet`, or None."""
+        return None if self.network is None else self.network.model
+
+    @property
+    def config(self):
+        """The run's training config, or None without a network."""
+        return None if self.network is None else self.network.config
+
+    @property
+    def device(self) -> str:
+        """Where the network runs ("cpu" for the search alone)."""
+        return "cpu" if self.network is None else str(self.network.device)
+
+    @property
+    def encoding(self):
+        """The CT half of the network (computed once, cached)."""
+        return self.network.encoding
+
+    def deterministic_forward(self):
+        """The network's one-thread context (:meth:`Network.deterministic_forward`)."""
+        return self.network.deterministic_forward()
+
+    def _search_config(self, hypotheses) -> HypothesisConfig:
+        """``hypotheses`` as a :class:`HypothesisConfig`; without a network the search is the
+        whole registration (always on)."""
+        config = as_hypothesis_config(hypotheses)
+        if self.network is None:
+            config = replace(config, enabled=True)
+        return config
+
+    @classmethod
+    def from_ct(cls, ct_mesh, *, hypotheses: HypothesisConfig | bool | None = None
+                ) -> Registrar:
+        """A Registrar with no network: the pose search alone on the CT mesh ``ct_mesh`` (a
+        path, SurfaceMesh, ``(V, F)``, ...; mm). ``hypotheses`` as for :meth:`from_run`, but
+        the search cannot be turned off (it is the whole registration)."""
+        vertices, faces, space, _ = mesh_arrays(ct_mesh)
+        return cls(None, vertices, Normalization.from_ct(vertices), ct_vertices=vertices,
+                   ct_faces=faces, fingerprint=ct_fingerprint(vertices, faces)["sha256"],
+                   space=space, hypotheses=hypotheses)
+
+    @classmethod
+    def from_run(cls, run_dir: str | Path, device: str = "auto", *, ct_mesh=None,
+                 icp_points: int | None = None,
+                 hypotheses: HypothesisConfig | bool | None = None) -> Registrar:
+        """The pose search with the network of ``run_dir`` (a folder of ``comreg pretrain`` or
+        its checkpoint file; :func:`~comreg_core.register.network.load_network`: weights only,
+        ``ct_mesh`` checked against the run's CT, ``icp_points`` at inference). ``device``:
+        ``"auto"``, ``"cpu"`` or ``"cuda"``. ``hypotheses``: see the class (not part of the
+        run: the network is the same either way).
+
+        Raises:
+            CheckpointError: no/corrupt checkpoint, or one trained for another CT.
+        """
+        from comreg_core.register.network import load_network
+
+        return cls(**load_network(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points),
+                   hypotheses=hypotheses)
+
+    # ------------------------------------------------------------------------------------------
+
+    def hypothesis_target(self, n_points: int) -> SurfaceCloud:
+        """The CT side of the pose search: ``n_points`` area-uniform samples of the CT mesh
+        (:meth:`CTSurface.cloud`; the run's CT cloud with estimated normals when no mesh is
+        known), built once and cached."""
+        if self.surface is not None:
+            return self.surface.cloud(n_points)
+        if self._bare_cloud is None:
+            self._bare_cloud = SurfaceCloud(self.ct_points)
+        return self._bare_cloud
+
+    def check_points(self, points, seed: int = 0) -> np.ndarray:
+        """The US cloud as ``(N, 3)`` float64 (at most :data:`MAX_US_POINTS`, see
+        :func:`limit_us_points`), or a clear :class:`InvalidGeometryError`."""
+        pts = limit_us_points(as_points(points, "US points"), seed)
+        need = 6 if self.network is None else max(self.network.min_points, 6)
+        if len(pts) < need:
+            raise InvalidGeometryError(
+                f"The US cloud has {len(pts)} points; registration needs at least {need}.",
+                "Extract a denser US bone surface (more frames, less denoising).")
+        extent = float((pts.max(0) - pts.min(0)).max())
+        distinct = len(np.unique(pts, axis=0)) if extent < MIN_US_EXTENT_MM else len(pts)
+        if distinct < need:
+            raise InvalidGeometryError(
+                f"The US cloud has only {distinct} distinct point(s) among its {len(pts)}; "
+                f"registration needs at least {need} different points.",
+                "Check the export: the points should cover the bone surface seen in the sweep.")
+        if extent < MIN_US_EXTENT_MM:
+            raise InvalidGeometryError(
+                f"The US cloud spans only {extent:.3g} mm; its coordinates look like metres.",
+                "Convert the points to millimetres (multiply by 1000).")
+        if extent > 10.0 * self.normalization.scale:
+            raise InvalidGeometryError(
+                f"The US cloud spans {extent:.0f} mm, over 10 times the CT bone "
+                f"({self.normalization.scale:.0f} mm).",
+                "Check its units (millimetres) and that it shows this bone.")
+        return pts
+
+    def register(self, points, seed: int = 0, *,
+                 hypotheses: HypothesisConfig | bool | None = None,
+                 beam_origins: np.ndarray | None = None,
+                 prior: Prior | None = None,
+                 warm_start: RegistrationResult | None = None,
+                 residuals: bool = True) -> RegistrationResult:
+        """Register a US bone cloud ``(N, 3)`` (mm, in the CT's patient space) to the CT.
+
+        Args:
+            points: the US bone points.
+            seed: seeds torch's generator (the forward pass is deterministic anyway).
+            hypotheses: this call's hypotheses setting (True/False/a config); None = the
+                Registrar's (:attr:`hypothesis_config`).
+            beam_origins: ``(N, 3)`` mm, where each point's ultrasound beam started (the
+                probe's element; same frame as ``points``), or None. The pose search then
+                rules out poses under which the CT surface faces away from the probe.
+            prior: a :class:`~comreg_core.registration.priors.Prior` (an initial pose with its
+                tolerances, landmark pairs; in any space, taken to the CT's) or None. The
+                search then starts around it and keeps only poses within it (without a
+                network ``T_init`` replaces the principal-axes start); ``info["prior"]`` is
+                its record (:func:`~comreg_core.registration.priors.prior_record`: where the
+                result lies in it, ``at_edge``, ``reasons`` for the verdict).
+            warm_start: an earlier result of this registrar for the same sweep before it grew
+                (live registration): its poses are refined on ``points`` instead of a full
+                search, with no network pass (:mod:`comreg_core.registration.warm`;
+                ``info["warm_start"]`` says which it was).
+            residuals: measure the registered points' distances to the CT (:meth:`residuals`;
+                with the mesh ~9 us a point, not part of ``runtime_s``); False leaves
+                ``residuals`` empty (live updates, which judge a subset themselves).
+        """
+        hyp_cfg = (self.hypothesis_config if hypotheses is None
+                   else self._search_config(hypotheses))
+        if prior is not None:
+            if not hyp_cfg.enabled:
+                raise ComRegError("An initial pose or landmarks need the pose search, which is "
+                                  "turned off.", "Drop --no-hypotheses (hypotheses=False).")
+            prior = prior.in_space(self.space)
+        t = {}
+        start = time.perf_counter()
+        n_given = len(points) if hasattr(points, "__len__") else None
+        origins = None
+        if beam_origins is not None:  # subset both alike (above MAX_US_POINTS)
+            both = np.hstack([as_points(points, "US points"),
+                              beam_origins_for(beam_origins, len(points))])
+            both = limit_us_points(both, seed)
+            points, origins = both[:, :3], both[:, 3:]
+        pts = self.check_points(points, seed)  # before the CT side is prepared
+        check_s = time.perf_counter() - start
+        if self.network is not None:
+            self.network.encoding  # cached CT half: not part of a registration's time
+        target = self.hypothesis_target(hyp_cfg.target_points) if hyp_cfg.enabled else None
+        if target is not None and hyp_cfg.refine_top:
+            target.closest_point_grid  # built once per CT: not part of a registration's time
+        mesh_refine = self.network is not None and self.network.model.config.icp.mesh_refine
+        if (target is not None or mesh_refine) and self.surface is not None:
+            self.surface.closest(self.ct_points[:1])  # likewise (its KD-tree)
+        start = time.perf_counter() - check_s  # the checks count as preprocessing
+        warnings = list(self.warnings)
+        if n_given is not None and n_given > len(pts):
+            warnings.append(subset_notice(n_given, len(pts)))
+        if warm_start is not None:
+            if warm_start.hypotheses is None or not hyp_cfg.enabled:
+                raise ComRegError("A warm start needs the pose search, on in both "
+                                  "registrations.", "Register with hypotheses on.")
+            T = T_coarse = warm_start.T_ct_us
+            dense, icp_rmse = None, float("nan")
+            t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
+                     icp=0.0, postprocess=0.0)
+        elif self.network is None:
+            T = T_coarse = search_start(pts, target, prior)
+            dense, icp_rmse = None, float("nan")
+            t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
+                     icp=0.0, postprocess=0.0)
+        else:
+            answer = self.network.pose(pts, seed, self.surface, t, start)
+            T, T_coarse, dense, icp_rmse = (answer.T_ct_us, answer.T_coarse, answer.completion,
+                                            answer.icp_rmse_mm)
+        hyp, t["hypotheses"] = None, 0.0
+        if hyp_cfg.enabled:
+            mark = time.perf_counter()
+            if warm_start is not None:
+                hyp = warm_search(pts, warm_start.hypotheses, target, hyp_cfg,
+                                  beam_origins=origins, prior=prior, space=self.space)
+            else:
+                hyp = self._search(pts, target, hyp_cfg, origins, prior,
+                                   None if self.network is None else (T, T_coarse, dense))
+            T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
+            if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
+                icp_rmse = hyp.polish["rmse_mm"]
+            if self.network is not None:
+                self.network.sync()
+            t["hypotheses"] = time.perf_counter() - mark
+        mark = time.perf_counter()
+        completion_ct = np.zeros((0, 3)) if dense is None else apply_transform(T, dense)
+        registered = apply_transform(T, pts)
+        t["postprocess"] += time.perf_counter() - mark
+        t["total"] = sum(t.values())
+        mark = time.perf_counter()
+        residuals = self.residuals(registered) if residuals else {}
+        t["residuals"] = time.perf_counter() - mark
+        info = {"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(t),
+                "residuals_mm": residuals, "warnings": warnings,
+                "hypotheses": None if hyp is None else hyp.to_json(),
+                "warm_start": warm_start is not None}
+        if hyp is not None:  # the flag where other consumers (the plugin) look for it
+            info.update(ambiguous=hyp.ambiguous, confidence=hyp.confidence)
+        if prior is not None:
+            info["prior"] = prior_record(prior, T, pts.mean(axis=0), hyp,
+                                         min_confidence=hyp_cfg.min_confidence,
+                                         score_floor_mm=hyp_cfg.score_floor_mm)
+        return RegistrationResult(
+            T_ct_us=T, T_ct_us_coarse=T_coarse, registered_points=registered,
+            completion_ct=completion_ct, timings=t, runtime_s=t["total"],
+            device=self.device, seed=int(seed), residuals=residuals,
+            icp_rmse=icp_rmse, n_points=len(pts), hypotheses=hyp, info=info)
+
+    __call__ = register
+
+    def _search(self, pts: np.ndarray, target: SurfaceCloud, config: HypothesisConfig,
+                origins: np.ndarray | None, prior: Prior | None,
+                network: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> HypothesisResult:
+        """The pose search alone (its own starts, always all of them), then with a network
+        its poses ``(T_ct_us after its ICP, coarse T_ct_us, completion (M, 3) US frame)`` as
+        further starts that win only by a clearly better score
+        (:mod:`~comreg_core.registration.network_starts`)."""
+        start_name = "pca" if getattr(prior, "T_init", None) is None else "init"
+        result = search_hypotheses(pts, search_start(pts, target, prior), target, None, config,
+                                   start_name=start_name, beam_origins=origins,
+                                   space=self.space, prior=prior)
+        if network is None:
+            return result
+        T_network, T_coarse, completion = network
+        starts = {"network": T_network, "coarse": T_coarse}
+        if completion is not None and len(completion) >= 4:
+            starts["completion"] = principal_axes_pose(completion, target)
+        return add_network_starts(result, starts, pts, target, config,
+                                  subset_indices=us_subset_indices(len(pts), config.icp_points),
+                                  beam_origins=origins, prior=prior, space=self.space)
+
+    @property
+    def surface(self):
+        """The CT mesh as a :class:`~comreg_core.registration.surface.CTSurface` (built
+        once, shared by the residuals and the verdict), or None when no mesh is known."""
+        if self._surface is None and self._ct_vertices is not None:
+            self._surface = CTSurface((self._ct_vertices, self._ct_faces))
+        return self._surface
+
+    def residuals(self, registered: np.ndarray) -> dict[str, float]:
+        """Distance statistics (mm) of registered US points to the CT surface (the mesh when
+        known, else the CT cloud)."""
+        if self.surface is not None:
+            d = self.surface.distance(registered)
+        else:
+            from scipy.spatial import cKDTree
+
+            d = cKDTree(self.ct_points).query(registered)[0]
+        return residual_statistics(d)
+
+
+def search_start(pts: np.ndarray, target: SurfaceCloud, prior: Prior | None) -> np.ndarray:
+    """``(4, 4)`` the pose search's own base pose for ``(N, 3)`` US points (mm): the prior's
+    initial pose when it has one, else the principal-axes pose on the CT."""
+    T_init = getattr(prior, "T_init", None)
+    return principal_axes_pose(pts, target) if T_init is None else T_init
+
+
