@@ -2,7 +2,6 @@
 `comreg register A.ply B.ply --ct CT` joins their bone points and registers them once."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,7 +9,7 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.io import PointCloud, read_points, write_points
-from comreg_core.register_output import join_clouds, register_inputs
+from comreg_core.register_output import join_clouds
 from comreg_core.registration.metrics import registration_metrics
 from comreg_core.simulation import sample_initial_pose
 from comreg_core.transforms import apply_transform, invert_rigid
@@ -107,20 +106,6 @@ def test_a_bad_second_input_is_refused_before_any_work(tmp_path, two_sweeps):
                                      "--out", str(out)])
         assert result.exit_code == 2 and message in result.output, result.output
         assert len(result.output.strip().splitlines()) <= 2 and not out.exists()
-
-
-def test_positional_arguments_keep_the_older_form(tmp_path):
-    """RUN_DIR US_POINTS still means a run and its US points; two point files are two sweeps."""
-    run = tmp_path / "run"
-    run.mkdir()
-    assert register_inputs([run, "us.ply"]) == (run, Path("us.ply"))
-    assert register_inputs(["run/checkpoint.pt", "us.ply"])[0].name == "checkpoint.pt"
-    run_dir, us = register_inputs(["a.ply", "b.pcd"])
-    assert run_dir is None and [p.name for p in us] == ["a.ply", "b.pcd"]
-    run_dir, us = register_inputs(["a.ply"], model=run)
-    assert run_dir == run and us.name == "a.ply"
-    run_dir, us = register_inputs(["a.ply", "b.ply"], model=run)
-    assert run_dir == run and len(us) == 2
 
 
 def test_beam_origins_are_used_only_when_every_input_has_them():

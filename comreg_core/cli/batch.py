@@ -1,40 +1,55 @@
-"""``comreg batch`` (registered on ``app`` in :mod:`comreg_core.cli`; its own module to keep the
-CLI file short). Snakemake is imported only when the command runs."""
+"""``comreg batch``: a cohort through the shipped Snakefile. Snakemake is imported only when the
+command runs (in :mod:`comreg_core.batch`)."""
 
 from __future__ import annotations
 
-from enum import Enum
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-from comreg_core import choices
+from comreg_core.cli.comreg import app
+from comreg_core.cli.errors import USER_ERROR_EXIT
+from comreg_core.cli.options import NETWORK, OUTPUT, Preset
 
-Preset = Enum("Preset", {name: name for name in choices.PRESETS}, type=str)
+#: The panel of this command in 'comreg --help'.
+PANEL = "Cohorts"
+#: The panel of where and how the jobs run.
+JOBS = "Jobs"
+
+BATCH_MANIFEST = typer.Argument(
+    ..., help="The cohort: a CSV (or YAML) file with one case per row and the columns case, ct, "
+    "us (required), label, segment, calibration, model, gt, init, init_tolerance, landmarks_ct, "
+    "landmarks_us (docs/batch.md). Relative paths are read from the manifest's folder.")
+BATCH_OUT = typer.Option(..., "--out", "-o", rich_help_panel=OUTPUT, help="Output folder: "
+                         "cases/<case>/ (each case's files, status and logs), summary.csv, "
+                         "summary.html.")
+BATCH_CORES = typer.Option(None, "--cores", min=1, rich_help_panel=JOBS, help="Local CPU cores "
+                           "to use at once (default: all).")
+BATCH_PROFILE = typer.Option(None, "--profile", rich_help_panel=JOBS, help="A Snakemake "
+                             "profile: a folder with a config.yaml (executor, jobs, "
+                             "default-resources, ...), e.g. examples/slurm to run the jobs on a "
+                             "SLURM cluster.")
+BATCH_DRY_RUN = typer.Option(False, "--dry-run", "-n", rich_help_panel=JOBS, help="List the jobs "
+                             "that would run, with their threads and resources, and run "
+                             "nothing.")
+BATCH_PRETRAIN_MINUTES = typer.Option(
+    0.0, "--pretrain-minutes", min=0.0, rich_help_panel=NETWORK, help="Pretrain each case "
+    "without a model for this many minutes first (a GPU job on a cluster); 0: register by the "
+    "pose search alone.")
+BATCH_PRESET = typer.Option(Preset.cpu, rich_help_panel=NETWORK,
+                            help="Network size of the pretraining.")
 
 
+@app.command("batch", rich_help_panel=PANEL)
 def batch(
-    manifest: Path = typer.Argument(..., help="The cohort: a CSV (or YAML) file with one case "
-                                    "per row and the columns case, ct, us (required), label, "
-                                    "segment, calibration, model, gt, init, init_tolerance, "
-                                    "landmarks_ct, landmarks_us (docs/batch.md). Relative "
-                                    "paths are read from the manifest's folder."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder: cases/<case>/ (each "
-                             "case's files, status and logs), summary.csv, summary.html."),
-    cores: Optional[int] = typer.Option(None, "--cores", min=1, help="Local CPU cores to use "
-                                        "at once (default: all)."),
-    pretrain_minutes: float = typer.Option(0.0, "--pretrain-minutes", min=0.0, help="Pretrain "
-                                           "each case without a model for this many minutes "
-                                           "first (a GPU job on a cluster); 0: register by the "
-                                           "pose search alone."),
-    preset: Preset = typer.Option(Preset.cpu, help="Network size of the pretraining."),
-    profile: Optional[Path] = typer.Option(None, "--profile", help="A Snakemake profile: a "
-                                           "folder with a config.yaml (executor, jobs, "
-                                           "default-resources, ...), e.g. examples/slurm to "
-                                           "run the jobs on a SLURM cluster."),
-    dry_run: bool = typer.Option(False, "--dry-run", "-n", help="List the jobs that would run, "
-                                 "with their threads and resources, and run nothing."),
+    manifest: Path = BATCH_MANIFEST,
+    cores: Optional[int] = BATCH_CORES,
+    profile: Optional[Path] = BATCH_PROFILE,
+    dry_run: bool = BATCH_DRY_RUN,
+    pretrain_minutes: float = BATCH_PRETRAIN_MINUTES,
+    preset: Preset = BATCH_PRESET,
+    out: Path = BATCH_OUT,
 ) -> None:
     """Run a cohort: every case of the manifest through extract-ct, pretrain (with
     --pretrain-minutes, for cases without a model), extract-us (unless the case gives US
@@ -55,7 +70,7 @@ def batch(
     except ManifestError as exc:
         for line in exc.lines:
             typer.echo(f"error: {line}", err=True)
-        raise typer.Exit(2) from None
+        raise typer.Exit(USER_ERROR_EXIT) from None
     if dry_run:
         typer.echo(f"{len(run.jobs)} job(s) would run" + (":" if run.jobs else
                                                            " (everything is up to date)"))

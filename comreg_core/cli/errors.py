@@ -1,5 +1,5 @@
-"""The one place where the ``comreg`` command turns exceptions into a one-line message (and
-sets up its logging, :func:`set_verbose`).
+"""The one place where the ``comreg`` command turns exceptions into a one-line message and an
+exit status (and sets up its logging, :func:`set_verbose`).
 
 Every command of :data:`comreg_core.cli.app` is wrapped by :func:`user_errors` (the app's
 :class:`CommandApp` does it on registration, so a new command cannot forget it):

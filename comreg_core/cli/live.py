@@ -1,5 +1,5 @@
-"""``comreg live`` and ``comreg replay`` (registered on ``app`` in :mod:`comreg_core.cli`; their
-own module to keep the CLI file short). The work is in :mod:`comreg_core.live`."""
+"""``comreg live`` and ``comreg replay``: registration while scanning, from an OpenIGTLink
+stream, and a recorded sweep served as one. The work is in :mod:`comreg_core.live`."""
 
 from __future__ import annotations
 
@@ -9,8 +9,113 @@ from typing import Optional
 
 import typer
 
-from comreg_core.cli_shared import (INIT_OPTION, INIT_TOLERANCE_OPTION, LANDMARK_TOLERANCE_OPTION,
-                                     LANDMARKS_OPTION, Device)
+from comreg_core.cli.comreg import app
+from comreg_core.cli.options import (DEVICE_OPTION, INIT_OPTION, INIT_TOLERANCE_OPTION, INPUTS,
+                                     LANDMARK_TOLERANCE_OPTION, LANDMARKS_OPTION, NETWORK, OUTPUT,
+                                     SEARCH, STREAM, VERDICT, Device)
+
+#: The panel of these commands in 'comreg --help'.
+PANEL = "Live"
+
+# --- comreg live ---------------------------------------------------------------------------------
+LIVE_IGTL = typer.Option(..., "--igtl", metavar="HOST:PORT", rich_help_panel=STREAM,
+                         help="The OpenIGTLink server sending the tracked B-mode frames (PLUS "
+                         "Server, 'comreg replay', 3D Slicer), e.g. 127.0.0.1:18944.")
+LIVE_IMAGE_DEVICE = typer.Option("Image", "--image-device", rich_help_panel=STREAM,
+                                 help="The IMAGE device of the B-mode frames.")
+LIVE_TRANSFORM_DEVICE = typer.Option(
+    None, "--transform-device", rich_help_panel=STREAM, help="The TRANSFORM device of their "
+    "poses (default ImageToReference; ProbeToReference with --calibration).")
+LIVE_SEND_DEVICE = typer.Option("ReferenceToCT", "--send-device", rich_help_panel=STREAM,
+                                help="The TRANSFORM device the registration is sent back as.")
+LIVE_UNTIL_END = typer.Option(False, "--until-end", rich_help_panel=STREAM, help="Stop when the "
+                              "server closes the stream (default: reconnect and go on until "
+                              "Ctrl-C).")
+LIVE_CONNECT_TIMEOUT = typer.Option(
+    30.0, "--connect-timeout", metavar="SECONDS", rich_help_panel=STREAM, help="Give up (exit "
+    "2, nothing written) when no server answered within this many seconds of starting to "
+    "connect. The first connection only: a lost one is retried for as long as live runs (with "
+    "--until-end, a closed stream ends it).")
+LIVE_CT = typer.Option(..., "--ct", rich_help_panel=INPUTS, help="The CT bone mesh (mm).")
+LIVE_CALIBRATION = typer.Option(
+    None, "--calibration", rich_help_panel=INPUTS, help="The probe calibration (as 'comreg "
+    "extract-us' takes it: a PLUS device-set XML with ImageToProbe, or calibration.json) when "
+    "the poses streamed are the probe's (default device then ProbeToReference).")
+LIVE_MODEL = typer.Option(None, "--model", rich_help_panel=NETWORK, help="Run folder written by "
+                          "'comreg pretrain': the network's pose first, then the search around "
+                          "it (default: the search alone).")
+LIVE_BACKGROUND = typer.Option(True, "--background-search/--inline-search",
+                               rich_help_panel=SEARCH, help="Run the full searches in a second "
+                               "process while warm updates go on (default), or in the update "
+                               "loop.")
+LIVE_SEED = typer.Option(0, "--seed", min=0, rich_help_panel=SEARCH,
+                          help="Random seed of the registrations.")
+LIVE_VERDICT_CALIBRATION = typer.Option(
+    None, "--verdict-calibration", rich_help_panel=VERDICT, help="calibration.json from 'comreg "
+    "calibrate' (default: the run folder's own): the verdict is then OK only when p_correct >= "
+    "0.95.")
+LIVE_OUT = typer.Option(None, "--out", "-o", rich_help_panel=OUTPUT, help="Output folder: "
+                        "updates.csv as it goes; on stop what 'comreg register' and 'comreg "
+                        "report' write for the points.")
+LIVE_REPORT = typer.Option(True, "--report/--no-report", rich_help_panel=OUTPUT, help="With "
+                           "--out, also write report.html on stop (screenshots: some seconds).")
+
+
+@app.command("live", rich_help_panel=PANEL)
+def live(
+    igtl: str = LIVE_IGTL,
+    image_device: str = LIVE_IMAGE_DEVICE,
+    transform_device: Optional[str] = LIVE_TRANSFORM_DEVICE,
+    send_device: str = LIVE_SEND_DEVICE,
+    until_end: bool = LIVE_UNTIL_END,
+    connect_timeout: float = LIVE_CONNECT_TIMEOUT,
+    ct_mesh: Path = LIVE_CT,
+    calibration: Optional[Path] = LIVE_CALIBRATION,
+    model: Optional[Path] = LIVE_MODEL,
+    device: Device = DEVICE_OPTION,
+    background: bool = LIVE_BACKGROUND,
+    seed: int = LIVE_SEED,
+    init: Optional[Path] = INIT_OPTION,
+    init_tolerance: Optional[str] = INIT_TOLERANCE_OPTION,
+    landmarks: Optional[tuple[Path, Path]] = LANDMARKS_OPTION,
+    landmark_tolerance: Optional[float] = LANDMARK_TOLERANCE_OPTION,
+    verdict_calibration: Optional[Path] = LIVE_VERDICT_CALIBRATION,
+    out: Optional[Path] = LIVE_OUT,
+    report: bool = LIVE_REPORT,
+) -> None:
+    """Register while scanning: connect to an OpenIGTLink server, take its B-mode frames (IMAGE)
+    and their poses (TRANSFORM, PLUS names such as ImageToReference), find the bone in each
+    frame as 'comreg extract-us' does, and register the growing sweep to the CT: warm from the
+    last pose each update, the full search when the evidence changes.
+
+    Each update sends back a TRANSFORM (ReferenceToCT: the stream's reference frame to the CT,
+    as 3D Slicer applies it) and a STRING ComRegStatus (JSON: verdict, p_correct, the bone
+    covered in mm, advice: 'enough' or which end to scan towards), and prints one status line.
+    A lost connection is reconnected and nothing registered is lost. A prior from the operating
+    room (--init, --landmarks; as 'comreg register' takes them, in the stream's reference
+    frame) bounds every update and the final registration. Stop with Ctrl-C (or
+    --until-end, or SIGTERM); --out then gets the files of 'comreg register' and its
+    report. When no server answers within --connect-timeout (30 s), live gives up with exit
+    status 2 and writes nothing.
+    """
+    from comreg_core.live.igtl import IMAGE_POSE_DEVICE, PROBE_POSE_DEVICE
+    from comreg_core.live.stream import probe_calibration
+    from comreg_core.register_output import load_prior
+
+    host, port = _host_port(igtl)
+    _check_connect_timeout(connect_timeout)
+    _check_inputs(out, ct_mesh, model, calibration, verdict_calibration, init, landmarks)
+    prior = load_prior(init, init_tolerance, landmarks, landmark_tolerance)
+    T_probe_pixel = None if calibration is None else probe_calibration(calibration)
+    pose_device = transform_device or (IMAGE_POSE_DEVICE if calibration is None
+                                       else PROBE_POSE_DEVICE)
+    _check_device_names(image_device, pose_device, send_device)
+    session, recipe = _session(ct_mesh, model, device, verdict_calibration, prior, seed)
+    summary = _listen(session, recipe, background, host, port, image_device, pose_device,
+                      send_device, T_probe_pixel, until_end, connect_timeout, out)
+    typer.echo(summary.line())
+    if out is not None:
+        _finish(session, out, model, ct_mesh, device, verdict_calibration, prior, report)
 
 
 def _check_connect_timeout(seconds: float) -> float:
@@ -41,94 +146,47 @@ def _host_port(text: str) -> tuple[str, int]:
     return host.strip("[]"), number
 
 
-def live(
-    igtl: str = typer.Option(..., "--igtl", metavar="HOST:PORT", help="The OpenIGTLink server "
-                             "sending the tracked B-mode frames (PLUS Server, 'comreg replay', "
-                             "3D Slicer), e.g. 127.0.0.1:18944."),
-    ct_mesh: Path = typer.Option(..., "--ct", help="The CT bone mesh (mm)."),
-    model: Optional[Path] = typer.Option(None, "--model", help="Run folder written by 'comreg "
-                                         "pretrain': the network's pose first, then the search "
-                                         "around it (default: the search alone)."),
-    calibration: Optional[Path] = typer.Option(
-        None, "--calibration", help="The probe calibration (as 'comreg extract-us' takes it: a "
-        "PLUS device-set XML with ImageToProbe, or calibration.json) when the poses streamed "
-        "are the probe's (default device then ProbeToReference)."),
-    verdict_calibration: Optional[Path] = typer.Option(
-        None, "--verdict-calibration", help="calibration.json from 'comreg calibrate' "
-        "(default: the run folder's own): the verdict is then OK only when p_correct >= 0.95."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder: updates.csv "
-                                       "as it goes; on stop what 'comreg register' and 'comreg "
-                                       "report' write for the points."),
-    image_device: str = typer.Option("Image", "--image-device", help="The IMAGE device of the "
-                                     "B-mode frames."),
-    transform_device: Optional[str] = typer.Option(
-        None, "--transform-device", help="The TRANSFORM device of their poses (default "
-        "ImageToReference; ProbeToReference with --calibration)."),
-    send_device: str = typer.Option("ReferenceToCT", "--send-device", help="The TRANSFORM "
-                                    "device the registration is sent back as."),
-    until_end: bool = typer.Option(False, "--until-end", help="Stop when the server closes "
-                                   "the stream (default: reconnect and go on until Ctrl-C)."),
-    connect_timeout: float = typer.Option(
-        30.0, "--connect-timeout", metavar="SECONDS", help="Give up (exit 2, nothing written) "
-        "when no server answered within this many seconds of starting to connect. The first "
-        "connection only: a lost one is retried for as long as live runs (with --until-end, "
-        "a closed stream ends it)."),
-    device: Device = typer.Option(Device.auto, help="Where to run the network."),
-    seed: int = typer.Option(0, "--seed", min=0),
-    report: bool = typer.Option(True, "--report/--no-report", help="With --out, also write "
-                                "report.html on stop (screenshots: some seconds)."),
-    init: Optional[Path] = INIT_OPTION,
-    init_tolerance: Optional[str] = INIT_TOLERANCE_OPTION,
-    landmarks: Optional[tuple[Path, Path]] = LANDMARKS_OPTION,
-    landmark_tolerance: Optional[float] = LANDMARK_TOLERANCE_OPTION,
-    background: bool = typer.Option(True, "--background-search/--inline-search",
-                                    help="Run the full searches in a second process while "
-                                    "warm updates go on (default), or in the update loop."),
-) -> None:
-    """Register while scanning: connect to an OpenIGTLink server, take its B-mode frames (IMAGE)
-    and their poses (TRANSFORM, PLUS names such as ImageToReference), find the bone in each
-    frame as 'comreg extract-us' does, and register the growing sweep to the CT: warm from the
-    last pose each update, the full search when the evidence changes.
-
-    Each update sends back a TRANSFORM (ReferenceToCT: the stream's reference frame to the CT,
-    as 3D Slicer applies it) and a STRING ComRegStatus (JSON: verdict, p_correct, the bone
-    covered in mm, advice: 'enough' or which end to scan towards), and prints one status line.
-    A lost connection is reconnected and nothing registered is lost. A prior from the operating
-    room (--init, --landmarks; as 'comreg register' takes them, in the stream's reference
-    frame) bounds every update and the final registration. Stop with Ctrl-C (or
-    --until-end, or SIGTERM); --out then gets the files of 'comreg register' and its
-    report. When no server answers within --connect-timeout (30 s), live gives up with exit
-    status 2 and writes nothing.
-    """
-    from comreg_core.errors import ComRegError
+def _check_inputs(out, ct_mesh, model, calibration, verdict_calibration, init, landmarks) -> None:
+    """Before connecting: --out can be written and the CT mesh exists."""
     from comreg_core.io._files import check_output_folder, require_input_file
-    from comreg_core.live.background import (WORKER_START_S, FullSearchWorker, RegistrarRecipe,
-                                             build_registrar, one_thread)
-    from comreg_core.live.igtl import IMAGE_POSE_DEVICE, PROBE_POSE_DEVICE
-    from comreg_core.live.run import FrameReceiver, finish_live, run_live, stop_on_sigterm
-    from comreg_core.live.session import LiveSession
-    from comreg_core.live.stream import probe_calibration
-    from comreg_core.register_output import calibration_path, find_calibration, load_prior
 
-    host, port = _host_port(igtl)
-    _check_connect_timeout(connect_timeout)
     inputs = [ct_mesh, model, calibration, verdict_calibration, init, *(landmarks or ())]
     if out is not None:
         check_output_folder(out, inputs=inputs)
     require_input_file(ct_mesh, "CT bone mesh")
-    prior = load_prior(init, init_tolerance, landmarks, landmark_tolerance)
-    T_probe_pixel = None if calibration is None else probe_calibration(calibration)
-    pose_device = transform_device or (IMAGE_POSE_DEVICE if calibration is None
-                                       else PROBE_POSE_DEVICE)
+
+
+def _check_device_names(image_device: str, pose_device: str, send_device: str) -> None:
+    from comreg_core.errors import ComRegError
+
     if not image_device.strip() or not pose_device.strip() or not send_device.strip():
         raise ComRegError("A device name is empty.", "Give --image-device, --transform-device "
                           "and --send-device names, e.g. Image and ImageToReference.")
+
+
+def _session(ct_mesh, model, device: Device, verdict_calibration, prior, seed: int):
+    """``(the live session, the recipe of its registrar)``; a verdict calibration made for
+    another CT is refused here, before any work."""
+    from comreg_core.live.background import RegistrarRecipe, build_registrar
+    from comreg_core.live.session import LiveSession
+    from comreg_core.register_output import calibration_path, find_calibration
+
     verdict = find_calibration(verdict_calibration, model)
     recipe = RegistrarRecipe(str(ct_mesh), None if model is None else str(model), device.value)
     registrar = build_registrar(recipe)
-    if verdict is not None:  # before any work: a calibration made for another CT is refused
+    if verdict is not None:
         verdict.check_ct(registrar.fingerprint, calibration_path(verdict_calibration, model))
-    session = LiveSession(registrar, calibration=verdict, prior=prior, seed=seed)
+    return LiveSession(registrar, calibration=verdict, prior=prior, seed=seed), recipe
+
+
+def _listen(session, recipe, background: bool, host: str, port: int, image_device: str,
+            pose_device: str, send_device: str, T_probe_pixel, until_end: bool,
+            connect_timeout: float, out):
+    """Prepare the CT side (and the full-search worker), then register the stream's frames
+    until it stops; returns the run's summary."""
+    from comreg_core.live.background import WORKER_START_S, FullSearchWorker, one_thread
+    from comreg_core.live.run import FrameReceiver, run_live, stop_on_sigterm
+
     with ExitStack() as stack:
         if background:
             session.worker = stack.enter_context(FullSearchWorker(recipe, session.prior))
@@ -143,40 +201,54 @@ def live(
         typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "
                    f"'{pose_device}'; sending '{send_device}' (Ctrl-C to stop)", err=True)
         with stop_on_sigterm():
-            summary = run_live(session, receiver, out_dir=out, until_end=until_end,
-                               send_device=send_device, on_status=typer.echo,
-                               on_note=lambda line: typer.echo(f"live: {line}", err=True))
-    typer.echo(summary.line())
-    if out is not None:
-        from comreg_core.register_output import summary_lines
-
-        result, page = finish_live(session, out, run_dir=model, ct_mesh=ct_mesh,
-                                   device=device.value, calibration=verdict_calibration,
-                                   prior=prior, report=report)
-        for line in summary_lines(result, out, with_network=model is not None):
-            typer.echo(line)
-        if page is not None:
-            typer.echo(f"wrote {page}")
+            return run_live(session, receiver, out_dir=out, until_end=until_end,
+                            send_device=send_device, on_status=typer.echo,
+                            on_note=lambda line: typer.echo(f"live: {line}", err=True))
 
 
+def _finish(session, out: Path, model, ct_mesh, device: Device, verdict_calibration, prior,
+            report: bool) -> None:
+    """On stop, with --out: what 'comreg register' (and 'comreg report') write."""
+    from comreg_core.live.run import finish_live
+    from comreg_core.register_output import summary_lines
+
+    result, page = finish_live(session, out, run_dir=model, ct_mesh=ct_mesh, device=device.value,
+                               calibration=verdict_calibration, prior=prior, report=report)
+    for line in summary_lines(result, out, with_network=model is not None):
+        typer.echo(line)
+    if page is not None:
+        typer.echo(f"wrote {page}")
+
+
+# --- comreg replay -------------------------------------------------------------------------------
+REPLAY_SWEEP = typer.Argument(..., help="A recorded tracked sweep: PLUS sequence (.igs.mha, "
+                              ".seq.mha, .igs.nrrd, .seq.nrrd), a frame folder (frames + "
+                              "tracking.csv + calibration.json) or a 3D Slicer volume sequence.")
+REPLAY_CALIBRATION = typer.Option(None, "--calibration", rich_help_panel=INPUTS, help="Its probe "
+                                  "calibration (as 'comreg extract-us' takes it; a frame "
+                                  "folder's own by default): also gives the ProbeToReference "
+                                  "poses.")
+REPLAY_FIRST_FRAME = typer.Option(0, "--first-frame", min=0, rich_help_panel=INPUTS,
+                                  help="Begin at this frame (0 = the first).")
+REPLAY_PORT = typer.Option(18944, "--port", min=0, max=65535, rich_help_panel=STREAM,
+                           help="The port to serve on (0: a free one, printed).")
+REPLAY_HOST = typer.Option("127.0.0.1", "--host", rich_help_panel=STREAM,
+                           help="The address to serve on.")
+REPLAY_RATE = typer.Option(1.0, "--rate", rich_help_panel=STREAM, help="Speed: 1 = as recorded, "
+                           "4 = four times as fast.")
+REPLAY_WAIT = typer.Option(None, "--wait", min=0.0, rich_help_panel=STREAM, help="Give up when "
+                           "no client connects within this many seconds (default: wait).")
+
+
+@app.command("replay", rich_help_panel=PANEL)
 def replay(
-    sweep: Path = typer.Argument(..., help="A recorded tracked sweep: PLUS sequence (.igs.mha, "
-                                 ".seq.mha, .igs.nrrd, .seq.nrrd), a frame folder (frames + "
-                                 "tracking.csv + calibration.json) or a 3D Slicer volume "
-                                 "sequence."),
-    port: int = typer.Option(18944, "--port", min=0, max=65535, help="The port to serve on "
-                             "(0: a free one, printed)."),
-    rate: float = typer.Option(1.0, "--rate", help="Speed: 1 = as recorded, 4 = four times as "
-                               "fast."),
-    host: str = typer.Option("127.0.0.1", "--host", help="The address to serve on."),
-    calibration: Optional[Path] = typer.Option(None, "--calibration", help="Its probe "
-                                               "calibration (as 'comreg extract-us' takes it; "
-                                               "a frame folder's own by default): also gives "
-                                               "the ProbeToReference poses."),
-    first_frame: int = typer.Option(0, "--first-frame", min=0, help="Begin at this frame "
-                                    "(0 = the first)."),
-    wait: Optional[float] = typer.Option(None, "--wait", min=0.0, help="Give up when no client "
-                                         "connects within this many seconds (default: wait)."),
+    sweep: Path = REPLAY_SWEEP,
+    calibration: Optional[Path] = REPLAY_CALIBRATION,
+    first_frame: int = REPLAY_FIRST_FRAME,
+    port: int = REPLAY_PORT,
+    host: str = REPLAY_HOST,
+    rate: float = REPLAY_RATE,
+    wait: Optional[float] = REPLAY_WAIT,
 ) -> None:
     """Serve a recorded sweep over OpenIGTLink as PLUS Server would for a tracked probe: per
     frame an IMAGE 'Image', its TRANSFORM 'ImageToReference' and the probe's TRANSFORM

@@ -80,14 +80,18 @@ def sample(tmp_path_factory):
 
 @pytest.fixture
 def no_model_loading(monkeypatch):
-    """Fail the test if a command loads a checkpoint (its checks must come before the work)."""
+    """Fail the test if a command loads a checkpoint (its checks must come before the work):
+    ``load_checkpoint`` is replaced in its module and wherever a loaded module bound it."""
     import comreg_core.inference  # noqa: F401  (imported unpatched: it binds load_checkpoint)
+    from comreg_core.training import checkpoint
 
     def refuse(*args, **kwargs):
         raise AssertionError("a checkpoint was loaded before the output place was checked")
 
-    monkeypatch.setattr("comreg_core.training.checkpoint.load_checkpoint", refuse)
-    monkeypatch.setattr("comreg_core.inference.load_checkpoint", refuse)
+    original = checkpoint.load_checkpoint
+    for name, module in list(sys.modules.items()):
+        if name.startswith("comreg_core") and getattr(module, "load_checkpoint", None) is original:
+            monkeypatch.setattr(module, "load_checkpoint", refuse)
 
 
 # --- 1. data loss ------------------------------------------------------------------------------
@@ -95,9 +99,10 @@ def no_model_loading(monkeypatch):
 def test_register_into_the_run_folder_is_refused_and_the_run_is_kept(sample, no_model_loading):
     run, us = sample
     before = {name: (run / name).read_bytes() for name in _files(run)}
-    _refused(["register", run, us, "--out", run], "is the pretraining run folder")
-    _refused(["register", run, us, "--out", run / "registration"], "inside the pretraining run")
-    _refused(["evaluate", run, us, "--out", run, "--trials", "1"], "run folder")
+    _refused(["register", us, "--model", run, "--out", run], "is the pretraining run folder")
+    _refused(["register", us, "--model", run, "--out", run / "registration"],
+             "inside the pretraining run")
+    _refused(["evaluate", us, "--model", run, "--out", run, "--trials", "1"], "run folder")
     _refused(["simulate", FIBULA_STL, "--out", run], "run folder")
     _refused(["extract-ct", FIBULA_STL, "--out", run / "bone.stl"], "run folder")
     _refused(["extract-us", SAMPLE_SWEEP, "--out", run / "us.ply"], "run folder")
@@ -128,8 +133,8 @@ def _command_args(name: str, out: Path, run: Path, us: Path) -> list:
         "simulate": ["simulate", FIBULA_STL, "--out", out],
         "extract-us": ["extract-us", SAMPLE_SWEEP, "--out", out / "us.ply"],
         "pretrain": ["pretrain", FIBULA_STL, "--out", out, "--epochs", "1"],
-        "register": ["register", run, us, "--out", out],
-        "evaluate": ["evaluate", run, us, "--out", out, "--trials", "1"],
+        "register": ["register", us, "--model", run, "--out", out],
+        "evaluate": ["evaluate", us, "--model", run, "--out", out, "--trials", "1"],
         "demo": ["demo", "--out", out],
         "report": ["report", out],
         "calibrate": ["calibrate", FIBULA_STL, "--out", out, "--sweeps", "4"],
@@ -204,13 +209,14 @@ def test_a_checkpoint_with_nan_weights_is_refused_before_the_work(sample, tmp_pa
         state["model"][name].view(-1)[0] = float("nan")
 
     run = _broken_run(tmp_path, nan_weight)
-    _refused(["register", run, sample[1], "--out", tmp_path / "out"], "NaN", "Train again")
+    _refused(["register", sample[1], "--model", run, "--out", tmp_path / "out"], "NaN",
+             "Train again")
     assert not (tmp_path / "out").exists()
 
 
 def test_a_checkpoint_whose_weights_do_not_fit_its_config_is_refused(sample, tmp_path):
     run = _broken_run(tmp_path, lambda state: state["model"].pop(next(iter(state["model"]))))
-    _refused(["register", run, sample[1], "--out", tmp_path / "out"], "does not fit")
+    _refused(["register", sample[1], "--model", run, "--out", tmp_path / "out"], "does not fit")
     assert not (tmp_path / "out").exists()
 
 
@@ -229,7 +235,7 @@ def test_a_random_file_as_checkpoint_never_suggests_unsafe_loading(sample, tmp_p
     run = tmp_path / "random_run"
     run.mkdir()
     (run / "checkpoint.pt").write_bytes(np.random.default_rng(0).bytes(5000))
-    result = _refused(["register", run, sample[1], "--out", tmp_path / "out"],
+    result = _refused(["register", sample[1], "--model", run, "--out", tmp_path / "out"],
                       "Cannot read the checkpoint", "never runs code")
     assert "weights_only" not in result.stderr
 
@@ -244,14 +250,14 @@ def test_evaluate_where_every_trial_fails_is_an_error_and_writes_nothing(sample,
     from comreg_core.inference import Registrar
 
     same = write_points(PointCloud(np.tile([[10.0, 20.0, 30.0]], (400, 1))), tmp_path / "same.ply")
-    _refused(["evaluate", sample[0], same, "--out", tmp_path / "ev", "--trials", "2",
+    _refused(["evaluate", same, "--model", sample[0], "--out", tmp_path / "ev", "--trials", "2",
               "--method", "comreg-plain"], "distinct")
 
     def always_fails(self, points, seed=0, **kwargs):
         raise InvalidGeometryError("This trial cannot be registered.", "")
 
     monkeypatch.setattr(Registrar, "register", always_fails)
-    result = runner.invoke(app, ["evaluate", str(sample[0]), str(sample[1]), "--out",
+    result = runner.invoke(app, ["evaluate", str(sample[1]), "--model", str(sample[0]), "--out",
                                  str(tmp_path / "ev"), "--trials", "2", "--method", "comreg-plain"])
     assert result.exit_code == 2, (result.stdout, result.stderr)
     error_lines = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
@@ -302,8 +308,8 @@ def _huge_pcd(path: Path) -> Path:
 
 def test_a_header_claiming_billions_of_points_is_refused(sample, tmp_path):
     for path in (_huge_ply(tmp_path / "huge.ply"), _huge_pcd(tmp_path / "huge.pcd")):
-        _refused(["register", sample[0], path, "--out", tmp_path / "out"], "4,000,000,000",
-                 "follow")
+        _refused(["register", path, "--model", sample[0], "--out", tmp_path / "out"],
+                 "4,000,000,000", "follow")
     assert not (tmp_path / "out").exists()
 
 
@@ -334,7 +340,7 @@ def test_register_uses_at_most_the_limit_and_says_so(sample, tmp_path, monkeypat
     import json
 
     monkeypatch.setattr("comreg_core.registration.inputs.MAX_US_POINTS", 500)
-    result = runner.invoke(app, ["register", str(sample[0]), str(sample[1]), "--out",
+    result = runner.invoke(app, ["register", str(sample[1]), "--model", str(sample[0]), "--out",
                                  str(tmp_path / "reg"), "--no-hypotheses", "--device", "cpu"])
     assert result.exit_code == 0, (result.stdout, result.stderr)
     saved = json.loads((tmp_path / "reg" / "result.json").read_text())
@@ -383,13 +389,13 @@ def test_extract_ct_refuses_a_metre_scale_mesh_and_a_single_triangle(tmp_path, m
 
 def test_a_folder_given_as_a_file_is_called_a_folder(sample, tmp_path):
     _refused(["info", tmp_path], "is a folder, not a file")
-    _refused(["register", sample[0], tmp_path, "--out", tmp_path / "out"], "is a folder")
+    _refused(["register", tmp_path, "--model", sample[0], "--out", tmp_path / "out"], "is a folder")
 
 
 def test_identical_points_are_not_called_metres(sample, tmp_path):
     same = write_points(PointCloud(np.tile([[10.0, 20.0, 30.0]], (400, 1))), tmp_path / "same.ply")
-    result = _refused(["register", sample[0], same, "--out", tmp_path / "out", "--device", "cpu"],
-                      "1 distinct point")
+    result = _refused(["register", same, "--model", sample[0], "--out", tmp_path / "out",
+                       "--device", "cpu"], "1 distinct point")
     assert "metres" not in result.stderr
 
 
@@ -493,7 +499,7 @@ def test_a_truncated_us_image_exits_2_naming_the_file(tmp_path, shared_data, cas
 def test_the_error_handler_turns_os_errors_into_one_line_and_bugs_into_exit_1(tmp_path):
     import errno
 
-    from comreg_core.cli_errors import CommandApp
+    from comreg_core.cli.errors import CommandApp
 
     demo = CommandApp()
 
