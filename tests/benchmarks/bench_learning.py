@@ -9,9 +9,9 @@ evaluation's definition), coarse RRE / RTE (medians) and the success and flip ra
 paper's plain pipeline (network + differentiable ICP, no pose search). Row ``min 0.0`` is the
 **untrained-model control**: the same network before its first step. ``--set`` changes one
 setting (dotted path into the run config) so a lever can be measured alone. The run folder is
-a normal one: ``comreg evaluate RUN simulated ...`` can evaluate it afterwards; beside it,
-``RUN_untrained`` holds the same network as it was before its first step (same config, seed and
-initial weights, 0 epochs), the untrained control for ``comreg evaluate``.
+a normal one: ``comreg evaluate simulated --model RUN ...`` can evaluate it afterwards; beside
+it, ``RUN_untrained`` holds the same network as it was before its first step (same config, seed
+and initial weights, 0 epochs), the untrained control for ``comreg evaluate``.
 """
 
 from __future__ import annotations
