@@ -153,7 +153,7 @@ def _run_trials(methods: dict, clouds, ct, *, trials: int, seed: int, perturbati
 
 def _check_us_cloud(methods: dict, points) -> None:
     """The network's checks of the US cloud before any trial (a bad cloud fails them all)."""
-    from comreg_core.inference import Registrar
+    from comreg_core.register.registrar import Registrar
 
     for method in methods.values():
         owner = getattr(getattr(method, "func", method), "__self__", method)  # partial/bound

@@ -100,7 +100,7 @@ def live(
     """
     from comreg_core.live.igtl import IMAGE_POSE_DEVICE, PROBE_POSE_DEVICE
     from comreg_core.live.stream import probe_calibration
-    from comreg_core.register_output import load_prior
+    from comreg_core.register.inputs import load_prior
 
     host, port = _host_port(igtl)
     _check_connect_timeout(connect_timeout)
@@ -169,7 +169,7 @@ def _session(ct_mesh, model, device: Device, verdict_calibration, prior, seed: i
     another CT is refused here, before any work."""
     from comreg_core.live.background import RegistrarRecipe, build_registrar
     from comreg_core.live.session import LiveSession
-    from comreg_core.register_output import calibration_path, find_calibration
+    from comreg_core.register.inputs import calibration_path, find_calibration
 
     verdict = find_calibration(verdict_calibration, model)
     recipe = RegistrarRecipe(str(ct_mesh), None if model is None else str(model), device.value)
@@ -210,7 +210,7 @@ def _finish(session, out: Path, model, ct_mesh, device: Device, verdict_calibrat
             report: bool) -> None:
     """On stop, with --out: what 'comreg register' (and 'comreg report') write."""
     from comreg_core.live.run import finish_live
-    from comreg_core.register_output import summary_lines
+    from comreg_core.register.folder import summary_lines
 
     result, page = finish_live(session, out, run_dir=model, ct_mesh=ct_mesh, device=device.value,
                                calibration=verdict_calibration, prior=prior, report=report)

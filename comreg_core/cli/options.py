@@ -43,7 +43,7 @@ Preset = Enum("Preset", {name: name for name in choices.PRESETS}, type=str)
 DEVICE_OPTION = typer.Option(Device.auto, help="Where to run the network.",
                              rich_help_panel=NETWORK)
 
-#: The prior's options (:func:`comreg_core.register_output.load_prior` reads them).
+#: The prior's options (:func:`comreg_core.register.inputs.load_prior` reads them).
 INIT_OPTION = typer.Option(
     None, "--init", metavar="TRANSFORM", rich_help_panel=PRIOR, help="A rough initial pose "
     "T_ct_us: an ITK transform file (.tfm, .h5, .txt) as 3D Slicer saves it (or a "

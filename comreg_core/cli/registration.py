@@ -79,7 +79,8 @@ def register(
     100,000 points is registered as a seeded uniform subset of 100,000 (said in a warning).
     --out must not be the run folder or inside it.
     """
-    from comreg_core.register_output import load_prior, register_to_directory, summary_lines
+    from comreg_core.register.folder import register_to_directory, summary_lines
+    from comreg_core.register.inputs import load_prior
     from comreg_core.registration.config import load_register_config
 
     refuse_the_older_form("register", inputs[0])

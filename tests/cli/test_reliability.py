@@ -82,7 +82,7 @@ def sample(tmp_path_factory):
 def no_model_loading(monkeypatch):
     """Fail the test if a command loads a checkpoint (its checks must come before the work):
     ``load_checkpoint`` is replaced in its module and wherever a loaded module bound it."""
-    import comreg_core.inference  # noqa: F401  (imported unpatched: it binds load_checkpoint)
+    import comreg_core.register.network  # noqa: F401  (imported unpatched: binds load_checkpoint)
     from comreg_core.training import checkpoint
 
     def refuse(*args, **kwargs):
@@ -247,7 +247,7 @@ def test_evaluate_where_every_trial_fails_is_an_error_and_writes_nothing(sample,
     """A cloud every registration refuses is refused before the trials; when every trial fails
     anyway (here: a method that always raises), nothing is measured, so nothing is written."""
     from comreg_core.errors import InvalidGeometryError
-    from comreg_core.inference import Registrar
+    from comreg_core.register.registrar import Registrar
 
     same = write_points(PointCloud(np.tile([[10.0, 20.0, 30.0]], (400, 1))), tmp_path / "same.ply")
     _refused(["evaluate", same, "--model", sample[0], "--out", tmp_path / "ev", "--trials", "2",
