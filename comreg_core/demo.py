@@ -188,11 +188,12 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
         step: called with a line before each stage (the CLI prints it).
     """
     from comreg_core.evaluation.evaluate import evaluate, write_metrics
-    from comreg_core.registration.metrics import (registration_metrics, rotation_error_deg,
-                                                  translation_error_mm)
-    from comreg_core.registration.surface import CTSurface
-    from comreg_core.inference import Registrar
-    from comreg_core.register_output import register_to_directory
+    from comreg_core.registration.geometry.metrics import (registration_metrics,
+                                                           rotation_error_deg,
+                                                           translation_error_mm)
+    from comreg_core.registration.geometry.surface import CTSurface
+    from comreg_core.register import Registrar
+    from comreg_core.register import register_to_directory
     from comreg_core.io import PointCloud, read_mesh, save_transform, write_points
     from comreg_core.report import write_report_for_registration
     from comreg_core.simulation import sample_initial_pose

@@ -66,9 +66,9 @@ class LiveRegistration:
         method: ``"search"`` (the pose search on ``ctModelNode``) or ``"comreg"`` (the run in
             ``runDirectory``, then the search).
         outputTransformNode: where the registration goes (default: a new ``ReferenceToCT``).
-        calibration: a :class:`~comreg_core.registration.calibration.Calibration` for the
+        calibration: a :class:`~comreg_core.registration.judgement.calibration.Calibration` for the
             verdict, or None.
-        prior: a :class:`~comreg_core.registration.priors.Prior` (LPS; an initial pose, CT and
+        prior: a :class:`~comreg_core.registration.search.priors.Prior` (LPS; an initial pose, CT and
             US landmarks, the US ones in the stream's reference frame) bounding every update,
             or None (:func:`comreg_plugin.scene_inputs.priorFromNodes` makes one from nodes).
     """

@@ -371,7 +371,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
     # -- registration -----------------------------------------------------------------------
 
     def registrar(self, runDirectory, device: str = "auto"):
-        """The :class:`comreg_core.inference.Registrar` of a run folder (cached while its
+        """The :class:`comreg_core.register.Registrar` of a run folder (cached while its
         checkpoint is unchanged)."""
         return self._methods.registrar(runDirectory, device)
 
@@ -391,7 +391,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
                 own coordinates (without any parent transform) are the US frame.
             method: ``"comreg"`` (needs ``runDirectory``), ``"ransac"`` (needs the CT model),
                 or a callable taking ``(N, 3)`` LPS points and returning a result with
-                ``T_ct_us`` (a :class:`~comreg_core.registration.result.RegistrationResult`,
+                ``T_ct_us`` (a :class:`~comreg_core.registration.search.result.RegistrationResult`,
                 :class:`~comreg_core.evaluation.outputs.RegistrationOutput`, a dict or a 4x4
                 array). Default: the parameter node's ``method``.
             runDirectory: the pretrained run (default: the parameter node's).

@@ -36,7 +36,7 @@ class ComRegParameterNode:
     landmarks picked on the CT and in the US data (the US points' own frame), paired by label;
     landmarkToleranceMm: how far apart a pair may end (a point's "tol=5" description
     overrides it). Together the prior of the pose search
-    (:mod:`comreg_core.registration.priors`).
+    (:mod:`comreg_core.registration.search.priors`).
     method: "comreg" (pretrained run), "search" (pose search on the CT alone, no network) or
     "ransac" (RANSAC + ICP baseline).
     runDirectory: the pretraining run folder. preset, maxMinutes, epochs (0 = preset's), seed,

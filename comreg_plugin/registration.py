@@ -1,9 +1,9 @@
 """Registration methods of the ComReg module and what a registration made.
 
 - :class:`RegistrationMethods`: the methods :meth:`comreg_plugin.logic.ComRegLogic.register`
-  runs: ``"comreg"`` (a pretrained run folder, :class:`comreg_core.inference.Registrar`),
+  runs: ``"comreg"`` (a pretrained run folder, :class:`comreg_core.register.Registrar`),
   ``"search"`` (the pose search alone on the CT model, no network:
-  :meth:`comreg_core.inference.Registrar.from_ct`), ``"ransac"`` (the Open3D RANSAC + ICP
+  :meth:`comreg_core.register.Registrar.from_ct`), ``"ransac"`` (the Open3D RANSAC + ICP
   baseline on the CT model) or any callable; each is prepared once and reused while its inputs
   are unchanged.
 - :func:`runRegistration`: one method on ``(N, 3)`` RAS points -> ``T_ct_us`` in its space and
@@ -92,9 +92,9 @@ class RegistrationMethods:
         self._baselines.clear()
 
     def registrar(self, runDirectory, device: str = "auto"):
-        """The :class:`comreg_core.inference.Registrar` of a run folder (cached while its
+        """The :class:`comreg_core.register.Registrar` of a run folder (cached while its
         checkpoint is unchanged)."""
-        from comreg_core.inference import Registrar
+        from comreg_core.register import Registrar
 
         run = Path(runDirectory)
         checkpoint = run / PretrainingJob.CHECKPOINT_NAME if run.is_dir() else run
@@ -114,9 +114,9 @@ class RegistrationMethods:
                                lambda mesh: RansacIcpBaseline(mesh, seed=seed))
 
     def searchRegistrar(self, ctModelNode):
-        """The pose search alone (:meth:`comreg_core.inference.Registrar.from_ct`) prepared for
+        """The pose search alone (:meth:`comreg_core.register.Registrar.from_ct`) prepared for
         a CT model node (cached while it is unchanged)."""
-        from comreg_core.inference import Registrar
+        from comreg_core.register import Registrar
 
         return self._onCtModel("search", ctModelNode, 0, Registrar.from_ct)
 
@@ -140,7 +140,7 @@ class RegistrationMethods:
         see :meth:`ComRegLogic.register <comreg_plugin.logic.ComRegLogic.register>`): ``run``
         takes ``(N, 3)`` points in ``space`` and returns a result with ``T_ct_us``.
         ``runDirectory`` and ``ctModelNode`` default to the ``parameters`` node's. ``prior``
-        (:class:`~comreg_core.registration.priors.Prior`, or None) goes to the pose search of
+        (:class:`~comreg_core.registration.search.priors.Prior`, or None) goes to the pose search of
         "comreg" and "search"; the other methods refuse it."""
         if prior is not None and (callable(method) or method == "ransac"):
             name = getattr(method, "__name__", "custom") if callable(method) else method

@@ -12,7 +12,7 @@
 - A reconstructed 3D US volume as a scalar volume node -> :class:`comreg_core.io.volumes.Volume`
   (RAS, its IJKToRAS geometry; :func:`volumeFromNode`).
 - A prior for the pose search: an initial-pose transform node and CT / US landmarks markups
-  nodes -> :class:`comreg_core.registration.priors.Prior` (:func:`priorFromNodes`).
+  nodes -> :class:`comreg_core.registration.search.priors.Prior` (:func:`priorFromNodes`).
 
 Coordinates: frame geometry in the scene is ``T_ImageToReference (RAS) @ IJKToRAS``; a
 ``TrackedSweep`` is LPS, so ``T_ref_pixel (LPS) = T_RAS_LPS @ T_ImageToReference @ IJKToRAS``.
@@ -307,19 +307,19 @@ def markupsFromNode(node, what: str):
 def priorFromNodes(initialTransformNode=None, ctLandmarksNode=None, usLandmarksNode=None, *,
                    maxDeg: float = 30.0, maxMm: float = 30.0,
                    landmarkToleranceMm: float = 10.0, parameters=None):
-    """The pose search's :class:`~comreg_core.registration.priors.Prior` (LPS) of scene nodes,
+    """The pose search's :class:`~comreg_core.registration.search.priors.Prior` (LPS) of scene nodes,
     or None when neither an initial pose nor landmarks are given.
 
     ``initialTransformNode``: a linear transform node holding a rough ``T_ct_us`` the way the
     registration's output does (the US points placed under it land on the CT): its transform
     to world, RAS. ``ctLandmarksNode`` / ``usLandmarksNode``: markups point lists on the CT and
     in the US points' own frame (each node's coordinates without its parent transform), paired
-    by label (:func:`comreg_core.registration.priors.match_landmarks`), tolerance
+    by label (:func:`comreg_core.registration.search.priors.match_landmarks`), tolerance
     ``landmarkToleranceMm`` unless a point's description says ``tol=5``. ``parameters``: the
     module's parameter node: nodes not given and the tolerances are its (``initialTransform``,
     ``ctLandmarks``, ``usLandmarks``, ``initialToleranceDeg``, ...).
     """
-    from comreg_core.registration.priors import Prior, match_landmarks
+    from comreg_core.registration.search.priors import Prior, match_landmarks
 
     if parameters is not None:
         p = parameters

@@ -1,4 +1,4 @@
-"""Figures behind the verdict thresholds (comreg_core/registration/verdict.py).
+"""Figures behind the verdict thresholds (comreg_core/registration/judgement/verdict.py).
 
     .venv/bin/python scripts/calibrate_verdict.py [--sims N] [--real-points FILE.npy]
 
@@ -17,9 +17,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from comreg_core.registration.icp import point_to_plane_icp  # noqa: E402
-from comreg_core.registration.surface import CTSurface  # noqa: E402
-from comreg_core.registration.verdict import judge_registration  # noqa: E402
+from comreg_core.registration.geometry.icp import point_to_plane_icp  # noqa: E402
+from comreg_core.registration.geometry.surface import CTSurface  # noqa: E402
+from comreg_core.registration.judgement.verdict import judge_registration  # noqa: E402
 from comreg_core.transforms import apply_transform  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "ultrabones100k-fibula"

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.surface import CTSurface
 from tests.helpers import BOX_CENTRE, BOX_HALF, FIBULA_STL, SHARED_DATA
 
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")

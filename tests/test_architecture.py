@@ -18,7 +18,7 @@ LAYERS = (
     ("simulation",),
     ("model",),
     ("training",),
-    ("inference", "register_output", "register"),
+    ("register",),
     ("evaluation",),
     ("report",),
     ("demo", "cli", "live", "batch"),
@@ -35,7 +35,7 @@ def _modules(package: str) -> list[Path]:
 
 
 def _unit(path: Path) -> str:
-    """``comreg_core/registration/icp.py`` -> ``registration``; ``comreg_core/demo.py`` ->
+    """``comreg_core/registration/geometry/icp.py`` -> ``registration``; ``comreg_core/demo.py`` ->
     ``demo``."""
     return path.relative_to(ROOT / "comreg_core").parts[0].removesuffix(".py")
 
@@ -135,3 +135,22 @@ def test_the_named_choices_are_what_the_packages_implement():
     from tests.helpers import FIBULA_STL
 
     assert set(baseline_methods(["icp-gt"], FIBULA_STL)) == {"icp-gt"}
+
+
+#: The sub-packages of ``registration``, lowest first: each imports only those before it.
+REGISTRATION_PARTS = ("geometry", "search", "judgement")
+
+
+def test_registration_parts_import_only_downwards():
+    rank = {name: k for k, name in enumerate(REGISTRATION_PARTS)}
+    bad = []
+    for path in _modules("comreg_core/registration"):
+        parts = path.relative_to(ROOT / "comreg_core" / "registration").parts
+        if len(parts) < 2:
+            continue
+        for line, module in _imports(path):
+            pieces = module.split(".")
+            if pieces[:2] == ["comreg_core", "registration"] and len(pieces) > 2 \
+                    and pieces[2] in rank and rank[pieces[2]] > rank[parts[0]]:
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {module}")
+    assert not bad, bad

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from comreg_core.demo import SAMPLE_MODEL, TRUTH, run_demo, summary_lines
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.io import load_transform, read_mesh, read_points
 
 

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.inference import Registrar
-from comreg_core.register_output import register_to_directory
-from comreg_core.registration.icp import refine_on_mesh
+from comreg_core.register import Registrar
+from comreg_core.register import register_to_directory
+from comreg_core.registration.geometry.icp import refine_on_mesh
 from comreg_core.io import load_transform, read_points
 from comreg_core.io.meshes import SurfaceMesh, write_mesh
 from comreg_core.io.pointclouds import PointCloud, write_points
@@ -150,7 +150,7 @@ def test_register_to_directory_writes_the_result_folder(run, registrar, us_cloud
 
     settings = yaml.safe_load((out / "config.yaml").read_text())
     assert settings["hypotheses"]["enabled"] is True and settings["inputs"]["seed"] == 7
-    from comreg_core.registration.config import load_register_config
+    from comreg_core.registration.search.config import load_register_config
 
     assert load_register_config(out / "config.yaml").hypotheses == registrar.hypothesis_config
     assert not list(out.glob(".*tmp*"))

@@ -16,7 +16,7 @@ from tests.cli.test_reliability import SAMPLE_MODEL
 @pytest.fixture(scope="module")
 def registrar():
     """The bundled sample model, plain pipeline (no hypotheses stage: the checks are before it)."""
-    from comreg_core.inference import Registrar
+    from comreg_core.register import Registrar
 
     return Registrar.from_run(SAMPLE_MODEL, "cpu", hypotheses=False)
 
@@ -54,7 +54,7 @@ def test_identical_points_are_called_identical(registrar):
 
 def test_a_cloud_above_the_limit_is_registered_as_a_subset(registrar, patch_points,
                                                           monkeypatch):
-    monkeypatch.setattr("comreg_core.registration.inputs.MAX_US_POINTS", 300)
+    monkeypatch.setattr("comreg_core.registration.geometry.inputs.MAX_US_POINTS", 300)
     result = registrar.register(patch_points, seed=2)
     assert result.n_points == 300 and len(result.registered_points) == 300
     assert any("subset of 300" in w for w in result.info["warnings"])

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 from comreg_core.cli import app
 from comreg_core.io import PointCloud, read_points, write_points
 from comreg_core.register.inputs import join_clouds
-from comreg_core.registration.metrics import registration_metrics
+from comreg_core.registration.geometry.metrics import registration_metrics
 from comreg_core.simulation import sample_initial_pose
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import FIBULA_STL

@@ -10,10 +10,10 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.errors import ComRegError
-from comreg_core.inference import Registrar
-from comreg_core.register_output import register_to_directory
+from comreg_core.register import Registrar
+from comreg_core.register import register_to_directory
 from comreg_core.io import PointCloud, read_mesh, write_points
-from comreg_core.registration.metrics import registration_metrics
+from comreg_core.registration.geometry.metrics import registration_metrics
 from comreg_core.simulation import sample_initial_pose
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import FIBULA_STL
@@ -100,7 +100,7 @@ def test_register_and_report_without_a_run(tmp_path, real_sweep):
 def test_register_a_short_stretch_of_the_real_sweep(tmp_path, real_sweep):
     """45 mm of the real sweep along the bone is a patch: the CLI says all orientations were
     tried, result.json records it, and it is flagged unless it leads by 0.5."""
-    from comreg_core.registration.surface import principal_frame
+    from comreg_core.registration.geometry.surface import principal_frame
 
     centre, axes = principal_frame(real_sweep)
     along = (real_sweep - centre) @ axes[:, 0]
@@ -196,7 +196,7 @@ def test_the_search_gives_the_same_pose_at_any_thread_count(tmp_path, shared_dat
     import sys
 
     code = ("import numpy as np, sys\n"
-            "from comreg_core.inference import Registrar\n"
+            "from comreg_core.register import Registrar\n"
             "from comreg_core.io import read_mesh\n"
             "from comreg_core.simulation import sample_initial_pose\n"
             "from comreg_core.transforms import apply_transform\n"

@@ -4,7 +4,7 @@ mesh of tibia size that the simulator sweeps like a real bone."""
 import numpy as np
 import trimesh
 
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.simulation.bone import BoneModel
 from comreg_core.simulation.config import SimulationConfig
 from comreg_core.simulation.simulator import simulate_sweep

@@ -241,7 +241,7 @@ def _check_row(row: dict[str, Any], base: Path, problems: list[str]) -> dict[str
 def _check_priors(row: dict[str, Any], fields: dict[str, Any], problems: list[str]) -> None:
     """The priors' columns: a tolerance needs its pose, landmarks come in pairs."""
     if "init_tolerance" in row:
-        from comreg_core.register_output import parse_tolerance  # (imports torch: only here)
+        from comreg_core.register import parse_tolerance  # (imports torch: only here)
 
         fields["init_tolerance"] = str(row["init_tolerance"])
         if "init" not in row:

@@ -11,7 +11,7 @@ Columns of ``summary.csv`` (:data:`COLUMNS`): ``case``; ``status`` (``ok``: ever
 ``ambiguous``, ``n_points``, ``residual_median_mm``, ``residual_p95_mm`` (distances of the
 registered US points to the CT), ``extent_share`` (the sweep's spread over the CT's length);
 with a ``gt``: ``RTE_mm`` (at the US centroid), ``RRE_deg`` and ``success`` (RTE < 4 mm and
-RRE < 5 deg, the real-data tolerance of :mod:`comreg_core.registration.calibration`); the
+RRE < 5 deg, the real-data tolerance of :mod:`comreg_core.registration.judgement.calibration`); the
 seconds of each stage's command (``time_<stage>_s``, empty when the stage did not run) and
 their sum; ``report`` (the report's path relative to ``OUT``). Empty cells mean "not known".
 """
@@ -87,8 +87,8 @@ def evaluate(plan: CasePlan, result: dict[str, Any]) -> dict[str, Any]:
     registered (``registered_us.ply`` moved back by its ``T_ct_us``), RRE of the rotations;
     success within the real-data tolerance (4 mm, 5 deg)."""
     from comreg_core.io import load_transform, read_points
-    from comreg_core.registration.calibration import TOLERANCE_DEG, TOLERANCE_MM
-    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.registration.judgement.calibration import TOLERANCE_DEG, TOLERANCE_MM
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
     from comreg_core.transforms import apply_transform, invert_rigid
 
     space = result.get("space", "LPS")

@@ -110,7 +110,7 @@ def _evaluation_inputs(us_points: str, out: Path, *, ct_mesh, gt, config, model,
                                                 registration_methods)
     from comreg_core.io import load_transform, read_mesh, read_points
     from comreg_core.io._files import check_output_folder
-    from comreg_core.registration.inputs import limit_us_points
+    from comreg_core.registration.geometry.inputs import limit_us_points
     from comreg_core.training import run_ct_mesh
 
     if model is None and ct_mesh is None:

@@ -81,7 +81,7 @@ def register(
     """
     from comreg_core.register.folder import register_to_directory, summary_lines
     from comreg_core.register.inputs import load_prior
-    from comreg_core.registration.config import load_register_config
+    from comreg_core.registration.search.config import load_register_config
 
     refuse_the_older_form("register", inputs[0])
     us_points = inputs[0] if len(inputs) == 1 else inputs

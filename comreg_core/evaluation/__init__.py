@@ -1,7 +1,7 @@
 """Evaluation: the RANSAC and ICP baselines, the methods by name and the trial harness.
 
 The metrics themselves (RTE, RRE, CD, HD95, success, flip) are defined in
-:mod:`comreg_core.registration.metrics`, below training, which validates with them.
+:mod:`comreg_core.registration.geometry.metrics`, below training, which validates with them.
 
 - :mod:`.baselines`: Open3D RANSAC (FPFH) + ICP (Open3D imported lazily), the ICP pseudo
   ground truth ``icp-gt`` (numpy/scipy), :class:`BaselineConfig`.

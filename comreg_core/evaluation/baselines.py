@@ -18,9 +18,9 @@
   slide along a near-cylindrical shaft and lose every correspondence), the RANSAC pose is kept.
 - ``"icp-gt"`` (:class:`IcpGtBaseline`): the paper's pseudo ground truth, ICP started from the
   ground truth ("near-perfect initialisation"): point-to-plane ICP in numpy/scipy
-  (:func:`~comreg_core.registration.icp.point_to_plane_icp`, no Open3D) to the (near-)exact
+  (:func:`~comreg_core.registration.geometry.icp.point_to_plane_icp`, no Open3D) to the (near-)exact
   closest points of the CT mesh and their triangle normals
-  (:meth:`~comreg_core.registration.surface.CTSurface.matcher`), correspondences farther than
+  (:meth:`~comreg_core.registration.geometry.surface.CTSurface.matcher`), correspondences farther than
   ``max_distance_mm`` rejected (outliers such as false hits).
 
 Open3D is imported only here and only when a RANSAC baseline is built; it is an optional
@@ -39,8 +39,8 @@ from comreg_core.choices import BASELINES
 from comreg_core.config import from_dict, require
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.evaluation.outputs import RegistrationOutput
-from comreg_core.registration.icp import point_to_plane_icp
-from comreg_core.registration.surface import as_surface
+from comreg_core.registration.geometry.icp import point_to_plane_icp
+from comreg_core.registration.geometry.surface import as_surface
 from comreg_core.transforms import as_points, check_rigid, orthonormalize
 
 
@@ -138,7 +138,7 @@ class RansacIcpBaseline:
 
     Args:
         ct_mesh: the CT bone surface (anything
-            :func:`~comreg_core.registration.surface.as_surface`
+            :func:`~comreg_core.registration.geometry.surface.as_surface`
             accepts), mm, in the space the US points will be given in.
         config: :class:`RansacConfig` (or a whole :class:`BaselineConfig`).
         seed: seeds Open3D's global random generator before every RANSAC run; call ``i`` uses

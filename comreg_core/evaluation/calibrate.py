@@ -4,9 +4,9 @@ Simulates short sweeps of the CT (the lengths the user expects; one face, transv
 partial-sweep benchmark's), adds a tracking drift and the real sweeps' point noise, moves each by one of the paper's
 random initial poses, registers it with the pose search alone (no network needed: the verdict
 judges the search's evidence, which is the same with a network), and fits
-:class:`~comreg_core.registration.calibration.Calibration` to how the margin and extent of each
+:class:`~comreg_core.registration.judgement.calibration.Calibration` to how the margin and extent of each
 result map to its correctness (within 4 mm / 5 deg of the truth). See
-:mod:`comreg_core.registration.calibration` for the definitions and ``docs/calibration.md``.
+:mod:`comreg_core.registration.judgement.calibration` for the definitions and ``docs/calibration.md``.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ import numpy as np
 
 from comreg_core import runs
 from comreg_core.progress import Progress
-from comreg_core.registration.calibration import (Calibration, fit_calibration,
-                                                  result_evidence)
+from comreg_core.registration.judgement.calibration import (Calibration, fit_calibration,
+                                                            result_evidence)
 
 log = logging.getLogger(__name__)
 
@@ -77,9 +77,9 @@ def calibrate(ct_mesh, *, sweeps: int = 60, lengths_mm: tuple[float, float] = (3
     """Register ``sweeps`` simulated sweeps of ``ct_mesh`` (a path or ``(vertices, faces)``)
     and fit the calibration (module docstring). Deterministic for a given seed."""
     from comreg_core.errors import ComRegError
-    from comreg_core.inference import Registrar
-    from comreg_core.registration.metrics import registration_metrics
-    from comreg_core.registration.surface import ct_length_mm
+    from comreg_core.register import Registrar
+    from comreg_core.registration.geometry.metrics import registration_metrics
+    from comreg_core.registration.geometry.surface import ct_length_mm
     from comreg_core.simulation import BoneModel, sample_initial_pose, simulate_sweep
     from comreg_core.surfaces.us_points import beam_origins
     from comreg_core.training.checkpoint import ct_fingerprint

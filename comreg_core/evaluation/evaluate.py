@@ -31,7 +31,7 @@ identity unless given):
 
 Rates are fractions in [0, 1] of *all* trials of the method (a failed trial is neither a success
 nor a flip). ``confidence`` and ``ambiguous`` are the method's own verdict on its result (ComReg
-with its hypotheses stage, :mod:`comreg_core.registration.search`; null for methods without one);
+with its hypotheses stage, :mod:`comreg_core.registration.search.search`; null for methods without one);
 ``ambiguous_rate`` is the share of trials flagged ambiguous and ``unflagged_flip_rate`` the share
 that are flips *not* flagged (silent flips), both null for a method that flags nothing. Statistics (numpy mean, population std with ``ddof=0``, median) are over the trials
 with a value; ``null`` where there is none (e.g. completion metrics of a method without a
@@ -62,9 +62,9 @@ from comreg_core.progress import Progress
 from comreg_core.config import ConfigError
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.io.json_files import strict_json, write_json
-from comreg_core.registration.metrics import (DEFAULT_CT_SAMPLES, as_surface, completion_metrics,
-                                            registration_metrics, rotation_error_deg,
-                                            translation_error_mm)
+from comreg_core.registration.geometry.metrics import (DEFAULT_CT_SAMPLES, as_surface,
+                                                       completion_metrics, registration_metrics,
+                                                       rotation_error_deg, translation_error_mm)
 from comreg_core.evaluation.outputs import as_registration_output
 from comreg_core.transforms import apply_transform, as_points, check_rigid, invert_rigid
 
@@ -174,7 +174,7 @@ def evaluate(methods: Mapping[str, Callable], us_points, ct_mesh, *, trials: int
             the CT mesh), a list of them (trial ``k`` uses cloud ``k % len``), or ``"simulated"``:
             ``trials`` fresh sweeps from :func:`simulated_us_clouds` (ground truth identity).
         ct_mesh: the CT surface (path, SurfaceMesh, BoneModel, trimesh, (V, F) or
-            :class:`~comreg_core.registration.surface.CTSurface`).
+            :class:`~comreg_core.registration.geometry.surface.CTSurface`).
         trials: number of random initial poses (>= 1).
         seed: seeds the poses (and simulated clouds); the same seed gives the same trials.
         perturbation: ``"paper"`` (one axis, +-90 deg, +-100 mm) or ``"full"`` (any axis, up to

@@ -1,15 +1,15 @@
 """Registration methods by name, as ``comreg evaluate --method`` offers them.
 
-- ``search``: the pose search alone, no network (:meth:`~comreg_core.inference.Registrar.
+- ``search``: the pose search alone, no network (:meth:`~comreg_core.register.Registrar.
   from_ct`: starts from the principal axes of the US cloud on the CT's);
 - ``comreg``: the pretrained run with the test-time hypotheses stage (the default pipeline;
-  :mod:`comreg_core.registration.search`);
+  :mod:`comreg_core.registration.search.search`);
 - ``comreg-plain``: the same network without it (the paper's plain pipeline);
 - ``ransac``, ``icp-gt``: the baselines (:mod:`.baselines`);
 - ``all``: every one of them.
 
 ``comreg`` and ``comreg-plain`` share one loaded network (one
-:class:`~comreg_core.inference.Registrar`, its CT half encoded once); ``comreg-plain`` calls it
+:class:`~comreg_core.register.Registrar`, its CT half encoded once); ``comreg-plain`` calls it
 with ``hypotheses=False``.
 """
 
@@ -25,7 +25,7 @@ from comreg_core.choices import BASELINES, COMREG_METHODS, METHODS, SEARCH_METHO
 from comreg_core.config import load_config
 from comreg_core.errors import ComRegError
 from comreg_core.evaluation.baselines import BaselineConfig, baseline_methods
-from comreg_core.inference import Registrar
+from comreg_core.register import Registrar
 from comreg_core.registration import HypothesisConfig, as_hypothesis_config
 from comreg_core.simulation.config import SimulationConfig
 

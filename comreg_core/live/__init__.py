@@ -13,6 +13,6 @@ sweep served as PLUS Server would (``comreg replay``). docs/live.md describes bo
 - :mod:`~comreg_core.live.run`: the receiver thread, the update loop and the output folder.
 
 It sits at the top of comreg_core beside the CLI and the demo: it registers
-(:mod:`comreg_core.inference`), writes ``comreg register``'s folder
-(:mod:`comreg_core.register_output`) and its report (:mod:`comreg_core.report`).
+(:mod:`comreg_core.register`), writes ``comreg register``'s folder
+(:mod:`comreg_core.register.folder`) and its report (:mod:`comreg_core.report`).
 """

@@ -7,7 +7,7 @@ beside a full search in a thread took 0.25 s instead of 0.11 s. In a second proc
 process on one thread, a warm update took 0.15 s beside it (0.13 s alone) and the full search
 ~1.1 s (``docs/live.md``).
 
-The worker builds its own :class:`~comreg_core.inference.Registrar` from the same recipe (the
+The worker builds its own :class:`~comreg_core.register.Registrar` from the same recipe (the
 CT mesh, the network's run or none, the device: :func:`build_registrar`) and registers the jobs
 it is given, one at a time, as :meth:`LiveSession <comreg_core.live.session.LiveSession>` would
 in its own process (the same seed, prior and points: the same result, thread counts do not
@@ -52,8 +52,8 @@ class RegistrarRecipe:
 
 
 def build_registrar(recipe: RegistrarRecipe):
-    """The :class:`~comreg_core.inference.Registrar` of ``recipe``."""
-    from comreg_core.inference import Registrar
+    """The :class:`~comreg_core.register.Registrar` of ``recipe``."""
+    from comreg_core.register import Registrar
 
     if recipe.run_dir is None:
         return Registrar.from_ct(recipe.ct_mesh)
@@ -65,7 +65,7 @@ def warm_up_registrar(registrar, seed: int = 0):
     half) by registering a patch of the CT's own surface (the middle half of its length), so
     that its first live registration costs what later ones do. Returns ``(patch (n, 3),
     RegistrationResult)``."""
-    from comreg_core.registration.surface import ct_length_mm
+    from comreg_core.registration.geometry.surface import ct_length_mm
 
     target = registrar.hypothesis_target(registrar.hypothesis_config.target_points)
     samples, _ = registrar.surface.samples(2000)
@@ -78,7 +78,7 @@ def warm_up_registrar(registrar, seed: int = 0):
 class FullSearchJob:
     """A full search to run: ``points`` ``(N, 3)`` (tracker frame, mm), their beam ``origins``
     ``(N, 3)`` or None, the ``seed``; ``halves``: also measure
-    :func:`~comreg_core.registration.polish.halves_disagreement_deg` of its pose."""
+    :func:`~comreg_core.registration.search.polish.halves_disagreement_deg` of its pose."""
 
     job: int
     points: np.ndarray
@@ -89,7 +89,7 @@ class FullSearchJob:
 
 @dataclass
 class FullSearchDone:
-    """A job's answer: the :class:`~comreg_core.registration.result.RegistrationResult` (None
+    """A job's answer: the :class:`~comreg_core.registration.search.result.RegistrationResult` (None
     when it failed: ``error`` says why), the halves' disagreement (deg; None when not asked),
     and the ``seconds`` the worker took."""
 
@@ -105,7 +105,7 @@ def _serve(recipe: RegistrarRecipe, prior, connection) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     import torch
 
-    from comreg_core.registration.polish import halves_disagreement_deg
+    from comreg_core.registration.search.polish import halves_disagreement_deg
 
     torch.set_num_threads(1)
     try:
@@ -187,7 +187,7 @@ class FullSearchWorker:
 
     Args:
         recipe: the registrar to build (:class:`RegistrarRecipe`).
-        prior: the session's :class:`~comreg_core.registration.priors.Prior` (in the
+        prior: the session's :class:`~comreg_core.registration.search.priors.Prior` (in the
             registrar's space) or None.
     """
 

@@ -15,7 +15,7 @@ nothing registered: the points stay in the session and the client reconnects (fo
 it takes); ``--until-end`` stops when the server closes the stream. ``updates.csv`` is made at
 the first update. On stop,
 :func:`finish_live` writes what ``comreg register`` and ``comreg report`` would for the points
-(:func:`~comreg_core.register_output.register_to_directory`).
+(:func:`~comreg_core.register.register_to_directory`).
 """
 
 from __future__ import annotations
@@ -322,11 +322,11 @@ def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_m
     ``us_points_frames.npy`` (each point's frame, ``(N,)``), ``frames.csv`` (each frame used:
     index, time stamp, points found, pose), then ``register_to_directory`` (``result.json``,
     ``transform.tfm``, ``registered_us.ply``, ``config.yaml``, ...; within ``prior``, a
-    :class:`~comreg_core.registration.priors.Prior` or None) and ``report.html``.
+    :class:`~comreg_core.registration.search.priors.Prior` or None) and ``report.html``.
     Frames still waiting in the session's backlog are detected first, so every frame received
     is used. Returns ``(RegistrationResult, report path or None)``; raises
     :class:`ComRegError` when no bone points were received."""
-    from comreg_core.register_output import register_to_directory  # torch: only when stopping
+    from comreg_core.register import register_to_directory  # torch: only when stopping
 
     session.drain()
     cloud = session.points.cloud()

@@ -33,12 +33,12 @@ checked (the refit's scale scan, ~0.07 s) on full searches only. An OK verdict m
 least ``full_every_mm`` less bone, else the update says CHECK; a partial sweep's pose can slide
 along the shaft by a few millimetres while every other test passes, and the first OK needs two
 full searches. On a sweep spanning under half the CT, an OK verdict also needs its two halves
-to agree (:func:`~comreg_core.registration.polish.halves_disagreement_deg` within
+to agree (:func:`~comreg_core.registration.search.polish.halves_disagreement_deg` within
 :data:`HALVES_TOLERANCE_DEG`, measured by the full search, kept by the warm updates after it):
 a shaft pins its rotation about its own axis only weakly.
 
 **Prior.** What the operating room knows (a rough initial pose, landmarks touched with a tracked
-pointer: :class:`~comreg_core.registration.priors.Prior`) bounds every registration, full or
+pointer: :class:`~comreg_core.registration.search.priors.Prior`) bounds every registration, full or
 warm, as it bounds ``comreg register``'s, and its reasons (a result at its edge, a clearly
 better pose outside it) make the update CHECK. On a long bone's shaft it is what rules out the
 bone reversed end to end before the sweep reaches an end.
@@ -57,13 +57,13 @@ from dataclasses import replace
 import numpy as np
 
 from comreg_core.errors import ComRegError
-from comreg_core.registration.advice import end_names
+from comreg_core.registration.search.advice import end_names
 from comreg_core.register.judge import Evidence, is_short_sweep, judge
-from comreg_core.registration.calibration import TOLERANCE_DEG, Calibration, extent_share
-from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
-from comreg_core.registration.polish import halves_disagreement_deg
-from comreg_core.registration.priors import Prior, prior_allows
-from comreg_core.registration.surface import ct_length_mm
+from comreg_core.registration.judgement.calibration import TOLERANCE_DEG, Calibration, extent_share
+from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
+from comreg_core.registration.search.polish import halves_disagreement_deg
+from comreg_core.registration.search.priors import Prior, prior_allows
+from comreg_core.registration.geometry.surface import ct_length_mm
 from comreg_core.live.background import (FullSearchDone, FullSearchJob, FullSearchWorker,
                                          warm_up_registrar)
 from comreg_core.live.stream import Frame, SweepPoints, coalesce, covered_length_mm
@@ -96,8 +96,8 @@ def warm_register(registrar, points: np.ndarray, origins: np.ndarray | None, las
                   seed: int = 0, prior: Prior | None = None):
     """The warm start of a live update: register ``points`` ``(N, 3)`` (beam ``origins``
     ``(N, 3)`` or None) again from ``last``, the previous
-    :class:`~comreg_core.registration.result.RegistrationResult` of the same sweep before it
-    grew (:meth:`Registrar.register <comreg_core.inference.Registrar.register>`'s
+    :class:`~comreg_core.registration.search.result.RegistrationResult` of the same sweep before it
+    grew (:meth:`Registrar.register <comreg_core.register.Registrar.register>`'s
     ``warm_start``: its poses refined, no full search, no network pass), within ``prior`` when
     given. The one place to change how a live update registers warm."""
     return registrar.register(points, seed=seed, beam_origins=origins, warm_start=last,
@@ -108,12 +108,12 @@ class LiveSession:
     """The live registration of a growing sweep against one CT (module docstring).
 
     Args:
-        registrar: a :class:`~comreg_core.inference.Registrar` (the search alone or with a
+        registrar: a :class:`~comreg_core.register.Registrar` (the search alone or with a
             network), its CT mesh known (the verdict needs it).
-        calibration: the verdict's :class:`~comreg_core.registration.calibration.Calibration`
+        calibration: the verdict's :class:`~comreg_core.registration.judgement.calibration.Calibration`
             or None (then it judges by the full search's confidence).
         prior: what the operating room knows (a rough initial pose, landmarks picked with a
-            tracked pointer: :class:`~comreg_core.registration.priors.Prior`, any space) or
+            tracked pointer: :class:`~comreg_core.registration.search.priors.Prior`, any space) or
             None. Every registration, full or warm, keeps to the poses it allows; the verdict
             looks for the competitor among them and is CHECK when the result sits at its edge
             or a pose outside it fits clearly better (as ``comreg register --init``).
@@ -411,7 +411,7 @@ class LiveSession:
 def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:
     """Where to scan next: towards the end of the bone the registered points ``(N, 3)`` (CT
     frame, mm) lie nearer to, along the CT's long axis (``target``: its
-    :class:`~comreg_core.registration.surface.SurfaceCloud`, centre and axes), or towards the
+    :class:`~comreg_core.registration.geometry.surface.SurfaceCloud`, centre and axes), or towards the
     other end when they already reach that one (within :data:`END_REACHED_MM`). The ends are
     named as anatomy names a limb's: the superior end proximal, the inferior end distal (other
     axes by their direction, e.g. "the left end")."""

@@ -154,7 +154,7 @@ class ICPConfig:
         neighbors: soft correspondences are restricted to this many nearest targets.
         mesh_refine: outside training (validation, ``register``, ``evaluate``), refine the
             ICP's result by trimmed point-to-plane ICP against the CT mesh
-            (:func:`comreg_core.registration.icp.refine_on_mesh`). Not in the paper; used by
+            (:func:`comreg_core.registration.geometry.icp.refine_on_mesh`). Not in the paper; used by
             ``cpu``. Why: on the fibula's simulated validation sweeps this differentiable ICP
             (2,048 points of a 4,096-point CT cloud) keeps only 33 % of them within 2 mm /
             2 deg when started at the truth itself; the mesh refinement keeps 100 %

@@ -23,12 +23,12 @@ from comreg_core.register.inputs import (calibration_path, input_paths, join_clo
                                          prior_inputs, prior_lines)
 from comreg_core.register.judge import Evidence, judge
 from comreg_core.register.registrar import Registrar
-from comreg_core.registration.calibration import Calibration
-from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.inputs import MAX_US_POINTS
-from comreg_core.registration.priors import Prior, prior_allows
-from comreg_core.registration.result import RegistrationResult
-from comreg_core.registration.surface import ct_length_mm
+from comreg_core.registration.judgement.calibration import Calibration
+from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.geometry.inputs import MAX_US_POINTS
+from comreg_core.registration.search.priors import Prior, prior_allows
+from comreg_core.registration.search.result import RegistrationResult
+from comreg_core.registration.geometry.surface import ct_length_mm
 from comreg_core.transforms import apply_transform, check_rigid, invert_rigid
 
 log = logging.getLogger(__name__)
@@ -83,7 +83,7 @@ def register_to_directory(run_dir: str | Path | None,
       ``runtime_s``, ``device``, ``seed``, ``n_points``, ``residuals_mm``, ``icp_rmse_mm``,
       ``confidence``, ``ambiguous`` and ``hypotheses`` (:meth:`RegistrationResult.to_json`;
       null with ``hypotheses=False``), ``verdict`` ("ok"/"check"), ``verdict_reasons`` and
-      ``verdict_figures`` (:mod:`comreg_core.registration.verdict`), ``space``,
+      ``verdict_figures`` (:mod:`comreg_core.registration.judgement.verdict`), ``space``,
       ``ct_fingerprint``, ``run_dir``, ``us_points`` (a path; a list of paths with several
       inputs) and ``ct_mesh`` (absolute paths, so ``comreg report`` works from any directory),
       ``us_inputs`` (per input: ``path``, ``n_points``, ``beam_origins``, ``residuals_mm`` of its
@@ -92,7 +92,7 @@ def register_to_directory(run_dir: str | Path | None,
       ``(4, 4)`` map from its reference frame to the US points' frame, identity for points
       straight from ``comreg extract-us``), from which the report draws B-mode frames with the
       registered CT contour; ``prior`` (null, or with a ``prior``: where the result lies in it,
-      :func:`~comreg_core.registration.priors.prior_record`: ``init_file``, ``max_deg``,
+      :func:`~comreg_core.registration.search.priors.prior_record`: ``init_file``, ``max_deg``,
       ``max_mm``, ``landmarks``, ``rotation_from_init_deg``, ``shift_from_init_mm``,
       ``at_edge``, ``reasons``, ...). Strict JSON: a number that is not finite is null, and
       ``null_reasons`` says where and why (:mod:`comreg_core.io.json_files`).
@@ -253,7 +253,7 @@ def input_records(paths: list[Path], clouds: list[PointCloud], result: Registrat
     """``result.json``'s ``us_inputs``: per input file its absolute path, point count, whether
     it has beam origins, the distance statistics of its points after registration (a single
     input: the registration's own ``residuals_mm``; several: each file's points, at most
-    :data:`~comreg_core.registration.inputs.MAX_US_POINTS` of them, evenly strided) and the
+    :data:`~comreg_core.registration.geometry.inputs.MAX_US_POINTS` of them, evenly strided) and the
     file of its registered points."""
     records = []
     for k, (path, cloud) in enumerate(zip(paths, clouds), start=1):

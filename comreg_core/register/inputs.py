@@ -12,11 +12,11 @@ from typing import Sequence
 import numpy as np
 
 from comreg_core.errors import ComRegError
-from comreg_core.io import POINT_CLOUD_EXTENSIONS, PointCloud
+from comreg_core.io import PointCloud
 from comreg_core.io._files import require_near_origin
 from comreg_core import runs
-from comreg_core.registration.calibration import Calibration
-from comreg_core.registration.priors import Prior
+from comreg_core.registration.judgement.calibration import Calibration
+from comreg_core.registration.search.priors import Prior
 from comreg_core.transforms import check_rigid
 
 log = logging.getLogger(__name__)
@@ -38,21 +38,6 @@ def calibration_path(calibration: str | Path | None, run_dir: str | Path | None
         return Path(calibration)
     own = None if run_dir is None else Path(run_dir) / runs.CALIBRATION
     return own if own is not None and own.is_file() else None
-
-
-def register_inputs(arguments: Sequence[str | Path], model: str | Path | None = None
-                    ) -> tuple[Path | None, Path | list[Path]]:
-    """``comreg register``'s positional arguments as ``(run folder or None, the US points file,
-    or a list of files when there are several)``: ``US_POINTS...`` with the run, if any, from
-    ``--model`` (``model``); or the older ``RUN_DIR US_POINTS``, taken when there are two
-    arguments, no ``model``, and the first is a folder or not a point cloud file (a run folder
-    or its checkpoint)."""
-    paths = [Path(argument) for argument in arguments]
-    first = paths[0]
-    if len(paths) == 2 and model is None and (
-            first.is_dir() or first.suffix.lower() not in POINT_CLOUD_EXTENSIONS):
-        return first, paths[1]
-    return (None if model is None else Path(model)), (paths[0] if len(paths) == 1 else paths)
 
 
 def join_clouds(clouds: list[PointCloud]) -> tuple[np.ndarray, np.ndarray | None, str | None]:
@@ -92,7 +77,7 @@ def input_paths(us_points_path) -> list[Path]:
 def load_prior(init: str | Path | None = None, init_tolerance=None,
                landmarks: Sequence[str | Path] | None = None,
                landmark_tolerance_mm: float | None = None) -> Prior | None:
-    """The :class:`~comreg_core.registration.priors.Prior` of ``comreg register``'s ``--init
+    """The :class:`~comreg_core.registration.search.priors.Prior` of ``comreg register``'s ``--init
     TRANSFORM``, ``--init-tolerance DEG,MM``, ``--landmarks CT_POINTS US_POINTS`` and
     ``--landmark-tolerance MM`` (None when neither ``init`` nor ``landmarks`` is given), in LPS.
 
@@ -108,9 +93,9 @@ def load_prior(init: str | Path | None = None, init_tolerance=None,
     from comreg_core.errors import InvalidTransformError
     from comreg_core.io.markups import read_markups
     from comreg_core.io.transform_files import load_transform
-    from comreg_core.registration.priors import (DEFAULT_LANDMARK_TOLERANCE_MM,
-                                                 DEFAULT_MAX_DEG, DEFAULT_MAX_MM,
-                                                 match_landmarks)
+    from comreg_core.registration.search.priors import (DEFAULT_LANDMARK_TOLERANCE_MM,
+                                                        DEFAULT_MAX_DEG, DEFAULT_MAX_MM,
+                                                        match_landmarks)
 
     if init is None and init_tolerance is not None:
         raise ComRegError("--init-tolerance was given without an initial pose.",

@@ -6,8 +6,8 @@ module. :class:`Evidence` is what a registration says about itself: the pose sea
 confidence and ambiguity, the clinically different competitor's margin, the sweep's extent
 along the CT, ``p_correct`` from a per-patient calibration, and the prior's record;
 :func:`judge` turns it, with the US points, the pose and the CT, into a
-:class:`~comreg_core.registration.verdict.Verdict`
-(:func:`~comreg_core.registration.verdict.judge_registration`: residuals, coverage, refit,
+:class:`~comreg_core.registration.judgement.verdict.Verdict`
+(:func:`~comreg_core.registration.judgement.verdict.judge_registration`: residuals, coverage, refit,
 then the prior's reasons).
 """
 
@@ -18,12 +18,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from comreg_core.registration.calibration import (OK_PROBABILITY, Calibration,
-                                                  result_evidence)
-from comreg_core.registration.verdict import Verdict, judge_registration, with_prior_reasons
+from comreg_core.registration.judgement.calibration import (OK_PROBABILITY, Calibration,
+                                                            result_evidence)
+from comreg_core.registration.judgement.verdict import (Verdict, judge_registration,
+                                                        with_prior_reasons)
 
 #: A sweep spanning less than this share of the CT's length (5th-95th percentile along its
-#: long axis, :func:`~comreg_core.registration.calibration.extent_share`) is a *short sweep*:
+#: long axis, :func:`~comreg_core.registration.judgement.calibration.extent_share`) is a *short sweep*:
 #: its best-fitting scale says nothing, and live checks that its two halves agree.
 SHORT_SWEEP_SHARE = 0.5
 
@@ -40,12 +41,12 @@ class Evidence:
     Attributes:
         confidence, ambiguous: the pose search's (None / False without it).
         competitor: the clinically different competitor
-            (:func:`~comreg_core.registration.calibration.clinical_competitor`), or None.
+            (:func:`~comreg_core.registration.judgement.calibration.clinical_competitor`), or None.
         extent_share: the sweep's extent over the CT's length (0-1), or None.
         p_correct: the calibrated probability that the pose is within 4 mm / 5 deg, or None
             without a calibration.
         ok_probability: the least ``p_correct`` that is OK (the calibration's).
-        prior: the prior's record (:func:`~comreg_core.registration.priors.prior_record`) or
+        prior: the prior's record (:func:`~comreg_core.registration.search.priors.prior_record`) or
             None.
     """
 
@@ -61,7 +62,7 @@ class Evidence:
     def of(cls, result, points_us: np.ndarray, ct_length_mm: float,
            calibration: Calibration | None = None,
            allowed: Callable[[np.ndarray], Any] | None = None) -> Evidence:
-        """The evidence of a :class:`~comreg_core.registration.result.RegistrationResult` for
+        """The evidence of a :class:`~comreg_core.registration.search.result.RegistrationResult` for
         the ``(n, 3)`` US points it registered (US frame, mm) on a CT ``ct_length_mm`` long;
         ``allowed``: the poses a prior allows (the competitor is looked for among them)."""
         competitor = extent = p_correct = None
@@ -97,7 +98,7 @@ class Evidence:
 def judge(points_us: np.ndarray, T_ct_us: np.ndarray, ct_surface, evidence: Evidence, *,
           scale_scan: bool = True, distances: np.ndarray | None = None) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` mm) for the ``(n, 3)`` US points (US frame, mm)
-    on the CT (anything :func:`~comreg_core.registration.surface.as_surface` takes), with the
+    on the CT (anything :func:`~comreg_core.registration.geometry.surface.as_surface` takes), with the
     registration's ``evidence``. ``scale_scan=False`` leaves out the scale check (a live warm
     update); ``distances``: the registered points' distances to the CT if known (mm)."""
     verdict = judge_registration(points_us, T_ct_us, ct_surface,

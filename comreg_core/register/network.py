@@ -23,7 +23,7 @@ from comreg_core import runs
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.ops import subsample
 from comreg_core.normalization import Normalization
-from comreg_core.registration.icp import refine_on_mesh
+from comreg_core.registration.geometry.icp import refine_on_mesh
 from comreg_core.training.checkpoint import (CheckpointError, check_fingerprint, check_same_bone,
                                              ct_fingerprint, load_checkpoint, network_warning)
 from comreg_core.training.config import PretrainConfig, config_from_yaml

@@ -1,12 +1,12 @@
 """Registration of a US cloud to the CT: :class:`Registrar`, the one entry point.
 
 - ``Registrar.from_ct(ct_mesh).register(us_points)``: the pose search alone
-  (:mod:`comreg_core.registration.search`) from the principal-axes pose of the US cloud on the
+  (:mod:`comreg_core.registration.search.search`) from the principal-axes pose of the US cloud on the
   CT (or the prior's initial pose), with its flips, turns and slides, chosen by score. This
   path never imports torch.
 - ``Registrar.from_run(run_dir).register(us_points)``: the same search, then the pretrained
   network's poses (:mod:`comreg_core.register.network`: completion, coarse pose, ICP) as
-  further starts (:mod:`comreg_core.registration.network_starts`): kept only when clearly
+  further starts (:mod:`comreg_core.registration.search.network_starts`): kept only when clearly
   better, so never worse than the search alone. ``hypotheses=False`` is the paper's plain
   pipeline (network and ICP only).
 
@@ -30,14 +30,15 @@ from comreg_core.io.meshes import ct_fingerprint
 from comreg_core.normalization import Normalization
 from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
                                       as_hypothesis_config, search_hypotheses)
-from comreg_core.registration.inputs import beam_origins_for, limit_us_points, subset_notice
-from comreg_core.registration.network_starts import add_network_starts
-from comreg_core.registration.priors import Prior, prior_record
-from comreg_core.registration.result import RegistrationResult, residual_statistics
-from comreg_core.registration.scoring import HypothesisResult
-from comreg_core.registration.search import principal_axes_pose, us_subset_indices
-from comreg_core.registration.surface import mesh_arrays
-from comreg_core.registration.warm import warm_search
+from comreg_core.registration.geometry.inputs import (beam_origins_for, limit_us_points,
+                                                      subset_notice)
+from comreg_core.registration.search.network_starts import add_network_starts
+from comreg_core.registration.search.priors import Prior, prior_record
+from comreg_core.registration.search.result import RegistrationResult, residual_statistics
+from comreg_core.registration.search.scoring import HypothesisResult
+from comreg_core.registration.search.search import principal_axes_pose, us_subset_indices
+from comreg_core.registration.geometry.surface import mesh_arrays
+from comreg_core.registration.search.warm import warm_search
 from comreg_core.transforms import apply_transform, as_points
 
 #: A US cloud whose largest bounding-box extent is below this (mm) is taken to be in metres.
@@ -199,15 +200,15 @@ class Registrar:
             beam_origins: ``(N, 3)`` mm, where each point's ultrasound beam started (the
                 probe's element; same frame as ``points``), or None. The pose search then
                 rules out poses under which the CT surface faces away from the probe.
-            prior: a :class:`~comreg_core.registration.priors.Prior` (an initial pose with its
+            prior: a :class:`~comreg_core.registration.search.priors.Prior` (an initial pose with its
                 tolerances, landmark pairs; in any space, taken to the CT's) or None. The
                 search then starts around it and keeps only poses within it (without a
                 network ``T_init`` replaces the principal-axes start); ``info["prior"]`` is
-                its record (:func:`~comreg_core.registration.priors.prior_record`: where the
+                its record (:func:`~comreg_core.registration.search.priors.prior_record`: where the
                 result lies in it, ``at_edge``, ``reasons`` for the verdict).
             warm_start: an earlier result of this registrar for the same sweep before it grew
                 (live registration): its poses are refined on ``points`` instead of a full
-                search, with no network pass (:mod:`comreg_core.registration.warm`;
+                search, with no network pass (:mod:`comreg_core.registration.search.warm`;
                 ``info["warm_start"]`` says which it was).
             residuals: measure the registered points' distances to the CT (:meth:`residuals`;
                 with the mesh ~9 us a point, not part of ``runtime_s``); False leaves
@@ -307,7 +308,7 @@ class Registrar:
         """The pose search alone (its own starts, always all of them), then with a network
         its poses ``(T_ct_us after its ICP, coarse T_ct_us, completion (M, 3) US frame)`` as
         further starts that win only by a clearly better score
-        (:mod:`~comreg_core.registration.network_starts`)."""
+        (:mod:`~comreg_core.registration.search.network_starts`)."""
         start_name = "pca" if getattr(prior, "T_init", None) is None else "init"
         result = search_hypotheses(pts, search_start(pts, target, prior), target, None, config,
                                    start_name=start_name, beam_origins=origins,
@@ -324,7 +325,7 @@ class Registrar:
 
     @property
     def surface(self):
-        """The CT mesh as a :class:`~comreg_core.registration.surface.CTSurface` (built
+        """The CT mesh as a :class:`~comreg_core.registration.geometry.surface.CTSurface` (built
         once, shared by the residuals and the verdict), or None when no mesh is known."""
         if self._surface is None and self._ct_vertices is not None:
             self._surface = CTSurface((self._ct_vertices, self._ct_faces))

@@ -1,24 +1,25 @@
-"""Registration geometry: the CT surface, ICP, the pose search, its scores, polish and verdict.
+"""Registration without a network: geometry, the pose search, and the judgement of a result.
 
-Layers inside (each imports only those above it in this list): ``surface`` (the CT surface
-and dense sample clouds) -> ``metrics`` (RTE, RRE, CD, HD95, success, flip) and ``icp`` (one
-batched point-to-plane ICP) -> ``config`` -> ``scoring`` -> ``polish`` -> ``search`` (start
-grid, screening, refinement, choice); ``verdict`` (OK/CHECK from the files alone) beside them.
-No torch and no network here: the package sits below ``model``, ``training``, ``inference``,
-``evaluation`` and ``report`` and imports none of them (``docs/architecture.md``).
+Three sub-packages, each importing only those before it: ``geometry`` (the CT surface, one
+batched point-to-plane ICP and its compiled kernels, the metrics, the US cloud's limits) ->
+``search`` (settings, start grid with the prior's starts, screening, scoring and the choice,
+polish, warm re-registration, the network's poses as further starts, result types, advice)
+-> ``judgement`` (the OK/CHECK verdict, ``p_correct`` and its calibration). No torch and no
+network here: the package sits below ``model``, ``training``, ``register``, ``evaluation`` and
+``report`` and imports none of them (``docs/architecture.md``).
 """
 
-from comreg_core.registration.config import HypothesisConfig, as_hypothesis_config
-from comreg_core.registration.icp import ICPResult, coarse_to_fine_icp, point_to_plane_icp
-from comreg_core.registration.metrics import (FLIP_RRE_DEG, SUCCESS_RRE_DEG, SUCCESS_RTE_MM,
-                                              completion_metrics, is_flip, is_success,
-                                              registration_metrics, rotation_error_deg,
-                                              translation_error_mm)
-from comreg_core.registration.scoring import Hypothesis, HypothesisResult
-from comreg_core.registration.search import build_hypotheses, search_hypotheses
-from comreg_core.registration.surface import CTSurface, SurfaceCloud, as_surface
-from comreg_core.registration.result import RegistrationResult
-from comreg_core.registration.verdict import Verdict, judge_registration
+from comreg_core.registration.search.config import HypothesisConfig, as_hypothesis_config
+from comreg_core.registration.geometry.icp import ICPResult, coarse_to_fine_icp, point_to_plane_icp
+from comreg_core.registration.geometry.metrics import (FLIP_RRE_DEG, SUCCESS_RRE_DEG,
+                                                       SUCCESS_RTE_MM, completion_metrics, is_flip,
+                                                       is_success, registration_metrics,
+                                                       rotation_error_deg, translation_error_mm)
+from comreg_core.registration.search.scoring import Hypothesis, HypothesisResult
+from comreg_core.registration.search.search import build_hypotheses, search_hypotheses
+from comreg_core.registration.geometry.surface import CTSurface, SurfaceCloud, as_surface
+from comreg_core.registration.search.result import RegistrationResult
+from comreg_core.registration.judgement.verdict import Verdict, judge_registration
 
 __all__ = [
     "CTSurface", "FLIP_RRE_DEG", "Hypothesis", "HypothesisConfig", "HypothesisResult",

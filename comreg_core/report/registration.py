@@ -33,7 +33,7 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     registration (it holds ``registration.T_ct_us`` equal to the judged transform, as the demo
     writes it; an evaluation of other starts left in the folder is not shown). The CT mesh is
     ``ct_mesh``, else the one ``result.json`` names, else the run's own. The verdict
-    (:mod:`comreg_core.registration.verdict`) is computed again from these files. ``transform``
+    (:mod:`comreg_core.registration.judgement.verdict`) is computed again from these files. ``transform``
     (an ITK transform file of ``T_ct_us``) judges and shows that transform instead of the
     folder's (its completion is then left out). The tracked sweep the points came from is
     ``sweep`` (with ``sweep_calibration``), else the one ``result.json`` names: the page then
@@ -94,7 +94,7 @@ def _input_rows(paths: list[Path], parts: list[np.ndarray], T_ct_us: np.ndarray,
                 ) -> dict[str, str]:
     """Several US inputs: each one's point count and median distance to the CT under
     ``T_ct_us``, in words."""
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.geometry.surface import CTSurface
     from comreg_core.transforms import apply_transform
 
     surface = CTSurface((ct.vertices, ct.faces))
@@ -185,7 +185,7 @@ def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], 
     if judged_file is not None:
         rows["Fit of the US points to the CT bone"]["Transform judged"] = str(judged_file)
     hypotheses = result.get("hypotheses")
-    if hypotheses:  # the pose check of the hypotheses stage (comreg_core.registration.search)
+    if hypotheses:  # the pose check of the hypotheses stage (comreg_core.registration.search.search)
         pose = {"Another pose fits nearly as well (ambiguous)":
                 "YES: check the images" if hypotheses.get("ambiguous") else "no",
                 "Confidence (0-1; below 0.3 is ambiguous)": Quantity(hypotheses.get("confidence")),

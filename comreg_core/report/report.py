@@ -103,7 +103,7 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
         lateral_side: "left" or "right": the side the lateral view looks from.
         style: colours and sizes.
         progress: ``progress(done, total, view)`` after each screenshot.
-        verdict: a :class:`~comreg_core.registration.verdict.Verdict`: the page then starts with
+        verdict: a :class:`~comreg_core.registration.judgement.verdict.Verdict`: the page then starts with
             ``Verdict: OK`` or ``Verdict: CHECK`` and its reasons.
         sweep: the :class:`~comreg_core.io.TrackedSweep` the US points came from, with
             ``T_ct_ref`` (``(4, 4)``: its reference frame -> CT under the registration): the

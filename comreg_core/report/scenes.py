@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from comreg_core.io.meshes import SurfaceMesh
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.report.backend import ensure_offscreen_rendering
 from comreg_core.report.cameras import (VIEW_NAMES, BoneFrame, CameraView, bone_frame,
                                         frame_points, view_presets)

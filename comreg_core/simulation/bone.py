@@ -12,7 +12,7 @@ import logging
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration.surface import CTSurface, mesh_arrays, sample_triangles
+from comreg_core.registration.geometry.surface import CTSurface, mesh_arrays, sample_triangles
 from comreg_core.surfaces.mesh_repair import (  # noqa: F401 (MIN_EXTENT_MM re-exported)
     MIN_EXTENT_MM, check_millimetres)
 
@@ -185,7 +185,7 @@ class BoneModel:
 
     def sample_surface(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """``n`` points uniform over the surface area: points ``(n, 3)`` mm, faces ``(n,)``
-        (:func:`~comreg_core.registration.surface.sample_triangles`)."""
+        (:func:`~comreg_core.registration.geometry.surface.sample_triangles`)."""
         return sample_triangles(self.vertices, self.faces, self.face_areas, n, rng)
 
     def distance(self, points: np.ndarray) -> np.ndarray:

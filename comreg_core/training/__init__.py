@@ -2,7 +2,7 @@
 
 ``pretrain(ct_mesh, run_dir, preset="cpu")`` trains ComReg on simulated sweeps of one CT and
 writes a run folder (``config.yaml``, ``ct_fingerprint.json``, ``checkpoint.pt``,
-``training_log.csv``); :class:`comreg_core.inference.Registrar` loads it.
+``training_log.csv``); :class:`comreg_core.register.Registrar` loads it.
 """
 
 from comreg_core.training.checkpoint import (CheckpointError, ct_fingerprint, export_model,

@@ -142,7 +142,7 @@ def check_fingerprint(expected: str, actual: dict[str, Any] | str, where: str = 
 
 #: A given CT mesh is the run's bone when its surface and the run's stored one lie within this
 #: distance (mm) of each other at the 95th percentile, both ways
-#: (:func:`~comreg_core.registration.metrics.surface_disagreement_mm`). Measured: the shared
+#: (:func:`~comreg_core.registration.geometry.metrics.surface_disagreement_mm`). Measured: the shared
 #: fibula STL against the bundled model's CT (the same bone extracted again from its
 #: segmentation) 0.23 mm; the same bone moved 2 mm: ~2 mm; another bone: tens of mm. Well below
 #: the 4 mm of a failed registration, so a mesh that passes cannot move a result noticeably.
@@ -155,7 +155,7 @@ def check_same_bone(state: dict[str, Any], ct_mesh, where: str = "") -> float:
     surface re-meshed or written by another tool (in either patient space), within
     :data:`SAME_BONE_TOLERANCE_MM`. Returns the surfaces' disagreement (mm; 0.0 when identical)."""
     from comreg_core.io.meshes import SurfaceMesh, read_mesh
-    from comreg_core.registration.metrics import surface_disagreement_mm
+    from comreg_core.registration.geometry.metrics import surface_disagreement_mm
 
     mesh = ct_mesh if isinstance(ct_mesh, SurfaceMesh) else read_mesh(ct_mesh)
     if ct_fingerprint(mesh.vertices, mesh.faces)["sha256"] == state["ct_fingerprint"]:
@@ -234,7 +234,7 @@ def export_model(run_dir: str | Path, path: str | Path, *, half: bool = True) ->
     Keeps the network weights (as float16 when ``half``: half the size, registration results
     change by far less than a millimetre), the config, the CT mesh, cloud, fingerprint and
     normalisation; leaves out the optimiser and scheduler state, so the copy cannot be resumed.
-    :meth:`comreg_core.inference.Registrar.from_run` loads it like a run folder.
+    :meth:`comreg_core.register.Registrar.from_run` loads it like a run folder.
     """
     state = load_checkpoint(run_dir)
     slim = {key: state[key] for key in MODEL_ENTRIES if key in state}

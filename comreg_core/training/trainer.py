@@ -45,7 +45,7 @@ from comreg_core.config import ConfigError, deep_merge, from_dict, to_dict
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import atomic_output, check_output_folder, require_input_file
 from comreg_core.model.comreg import ComRegNet
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.training.checkpoint import (CheckpointError,
                                              check_fingerprint, load_checkpoint,
                                              mesh_fingerprint, save_checkpoint,

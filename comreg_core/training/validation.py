@@ -3,7 +3,7 @@
 :func:`validate` registers the validation samples with the network in eval mode (CT half
 encoded once; the ICP's pose refined on the CT mesh with ``model.icp.mesh_refine``) and
 returns the ``val_*`` figures of ``training_log.csv``: RTE (mm, at the centroid of the moved
-US cloud) and RRE (deg) as in :mod:`comreg_core.registration.metrics`, of
+US cloud) and RRE (deg) as in :mod:`comreg_core.registration.geometry.metrics`, of
 the fine (after ICP) and the coarse estimate; success = RTE < 2 mm and RRE < 2 deg, flip = RRE >
 90 deg; the share of samples whose coarse RRE is under :data:`IMPROVED_RRE_FACTOR` of their
 initial RRE (steadier than the coarse median, which jumps between the two groups of a bimodal
@@ -22,10 +22,11 @@ import torch
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.losses import output_loss
 from comreg_core.normalization import Normalization
-from comreg_core.registration.icp import refine_on_mesh
-from comreg_core.registration.metrics import (FLIP_RRE_DEG, completion_metrics, is_success,
-                                              rotation_error_deg, translation_error_mm)
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.icp import refine_on_mesh
+from comreg_core.registration.geometry.metrics import (FLIP_RRE_DEG, completion_metrics,
+                                                       is_success, rotation_error_deg,
+                                                       translation_error_mm)
+from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.training.data import Sample
 from comreg_core.transforms import invert_rigid, orthonormalize
 
@@ -52,7 +53,7 @@ def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
     """Register the validation samples; the ``val_*`` figures of :data:`LOG_COLUMNS`
     (``val_loss`` / ``val_completion``: the training objective and its completion term, means
     over the samples, in eval mode; ``val_completion_CD_mm_median``: the evaluation's completion
-    CD (:func:`~comreg_core.registration.metrics.completion_metrics`) against ``surface``, the CT,
+    CD (:func:`~comreg_core.registration.geometry.metrics.completion_metrics`) against ``surface``, the CT,
     when given)."""
     was_training = model.training
     model.eval()

@@ -21,7 +21,7 @@ import time
 
 from comreg_core.evaluation import (BaselineConfig, RansacConfig, baseline_methods, evaluate,
                                     simulated_us_clouds, write_metrics)
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.surface import CTSurface
 from tests.helpers import FIBULA_STL
 
 

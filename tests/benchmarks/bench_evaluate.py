@@ -42,7 +42,7 @@ def _print_summary(title: str, result: dict) -> None:
 def main(argv: list[str] | None = None) -> None:
     from comreg_core.evaluation.methods import registration_methods
     from comreg_core.evaluation.evaluate import evaluate, simulated_us_clouds, write_metrics
-    from comreg_core.inference import Registrar
+    from comreg_core.register import Registrar
     from comreg_core.io.tracked_us import read_tracked_sweep
     from comreg_core.surfaces.us import extract_us_surface
     from comreg_core.training import run_ct_mesh

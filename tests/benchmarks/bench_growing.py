@@ -11,7 +11,7 @@ clean-up, :class:`~comreg_core.live.stream.SweepPoints`) are registered for ever
 start from it), with their beam origins, by the search alone (``Registrar.from_ct``) and, with
 ``--model`` / ``--untrained``, by the network then the search (``Registrar.from_run``: the
 trained run and its untrained control). Each registration is judged as ``register`` judges it
-(:func:`comreg_core.register_output.registration_verdict`; by ``p_correct`` with
+(:func:`comreg_core.register.folder.registration_verdict`; by ``p_correct`` with
 ``--verdict-calibration``) and is right when RTE < 4 mm and RRE < 5 deg at the points' centroid
 against the pseudo ground truth (ICP of the whole sweep from its recorded pose, as
 ``bench_live``). Per start and method it prints the bone covered at the first OK (mm along the
@@ -60,10 +60,10 @@ def covered_mm(points: np.ndarray, T_ct_us: np.ndarray, target) -> float:
 
 def main(argv=None) -> None:
     from comreg_core.errors import ComRegError
-    from comreg_core.inference import Registrar
-    from comreg_core.register_output import registration_verdict
-    from comreg_core.registration.calibration import Calibration
-    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.register import Registrar
+    from comreg_core.register.folder import registration_verdict
+    from comreg_core.registration.judgement.calibration import Calibration
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--starts", default="0,15,30,45,60,75")

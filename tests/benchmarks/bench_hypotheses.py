@@ -39,7 +39,7 @@ KINDS = ("near", "flip", "spin")
 
 
 def _errors(T, truth, points):
-    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 
     return translation_error_mm(T, truth, points.mean(axis=0)), rotation_error_deg(T, truth)
 
@@ -48,7 +48,7 @@ def _cases(clouds, bone_centre, bone_axes, seed):
     """(kind, us points, truth T_ct_us, start T_ct_us) per cloud and kind."""
     from scipy.spatial.transform import Rotation
 
-    from comreg_core.registration.search import rotation_about
+    from comreg_core.registration.search.search import rotation_about
     from comreg_core.transforms import apply_transform, invert_rigid
 
     rng = np.random.default_rng(seed)

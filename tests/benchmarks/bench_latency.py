@@ -70,7 +70,7 @@ def real_sweep(shared_data):
 
 def registrars(ct, model, untrained) -> dict:
     """``{method: Registrar}``: the search alone, and the models given (paths or None)."""
-    from comreg_core.inference import Registrar
+    from comreg_core.register import Registrar
 
     methods = {"search": Registrar.from_ct(ct)}
     for label, path in (("comreg", model), ("untrained", untrained)):
@@ -80,7 +80,7 @@ def registrars(ct, model, untrained) -> dict:
 
 
 def errors(T, T_truth, points) -> tuple[float, float]:
-    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 
     return (translation_error_mm(T, T_truth, points.mean(axis=0)),
             rotation_error_deg(T, T_truth))

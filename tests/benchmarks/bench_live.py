@@ -58,7 +58,7 @@ def pseudo_truth(ct_path: Path) -> np.ndarray:
     """``T_ct_us`` of the whole sweep: ICP from the recorded pose (tracking = CT frame)."""
     from comreg_core.demo import pseudo_ground_truth
     from comreg_core.io.tracked_us import read_tracked_sweep
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.geometry.surface import CTSurface
     from comreg_core.surfaces.us import extract_us_surface
 
     points = extract_us_surface(read_tracked_sweep(SHARED)).points.points
@@ -148,7 +148,7 @@ def figures(out: Path, T_truth: np.ndarray, run: dict) -> dict:
     """The figures of one replay from its folder (updates.csv, result.json)."""
     from comreg_core.io import read_points
     from comreg_core.live.updates import read_updates, row_transform
-    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 
     rows = read_updates(out / "updates.csv")
     correct = []

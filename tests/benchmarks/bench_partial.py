@@ -93,7 +93,7 @@ def simulated_runs(ct, count: int, seed: int, config) -> list[tuple[np.ndarray, 
 
 
 def _methods(bone: str, ct, args) -> dict:
-    from comreg_core.inference import Registrar
+    from comreg_core.register import Registrar
 
     methods = {"search": Registrar.from_ct(ct)}
     runs = {"comreg": dict(a.split("=", 1) for a in args.model),
@@ -177,15 +177,16 @@ def main(argv: list[str] | None = None) -> None:
             rows = _trials(methods, runs, ct, args.trials, args.seed, perturbation)
             print(f"-- {name}, {perturbation} poses ({time.perf_counter() - start:.0f} s)")
             for method, method_rows in rows.items():
-                print(_row(method, method_rows, rows.get("search")), flush=True)
+                paired = None if method.startswith("search") else rows.get("search")
+                print(_row(method, method_rows, paired), flush=True)
 
 
 def _trials(methods: dict, runs: list, ct, trials: int, seed: int, perturbation: str) -> dict:
     """Every method (and ``search+beams``) on ``trials`` random poses of the runs (trial ``k``
     moves run ``k % len(runs)``, its points and beam origins alike)."""
     from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
-    from comreg_core.registration.metrics import registration_metrics
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.geometry.metrics import registration_metrics
+    from comreg_core.registration.geometry.surface import CTSurface
     from comreg_core.simulation import sample_initial_pose
     from comreg_core.transforms import apply_transform, invert_rigid
 

@@ -49,11 +49,11 @@ def union_runs(runs: list) -> list:
 
 
 def sample_prior(rng, kind: str, T_true: np.ndarray, moved: np.ndarray, space: str):
-    """A :class:`~comreg_core.registration.priors.Prior` of ``kind`` around ``T_true`` (module
+    """A :class:`~comreg_core.registration.search.priors.Prior` of ``kind`` around ``T_true`` (module
     docstring), or None for ``none``."""
     from scipy.spatial.transform import Rotation
 
-    from comreg_core.registration.priors import Landmark, Prior
+    from comreg_core.registration.search.priors import Landmark, Prior
     from comreg_core.transforms import apply_transform
 
     if kind == "none":
@@ -78,7 +78,7 @@ def sample_prior(rng, kind: str, T_true: np.ndarray, moved: np.ndarray, space: s
 def calibration_for(bone: str, ct, sweeps: int):
     """The CT's calibration (made once, then read from :data:`CACHE`)."""
     from comreg_core.evaluation.calibrate import calibrate
-    from comreg_core.registration.calibration import Calibration
+    from comreg_core.registration.judgement.calibration import Calibration
 
     path = CACHE / f"calibration_{bone}_{sweeps}.json"
     if path.is_file():
@@ -113,11 +113,11 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
     judged as ``comreg register`` judges (module docstring). ``T_truth``: where the runs' points
     truly lie in the CT (tracking -> CT; identity: as given)."""
     from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
-    from comreg_core.register_output import registration_verdict
-    from comreg_core.registration.priors import prior_allows
-    from comreg_core.registration.verdict import with_prior_reasons
-    from comreg_core.registration.metrics import registration_metrics
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.register.folder import registration_verdict
+    from comreg_core.registration.search.priors import prior_allows
+    from comreg_core.registration.judgement.verdict import with_prior_reasons
+    from comreg_core.registration.geometry.metrics import registration_metrics
+    from comreg_core.registration.geometry.surface import CTSurface
     from comreg_core.simulation import sample_initial_pose
     from comreg_core.transforms import apply_transform, invert_rigid
 
@@ -160,7 +160,7 @@ def trust_row(name: str, rows: list[dict]) -> str:
 
 
 def reliability_line(rows: list[dict]) -> str:
-    from comreg_core.registration.calibration import reliability_table
+    from comreg_core.registration.judgement.calibration import reliability_table
 
     p = np.array([r["p_correct"] for r in rows], dtype=float)
     correct = np.array([r["correct"] for r in rows])
@@ -172,7 +172,7 @@ def reliability_line(rows: list[dict]) -> str:
 
 def run_trust(args, sets: list[str]) -> None:
     """The ``--trust`` rows (module docstring)."""
-    from comreg_core.inference import Registrar
+    from comreg_core.register import Registrar
     from tests.benchmarks.bench_partial import (PARTIAL_SWEEPS, real_runs, simulated_runs)
     from comreg_core.config import from_dict
     from comreg_core.simulation.config import SimulationConfig

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.io import PointCloud, save_transform, write_points
-from comreg_core.registration.search import rotation_about
+from comreg_core.registration.search.search import rotation_about
 from tests.helpers import FIBULA_STL
 from tests.registration.test_priors import short_run  # noqa: F401  (the fixture)
 

@@ -326,7 +326,7 @@ def test_info_on_a_huge_ply_header_does_not_crash(tmp_path):
 # --- 8. the limit on US points ------------------------------------------------------------------------
 
 def test_limit_us_points_keeps_a_seeded_uniform_subset():
-    from comreg_core.registration.inputs import MAX_US_POINTS, limit_us_points
+    from comreg_core.registration.geometry.inputs import MAX_US_POINTS, limit_us_points
 
     points = np.arange(3000 * 3, dtype=np.float64).reshape(3000, 3)
     assert limit_us_points(points) is points and MAX_US_POINTS >= 100_000
@@ -339,7 +339,7 @@ def test_limit_us_points_keeps_a_seeded_uniform_subset():
 def test_register_uses_at_most_the_limit_and_says_so(sample, tmp_path, monkeypatch):
     import json
 
-    monkeypatch.setattr("comreg_core.registration.inputs.MAX_US_POINTS", 500)
+    monkeypatch.setattr("comreg_core.registration.geometry.inputs.MAX_US_POINTS", 500)
     result = runner.invoke(app, ["register", str(sample[1]), "--model", str(sample[0]), "--out",
                                  str(tmp_path / "reg"), "--no-hypotheses", "--device", "cpu"])
     assert result.exit_code == 0, (result.stdout, result.stderr)

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.io import PointCloud, read_mesh, save_transform, write_points
-from comreg_core.registration.calibration import fit_calibration
+from comreg_core.registration.judgement.calibration import fit_calibration
 from tests.helpers import FIBULA_STL
 
 REPO = Path(__file__).resolve().parents[2]
@@ -149,7 +149,7 @@ def test_a_p_correct_that_is_not_finite_is_check_and_null_in_strict_json(case, m
     stays strict JSON, the null's reason recorded."""
     path = case["dir"] / "calibration.json"
     path.write_text(json.dumps(case["calibration"]))
-    monkeypatch.setattr("comreg_core.registration.calibration.Calibration.p_correct",
+    monkeypatch.setattr("comreg_core.registration.judgement.calibration.Calibration.p_correct",
                         lambda self, margin, extent: math.nan)
     out = case["dir"] / "nan p_correct"
     result = runner.invoke(app, [str(a) for a in _register(case, out, "--verdict-calibration",

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.io import PointCloud, write_points
-from comreg_core.registration.calibration import Calibration, fit_calibration
+from comreg_core.registration.judgement.calibration import Calibration, fit_calibration
 from comreg_core.transforms import apply_transform
 from tests.helpers import FIBULA_STL
 

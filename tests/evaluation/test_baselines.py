@@ -11,7 +11,7 @@ from comreg_core.errors import ComRegError
 from comreg_core.evaluation import (BaselineConfig, IcpGtBaseline, RansacConfig,
                                     baseline_config_from_dict, baseline_methods, evaluate,
                                     require_open3d)
-from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import assert_close, box_distance, rigid_about
 

@@ -11,7 +11,7 @@ from comreg_core.errors import ComRegError
 from comreg_core.evaluation import evaluate
 from comreg_core.choices import METHODS
 from comreg_core.evaluation.methods import method_names, registration_methods
-from comreg_core.inference import Registrar
+from comreg_core.register import Registrar
 from tests.helpers import FIBULA_STL
 from tests.training.tiny import tiny_run
 

@@ -37,6 +37,6 @@ def sweep12(shared_data, tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def search_registrar(shared_data):
     """The pose search on the fibula CT, prepared once for the session's tests."""
-    from comreg_core.inference import Registrar
+    from comreg_core.register import Registrar
 
     return Registrar.from_ct(FIBULA_STL)

@@ -13,10 +13,10 @@ from comreg_core.demo import pseudo_ground_truth
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.session import LiveSession
 from comreg_core.live.stream import Frame, SweepPoints
-from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
-from comreg_core.registration.polish import halves_disagreement_deg
-from comreg_core.registration.priors import Landmark, Prior
-from comreg_core.registration.search import rotation_about
+from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
+from comreg_core.registration.search.polish import halves_disagreement_deg
+from comreg_core.registration.search.priors import Landmark, Prior
+from comreg_core.registration.search.search import rotation_about
 from comreg_core.transforms import apply_transform, invert_rigid
 
 

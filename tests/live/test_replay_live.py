@@ -104,7 +104,7 @@ def test_replay_into_live_through_the_command_line(sweep16, ct_stl, tmp_path):
                  atol=1e-3, what="last update's centroid")
 
     # the folder in the form of comreg register's, and its registration for these points
-    from comreg_core.register_output import register_to_directory
+    from comreg_core.register import register_to_directory
 
     reference = tmp_path / "register"
     register_to_directory(None, out / "us_points.ply", reference, ct_mesh=ct_stl)
@@ -143,7 +143,7 @@ def _serve(sweep, server: ReplayServer, frames, replies_wanted: int, timeout_s=6
 def test_a_dropped_connection_is_restored_and_nothing_is_lost(sweep16, search_registrar, ct_stl,
                                                              port, tmp_path):
     from comreg_core.demo import pseudo_ground_truth
-    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 
     sweep = read_tracked_sweep(sweep16)
     T_move = np.eye(4)

@@ -101,7 +101,7 @@ def test_the_advice_points_to_the_nearer_end_until_it_is_reached(search_registra
 def test_an_ok_verdict_waits_until_the_pose_has_settled(search_registrar):
     """OK stands only when the pose agrees (2 mm / 2 deg at the points' centroid) with the full
     search made on at least ``full_every_mm`` less bone; otherwise CHECK, with the reason."""
-    from comreg_core.registration.verdict import Verdict
+    from comreg_core.registration.judgement.verdict import Verdict
 
     session = LiveSession(search_registrar)
     pts = np.random.default_rng(0).normal(scale=10.0, size=(200, 3)) + [0.0, 0.0, 50.0]

@@ -46,7 +46,7 @@ def _stream_frame(imageNode, poseNode, sweep, i):
 
 def test_live_mode_registers_the_incoming_frames(logic, sweep16):
     from comreg_core.demo import pseudo_ground_truth
-    from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
     from comreg_core.surfaces.us import extract_us_surface
 
     ct = logic.loadBoneMesh(FIBULA_STL)

@@ -146,7 +146,7 @@ def test_tracked_sweep_becomes_us_points_on_the_bone(logic, small_sweep):
 
     # tracking and CT share one frame here (ground truth = identity): in the scene the points
     # lie on the CT bone model (a LPS/RAS mix-up would put them ~400 mm away)
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.geometry.surface import CTSurface
 
     bone = logic.loadBoneMesh(FIBULA_STL)
     d = CTSurface(arraysFromModelMesh(bone)).distance(points)

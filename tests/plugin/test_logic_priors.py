@@ -14,9 +14,9 @@ from tests.plugin.conftest import SLICER_CORE_MISSING
 pytest.importorskip("slicer_core", reason=SLICER_CORE_MISSING)
 
 from comreg_core.errors import ComRegError  # noqa: E402
-from comreg_core.registration.metrics import registration_metrics  # noqa: E402
-from comreg_core.registration.search import rotation_about  # noqa: E402
-from comreg_core.registration.surface import CTSurface  # noqa: E402
+from comreg_core.registration.geometry.metrics import registration_metrics  # noqa: E402
+from comreg_core.registration.search.search import rotation_about  # noqa: E402
+from comreg_core.registration.geometry.surface import CTSurface  # noqa: E402
 from comreg_core.transforms import T_RAS_LPS, apply_transform, invert_rigid  # noqa: E402
 from comreg_plugin.scene_io import vtkMatrixFromArray  # noqa: E402
 from tests.helpers import FIBULA_STL  # noqa: E402

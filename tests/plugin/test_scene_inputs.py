@@ -18,7 +18,7 @@ pytest.importorskip("slicer_core", reason=SLICER_CORE_MISSING)
 import slicer  # noqa: E402
 
 from comreg_core.errors import ComRegError  # noqa: E402
-from comreg_core.inference import Registrar  # noqa: E402
+from comreg_core.register import Registrar  # noqa: E402
 from comreg_core.io import read_mesh, read_tracked_sweep  # noqa: E402
 from comreg_core.surfaces.us import extract_us_surface  # noqa: E402
 from comreg_core.transforms import T_RAS_LPS, apply_transform, invert_rigid  # noqa: E402

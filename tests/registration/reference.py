@@ -1,11 +1,11 @@
-"""Numpy references of the compiled kernels (``comreg_core/registration/kernels.py``): the
+"""Numpy references of the compiled kernels (``comreg_core/registration/geometry/kernels.py``): the
 code they replaced, kept here to test them against."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from comreg_core.registration.icp import MIN_PAIRS
+from comreg_core.registration.geometry.icp import MIN_PAIRS
 
 
 def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
@@ -46,7 +46,7 @@ def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: 
 
 
 def numpy_pose_steps(moved, q, nrm, d, trim_fraction, T):
-    """:func:`~comreg_core.registration.kernels.pose_steps` in numpy (the code the kernel
+    """:func:`~comreg_core.registration.geometry.kernels.pose_steps` in numpy (the code the kernel
     replaced): the reference it is tested against."""
     from scipy.spatial.transform import Rotation
 

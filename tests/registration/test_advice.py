@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from comreg_core.registration.advice import ambiguity_advice, end_names
-from comreg_core.registration.search import rotation_about
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.search.advice import ambiguity_advice, end_names
+from comreg_core.registration.search.search import rotation_about
+from comreg_core.registration.geometry.surface import CTSurface
 from tests.helpers import FIBULA_STL, assert_close
 
 

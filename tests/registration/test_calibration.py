@@ -10,12 +10,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from comreg_core.errors import ComRegError
-from comreg_core.registration.calibration import (Calibration, clinical_competitor,
-                                                  extent_share, fit_calibration,
-                                                  pose_difference, reliability_table,
-                                                  same_answer)
-from comreg_core.registration.scoring import Hypothesis, HypothesisResult
-from comreg_core.registration.verdict import judge_registration
+from comreg_core.registration.judgement.calibration import (Calibration, clinical_competitor,
+                                                            extent_share, fit_calibration,
+                                                            pose_difference, reliability_table,
+                                                            same_answer)
+from comreg_core.registration.search.scoring import Hypothesis, HypothesisResult
+from comreg_core.registration.judgement.verdict import judge_registration
 
 
 def _pose(rotvec_deg=(0.0, 0.0, 0.0), shift=(0.0, 0.0, 0.0)) -> np.ndarray:
@@ -144,7 +144,7 @@ def test_a_calibration_with_a_wrong_entry_cannot_be_made(changes, message):
 
 
 def test_a_p_correct_that_is_not_finite_is_never_ok():
-    from comreg_core.registration.verdict import DEFAULT_THRESHOLDS, _reasons
+    from comreg_core.registration.judgement.verdict import DEFAULT_THRESHOLDS, _reasons
 
     figures = {"median_mm": 0.2, "p90_mm": 0.5, "within_2mm": 1.0, "coverage": 0.5,
                "refit_shift_mm": 0.5, "refit_scale": 1.0, "refit_scale_gain": 0.0,
@@ -157,7 +157,7 @@ def test_a_p_correct_that_is_not_finite_is_never_ok():
 
 def test_verdict_judges_by_p_correct_when_calibrated(shared_data):
     from tests.helpers import FIBULA_STL
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.geometry.surface import CTSurface
 
     surface = CTSurface(FIBULA_STL)
     points, _ = surface.samples(3000)  # on the bone: residuals, coverage and refit all pass
@@ -195,8 +195,8 @@ def test_tracking_drift_moves_each_slice_rigidly_by_the_rms_asked():
 def test_a_calibrated_verdict_leaves_coverage_to_p_correct_and_a_short_sweep_its_scale(
         shared_data):
     from tests.helpers import FIBULA_STL
-    from comreg_core.registration.surface import CTSurface
-    from comreg_core.registration.verdict import DEFAULT_THRESHOLDS, _reasons
+    from comreg_core.registration.geometry.surface import CTSurface
+    from comreg_core.registration.judgement.verdict import DEFAULT_THRESHOLDS, _reasons
 
     surface = CTSurface(FIBULA_STL)
     points, _ = surface.samples(20000)

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from comreg_core.registration.config import MESH_REFINE_POINTS
-from comreg_core.registration.icp import coarse_to_fine_icp, point_to_plane_icp, refine_on_mesh
+from comreg_core.registration.geometry.icp import MESH_REFINE_POINTS
+from comreg_core.registration.geometry.icp import (coarse_to_fine_icp, point_to_plane_icp,
+                                                   refine_on_mesh)
 from comreg_core.transforms import apply_transform
 from tests.helpers import assert_close, box_distance, rigid_about
 
@@ -152,7 +153,7 @@ def test_apply_poses_sums_in_a_fixed_order():
     and for one cloud per pose."""
     from scipy.spatial.transform import Rotation
 
-    from comreg_core.registration.icp import apply_poses
+    from comreg_core.registration.geometry.icp import apply_poses
 
     rng = np.random.default_rng(7)
     for k in range(20):

@@ -1,4 +1,4 @@
-"""The compiled kernels of the pose search (comreg_core/registration/kernels.py) against the
+"""The compiled kernels of the pose search (comreg_core/registration/geometry/kernels.py) against the
 numpy code they replaced (tests/registration/reference.py: the same update and closest points),
 the Python ICP loop and score (the screening's), scipy's rotations; and the same output at 1
 and 2 threads."""
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from comreg_core.registration import kernels
-from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.icp import point_to_plane_icp, strided
-from comreg_core.registration.scoring import score_poses
+from comreg_core.registration.geometry import kernels
+from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.geometry.icp import point_to_plane_icp, strided
+from comreg_core.registration.search.scoring import score_poses
 from tests.helpers import random_rigid
 from tests.registration.reference import closest_points_on_triangles, numpy_pose_steps
 

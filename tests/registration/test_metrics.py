@@ -8,9 +8,9 @@ from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
 from comreg_core.errors import ComRegError
-from comreg_core.registration.metrics import (completion_metrics, is_flip, is_success,
-                                              registration_metrics, rotation_error_deg,
-                                              translation_error_mm)
+from comreg_core.registration.geometry.metrics import (completion_metrics, is_flip, is_success,
+                                                       registration_metrics, rotation_error_deg,
+                                                       translation_error_mm)
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import BOX_CENTRE, assert_close, box_distance, random_rigid
 

@@ -1,4 +1,4 @@
-"""Priors of the pose search (comreg_core.registration.priors): what is within an initial pose's
+"""Priors of the pose search (comreg_core.registration.search.priors): what is within an initial pose's
 tolerances and a landmark's, the starts around them, and registrations of a real short fibula
 sweep with a prior around the truth, one that excludes it, and landmarks."""
 
@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from comreg_core.inference import Registrar
+from comreg_core.register import Registrar
 from comreg_core.io import save_transform
-from comreg_core.register_output import load_prior
-from comreg_core.registration.metrics import registration_metrics
-from comreg_core.registration.priors import Landmark, Prior, prior_record
-from comreg_core.registration.search import rotation_about
-from comreg_core.registration.verdict import Verdict, with_prior_reasons
+from comreg_core.register import load_prior
+from comreg_core.registration.geometry.metrics import registration_metrics
+from comreg_core.registration.search.priors import Landmark, Prior, prior_record
+from comreg_core.registration.search.search import rotation_about
+from comreg_core.registration.judgement.verdict import Verdict, with_prior_reasons
 from comreg_core.simulation import sample_initial_pose
 from comreg_core.transforms import apply_transform, invert_rigid, space_change
 from tests.helpers import FIBULA_STL, assert_close, random_rigid
@@ -144,7 +144,7 @@ def test_a_prior_around_the_truth_registers_a_real_short_run(tmp_path, search, s
     """From 25 deg / 25 mm off, within the default 30 deg / 30 mm; the folder records the
     prior, and its transform.tfm given back as --init is the registration's pose."""
     from comreg_core.io import PointCloud, write_points
-    from comreg_core.register_output import register_to_directory
+    from comreg_core.register import register_to_directory
 
     T_init = _turned(short_run.mean(axis=0), 25.0, 25.0, seed=0)
     init = save_transform(T_init, tmp_path / "init.tfm")
@@ -201,7 +201,7 @@ def test_a_landmark_beyond_its_tolerance_rules_poses_out(search, short_run):
     """A landmark picked 30 mm beside the bone from where the truth puts it, 5 mm tolerance:
     the truth fits best but is not eligible; the chosen pose keeps the landmark within 5 mm,
     and the record says that a pose outside the prior fits clearly better."""
-    from comreg_core.registration.surface import principal_frame
+    from comreg_core.registration.geometry.surface import principal_frame
 
     _, axes = principal_frame(short_run)
     mid = len(short_run) // 2

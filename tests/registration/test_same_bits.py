@@ -22,9 +22,9 @@ REPO = Path(__file__).resolve().parents[2]
 PROGRAM = r"""
 import hashlib, sys
 import numpy as np
-from comreg_core.inference import Registrar
+from comreg_core.register import Registrar
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.registration.priors import Landmark, Prior
+from comreg_core.registration.search.priors import Landmark, Prior
 from comreg_core.surfaces.us import extract_us_surface
 from tests.helpers import FIBULA_DIR, FIBULA_STL
 

@@ -3,9 +3,9 @@ acoustic rule (a surface facing away from its beam's origin is penalised)."""
 
 import numpy as np
 
-from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.scoring import score_poses
-from comreg_core.registration.surface import facing_away
+from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.scoring import score_poses
+from comreg_core.registration.geometry.surface import facing_away
 from tests.helpers import BOX_CENTRE, assert_close, rigid_about
 
 

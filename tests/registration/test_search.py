@@ -13,14 +13,14 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from comreg_core.config import ConfigError
-from comreg_core.registration.config import HypothesisConfig, as_hypothesis_config
-from comreg_core.registration.icp import coarse_to_fine_icp
-from comreg_core.registration.screening import screen_starts
-from comreg_core.registration.search import (PATCH_ORIENTATIONS, build_hypotheses,
-                                             patch_orientation_starts, principal_axes_pose,
-                                             refine_starts, rotation_about,
-                                             search_hypotheses, slide_offsets_mm, us_subset)
-from comreg_core.registration.surface import CTSurface, SurfaceCloud
+from comreg_core.registration.search.config import HypothesisConfig, as_hypothesis_config
+from comreg_core.registration.geometry.icp import coarse_to_fine_icp
+from comreg_core.registration.search.screening import screen_starts
+from comreg_core.registration.search.search import (PATCH_ORIENTATIONS, build_hypotheses,
+                                                    patch_orientation_starts, principal_axes_pose,
+                                                    refine_starts, rotation_about,
+                                                    search_hypotheses, slide_offsets_mm, us_subset)
+from comreg_core.registration.geometry.surface import CTSurface, SurfaceCloud
 from comreg_core.pointsets import farthest_point_indices
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import FIBULA_STL, assert_close
@@ -450,7 +450,7 @@ OLD_KEYS = {"axis_flips": True, "include_coarse": True, "principal_axes_solve": 
 def test_old_registration_configs_load_when_they_hold_what_survived(tmp_path):
     import yaml
 
-    from comreg_core.registration.config import load_register_config
+    from comreg_core.registration.search.config import load_register_config
 
     path = tmp_path / "config.yaml"
     old = {"hypotheses": {**OLD_KEYS, "shaft_rotations": 6}, "inputs": {"seed": 0}}
@@ -495,7 +495,7 @@ def test_principal_axes_pose_puts_the_largest_spread_along_the_bone(fibula_targe
 def test_patch_starts_cover_all_rotations(fibula_target, distal_patch):
     """A patch (40 mm of a 404 mm bone) gets 60 orientations x the slides, spread over SO(3)
     (every rotation within 45 deg of one of them, by scipy); the whole bone gets none."""
-    from comreg_core.registration.search import is_patch
+    from comreg_core.registration.search.search import is_patch
 
     us, _, _ = distal_patch
     config = HypothesisConfig()
@@ -527,7 +527,7 @@ def test_short_sweep_whose_own_axes_mislead_registers(shared_data):
     from comreg_core.config import from_dict
     from comreg_core.evaluation.evaluate import (STREAM_CLOUDS, STREAM_POSES,
                                                  evaluation_rng)
-    from comreg_core.inference import Registrar
+    from comreg_core.register import Registrar
     from comreg_core.simulation import BoneModel, sample_initial_pose, simulate_sweep
     from comreg_core.simulation.config import SimulationConfig
     from tests.benchmarks.bench_partial import PARTIAL_SWEEPS

@@ -1,4 +1,4 @@
-"""The slide probe of the polish (comreg_core.registration.polish.probe_slides) on the real
+"""The slide probe of the polish (comreg_core.registration.search.polish.probe_slides) on the real
 fibula sweep's first 28 frames: the search alone stops in the basin next to the right one, 4-5
 mm along the shaft; polished again from 5 mm along the CT's long axis, it reaches the pose that
 ICP from the recorded tracking finds (the pseudo ground truth of these frames), with a better
@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from comreg_core.demo import pseudo_ground_truth
-from comreg_core.inference import Registrar
+from comreg_core.register import Registrar
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.stream import Frame, SweepPoints
-from comreg_core.registration.config import SLIDE_PROBE_MAX_SHARE
-from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
-from comreg_core.registration.surface import ct_length_mm, spread_mm
+from comreg_core.registration.search.config import SLIDE_PROBE_MAX_SHARE
+from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
+from comreg_core.registration.geometry.surface import ct_length_mm, spread_mm
 from comreg_core.transforms import apply_transform
 from tests.helpers import FIBULA_STL
 

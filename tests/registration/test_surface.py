@@ -6,9 +6,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration import kernels
-from comreg_core.registration.surface import (CTSurface, SurfaceCloud, estimate_normals,
-                                              sample_triangles)
+from comreg_core.registration.geometry import kernels
+from comreg_core.registration.geometry.surface import (CTSurface, SurfaceCloud, estimate_normals,
+                                                       sample_triangles)
 from tests.helpers import BOX_CENTRE, assert_close, box_distance
 
 

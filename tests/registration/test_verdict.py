@@ -1,12 +1,12 @@
-"""The verdict (comreg_core.registration.verdict): OK on correct registrations, CHECK on a slide
+"""The verdict (comreg_core.registration.judgement.verdict): OK on correct registrations, CHECK on a slide
 along the shaft, a 15 % scale error and an ambiguous pose; judged from points, transform and CT."""
 
 import numpy as np
 import pytest
 
-from comreg_core.registration.icp import point_to_plane_icp
-from comreg_core.registration.surface import CTSurface
-from comreg_core.registration.verdict import judge_registration
+from comreg_core.registration.geometry.icp import point_to_plane_icp
+from comreg_core.registration.geometry.surface import CTSurface
+from comreg_core.registration.judgement.verdict import judge_registration
 from comreg_core.transforms import apply_transform
 from tests.helpers import FIBULA_STL
 

@@ -1,4 +1,4 @@
-"""Warm re-registration of a grown sweep (comreg_core/registration/warm.py through
+"""Warm re-registration of a grown sweep (comreg_core/registration/search/warm.py through
 Registrar.register(warm_start=...)): the pose the full search finds on the grown cloud, from
 a handful of poses, with the same evidence fields."""
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from comreg_core.errors import ComRegError
-from comreg_core.inference import Registrar
-from comreg_core.registration.metrics import rotation_error_deg, translation_error_mm
-from comreg_core.registration.warm import WARM_TOP
+from comreg_core.register import Registrar
+from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
+from comreg_core.registration.search.warm import WARM_TOP
 from comreg_core.transforms import apply_transform, invert_rigid
 from tests.helpers import FIBULA_STL, random_rigid
 

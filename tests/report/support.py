@@ -31,7 +31,7 @@ class Case:
 def make_case(ct) -> Case:
     """Deterministic data from the fibula mesh (LPS): surface samples from the evaluation module's
     seeded area-uniform sampler."""
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.geometry.surface import CTSurface
     from comreg_core.report.cameras import bone_frame
 
     surface = CTSurface(ct, sample_seed=7)

@@ -38,7 +38,7 @@ def test_patient_directions():
 
 
 def test_fibula_frame_matches_a_naive_pca_of_surface_samples(fibula):
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.geometry.surface import CTSurface
 
     frame = bone_frame(fibula.vertices, fibula.faces, fibula.space)
     # Naive reference: mean and covariance of 200k area-uniform surface samples.

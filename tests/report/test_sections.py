@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.report.sections import SECTION_HALF_WIDTH_MM, ct_sections, frame_overlays
 from comreg_core.report.scenes import colormap_rgb
 from comreg_core.transforms import apply_transform
@@ -19,7 +19,7 @@ def case():
     """The sample's 37 real frames, their bone points, the shared CT, the pose the search finds
     (the recording's own tracking is ~3 mm off) and a wrong pose 5 mm off the bone's face."""
     from comreg_core.demo import SAMPLE_SWEEP
-    from comreg_core.inference import Registrar
+    from comreg_core.register import Registrar
     from comreg_core.io import read_mesh
     from comreg_core.io.tracked_us import read_tracked_sweep
     from comreg_core.report.cameras import bone_frame

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.io.volumes import Volume, read_volume, write_volume
-from comreg_core.registration.surface import CTSurface
+from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.surfaces.us_volume import (NotAUsVolumeError, check_us_volume,
                                             extract_volume_surface, is_volume_file)
 from tests.helpers import FIBULA_STL, SHARED_DATA
@@ -56,8 +56,8 @@ def test_compounded_fibula_volume_gives_points_on_the_ct(fibula):
 
 
 def test_registration_from_volume_points_lands_where_frame_points_do(fibula):
-    from comreg_core.inference import Registrar
-    from comreg_core.registration.metrics import registration_metrics
+    from comreg_core.register import Registrar
+    from comreg_core.registration.geometry.metrics import registration_metrics
     from comreg_core.simulation import sample_initial_pose
     from comreg_core.surfaces.us import extract_us_surface
     from comreg_core.transforms import apply_transform

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from comreg_core.registration.metrics import rotation_error_deg
-from comreg_core.inference import Registrar
+from comreg_core.registration.geometry.metrics import rotation_error_deg
+from comreg_core.register import Registrar
 from comreg_core.training import CheckpointError, export_model, load_checkpoint, pretrain
 from comreg_core.training.data import TrainingCT, validation_samples
 from tests.helpers import FIBULA_STL

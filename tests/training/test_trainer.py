@@ -217,7 +217,7 @@ def test_not_learned_warning_judges_by_the_share_of_sweeps_the_network_turns_rig
 
 
 def test_validation_share_is_zero_for_a_network_that_leaves_sweeps_where_they_lie():
-    from comreg_core.registration.surface import CTSurface
+    from comreg_core.registration.geometry.surface import CTSurface
     from comreg_core.training.config import pretrain_preset
     from comreg_core.training.data import TrainingCT, validation_samples
     from comreg_core.training.validation import identity_errors, validate

@@ -32,8 +32,8 @@ from typing import Any, Callable
 import numpy as np
 
 from comreg_core.errors import ComRegError
-from comreg_core.registration.metrics import rotation_error_deg
-from comreg_core.registration.surface import principal_frame, spread_mm
+from comreg_core.registration.geometry.metrics import rotation_error_deg
+from comreg_core.registration.geometry.surface import principal_frame, spread_mm
 from comreg_core.transforms import apply_transform, project
 
 #: Clinical tolerance: target error over the sweep (mm) and rotation (deg).
@@ -74,7 +74,7 @@ def clinical_competitor(hypotheses, points_us: np.ndarray,
     """The competitor of a search result (module docstring).
 
     Args:
-        hypotheses: a :class:`~comreg_core.registration.scoring.HypothesisResult`.
+        hypotheses: a :class:`~comreg_core.registration.search.scoring.HypothesisResult`.
         points_us: ``(n, 3)`` the US points the search registered (US frame, mm).
         allowed: which poses ``(4, 4)`` a prior allows (None: all).
 

@@ -1,4 +1,4 @@
-"""Settings of the pose search (:mod:`comreg_core.registration.search`): the ``hypotheses``
+"""Settings of the pose search (:mod:`comreg_core.registration.search.search`): the ``hypotheses``
 section of a registration config (``comreg register/evaluate --config FILE``)."""
 
 from __future__ import annotations
@@ -9,19 +9,10 @@ from typing import ClassVar
 
 from comreg_core.config import ConfigError, RetiredCheck, from_dict, load_config, require
 
-#: The polish stops once an update moves no US point by more than this (mm).
+#: The polish stops once an update moves no US point by more than this (mm), or once its
+#: RMS has stalled for :data:`~comreg_core.registration.geometry.icp.POLISH_PATIENCE`
+#: iterations.
 POLISH_TOLERANCE_MM = 0.01
-#: ... or once its RMS has not fallen by 1e-4 mm for this many iterations (its gated pairs
-#: can make it jitter above the tolerance for good).
-POLISH_PATIENCE = 5
-#: The mesh refinement of the network's ICP result (``model.icp.mesh_refine``,
-#: :func:`~comreg_core.registration.icp.refine_on_mesh`): US points used (evenly strided),
-#: most iterations, and the share of the farthest pairs left out (the sweep's false
-#: intersections; untrimmed, it leaves half the simulated validation sweeps over 2 mm / 2 deg
-#: from the truth even when it starts there).
-MESH_REFINE_POINTS = 1024
-MESH_REFINE_ITERATIONS = 50
-MESH_REFINE_TRIM = 0.1
 #: US points and most iterations of the quick polish that compares poses tied with the best.
 QUICK_POLISH_POINTS = 512
 QUICK_POLISH_ITERATIONS = 30
@@ -36,7 +27,7 @@ SLIDE_PROBE_GAIN = 0.02
 
 @dataclass(frozen=True)
 class HypothesisConfig:
-    """Settings of the pose search (steps in :mod:`comreg_core.registration.search`).
+    """Settings of the pose search (steps in :mod:`comreg_core.registration.search.search`).
 
     The search always builds every kind of start (the network's pose, its coarse pose and the
     principal-axes solve of the completion as bases, each also flipped end to end; a patch's
@@ -62,7 +53,7 @@ class HypothesisConfig:
             sweep's place along the bone is roughly known (fewer starts, fewer wrong places
             that fit as well).
         screen_points, screen_iterations, screen_score_points: the screening of all starts
-            (:func:`~comreg_core.registration.screening.screen_starts`): US points and
+            (:func:`~comreg_core.registration.search.screening.screen_starts`): US points and
             iterations of its quick ICP, US points of its quick score. More when the right
             basin is screened out on a hard bone (a near-symmetric shaft), fewer on a slow
             machine: the screening runs on every start (thousands) and dominates the time.
@@ -80,7 +71,7 @@ class HypothesisConfig:
             Denser for a small bone or a fine CT mesh (the samples' spacing should stay well
             under the features that tell poses apart), sparser for a very large bone.
         icp_iterations: iterations of the refinement's last stage, on all ``icp_points``
-            (point-to-plane, :func:`~comreg_core.registration.icp.coarse_to_fine_icp`).
+            (point-to-plane, :func:`~comreg_core.registration.geometry.icp.coarse_to_fine_icp`).
         icp_schedule: its coarse stages before, ``(US points, iterations)`` each. Both: more
             when refined poses stop short of their basin's minimum (a long bone, starts far
             off), fewer for speed.
@@ -138,7 +129,7 @@ class HypothesisConfig:
             pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score, or
             within ``min_confidence * score_floor_mm`` of it). Higher flags more results for
             a visual check (fewer unflagged wrong poses), lower flags fewer; the verdict's
-            ``min_confidence`` (:mod:`comreg_core.registration.verdict`) is the same 0.3.
+            ``min_confidence`` (:mod:`comreg_core.registration.judgement.verdict`) is the same 0.3.
     """
 
     enabled: bool = True

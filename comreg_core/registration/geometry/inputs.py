@@ -42,4 +42,4 @@ def beam_origins_for(beam_origins, n: int) -> np.ndarray:
 def subset_notice(given: int, used: int) -> str:
     """The warning that a cloud of ``given`` points was registered as a subset of ``used``."""
     return (f"The US cloud has {given:,} points; registered a uniform random subset of "
-            f"{used:,} (the limit, comreg_core.registration.inputs.MAX_US_POINTS).")
+            f"{used:,} (the limit, comreg_core.registration.geometry.inputs.MAX_US_POINTS).")

@@ -1,7 +1,7 @@
 """One rigid point-to-plane ICP, batched over start poses, with pluggable correspondences.
 
 :func:`point_to_plane_icp` refines ``B`` start poses of one source cloud at once. Where the
-correspondences come from is the caller's choice (a :data:`~comreg_core.registration.surface.
+correspondences come from is the caller's choice (a :data:`~comreg_core.registration.geometry.surface.
 Matcher`): the nearest of dense CT samples (:meth:`SurfaceCloud.match`, the pose search's
 refinement), a closest-point grid (:meth:`SurfaceCloud.match_approx`, its screening), or the
 exact closest points of the CT mesh with a distance gate (:meth:`CTSurface.matcher`, the polish,
@@ -21,11 +21,21 @@ from typing import NamedTuple
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration.config import (MESH_REFINE_ITERATIONS, MESH_REFINE_POINTS,
-                                             MESH_REFINE_TRIM, POLISH_PATIENCE)
-from comreg_core.registration.kernels import pose_steps
-from comreg_core.registration.surface import Matcher
+from comreg_core.registration.geometry.kernels import pose_steps
+from comreg_core.registration.geometry.surface import Matcher
 from comreg_core.transforms import as_points, rotate
+
+#: A polish (and the mesh refinement) stops once its RMS has not fallen by :data:`STALL_MM`
+#: for this many iterations (its gated pairs can make it jitter above the tolerance for good).
+POLISH_PATIENCE = 5
+#: The mesh refinement of the network's ICP result (``model.icp.mesh_refine``,
+#: :func:`~comreg_core.registration.geometry.icp.refine_on_mesh`): US points used (evenly strided),
+#: most iterations, and the share of the farthest pairs left out (the sweep's false
+#: intersections; untrimmed, it leaves half the simulated validation sweeps over 2 mm / 2 deg
+#: from the truth even when it starts there).
+MESH_REFINE_POINTS = 1024
+MESH_REFINE_ITERATIONS = 50
+MESH_REFINE_TRIM = 0.1
 
 #: Fewest matched pairs an update needs (six unknowns).
 MIN_PAIRS = 6
@@ -85,7 +95,7 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
     Args:
         source: ``(n, 3)`` mm, the points to move (or ``(B, n, 3)``, one cloud per start).
         T_init: ``(B, 4, 4)`` (or ``(4, 4)``) mm start poses.
-        match: the correspondences (:data:`~comreg_core.registration.surface.Matcher`).
+        match: the correspondences (:data:`~comreg_core.registration.geometry.surface.Matcher`).
         iterations: most matchings per start.
         trim_fraction: share of the matched pairs left out, in [0, 1); at least
             :data:`MIN_PAIRS` are always kept.
@@ -184,7 +194,7 @@ def refine_on_mesh(points_mm: np.ndarray, T_start: np.ndarray, match: Matcher
     """Trimmed point-to-plane ICP of US points ``(N, 3)`` mm from the pose ``T_start``
     ``(4, 4)`` (US -> CT, mm) onto the CT mesh (``match``: e.g. ``CTSurface.matcher()``).
     It stops, as the search's polish does, once its RMS has stalled for
-    :data:`~comreg_core.registration.config.POLISH_PATIENCE` iterations. Returns the refined
+    :data:`~comreg_core.registration.search.config.POLISH_PATIENCE` iterations. Returns the refined
     pose ``(4, 4)`` and its RMS point-to-plane residual (mm)."""
     result = point_to_plane_icp(strided(as_points(points_mm, "US points"), MESH_REFINE_POINTS),
                                 np.asarray(T_start, dtype=np.float64)[None], match,

@@ -3,7 +3,7 @@
 Inputs: the US points as received, the transform ``T_ct_us`` (mm) and the CT bone mesh; plus the
 pose check's ``confidence`` / ``ambiguous`` when the hypotheses stage ran. No ground truth, no
 network. :func:`judge_registration` computes these figures (all distances in mm, exact
-point-to-triangle distances of :class:`~comreg_core.registration.surface.CTSurface`):
+point-to-triangle distances of :class:`~comreg_core.registration.geometry.surface.CTSurface`):
 
 - **residuals** of the registered US points to the CT surface: ``median_mm``, ``p90_mm`` and
   ``within_2mm`` (share of points at most 2 mm from the surface);
@@ -17,7 +17,7 @@ point-to-triangle distances of :class:`~comreg_core.registration.surface.CTSurfa
   calibration with a wrong scale fits best with a scale far from 1. These two catch what the
   residuals of a long, smooth bone cannot;
 - **ambiguity**: with a per-patient calibration, ``p_correct``, the estimated probability that
-  the pose is within 4 mm / 5 deg of the truth (:mod:`comreg_core.registration.calibration`;
+  the pose is within 4 mm / 5 deg of the truth (:mod:`comreg_core.registration.judgement.calibration`;
   ``CHECK`` below its ``ok_probability``, 0.95); without one, the pose check's ``confidence``
   (< 0.3 = ``ambiguous``), when given.
 
@@ -57,9 +57,9 @@ from functools import partial
 
 import numpy as np
 
-from comreg_core.registration.icp import point_to_plane_icp
-from comreg_core.registration.scoring import SCORE_TIE_SHARE
-from comreg_core.registration.surface import as_surface
+from comreg_core.registration.geometry.icp import point_to_plane_icp
+from comreg_core.registration.search.scoring import SCORE_TIE_SHARE
+from comreg_core.registration.geometry.surface import as_surface
 from comreg_core.transforms import apply_transform, as_points, check_rigid
 
 #: Distance (mm) within which a registered US point counts as on the CT surface (and a CT
@@ -131,7 +131,7 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, confidence: float | No
                        thresholds: VerdictThresholds = DEFAULT_THRESHOLDS,
                        distances: np.ndarray | None = None, scale_scan: bool = True) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` rigid, mm) for ``us_points`` (``(N, 3)`` mm, as
-    received) on ``ct_surface`` (anything :func:`~comreg_core.registration.surface.as_surface`
+    received) on ``ct_surface`` (anything :func:`~comreg_core.registration.geometry.surface.as_surface`
     takes). ``confidence``/``ambiguous``: the pose check's, None when it did not run.
     ``p_correct``: the calibrated probability that the pose is correct, None without a
     calibration; given, it replaces ``confidence``/``ambiguous`` (``CHECK`` below
@@ -221,7 +221,7 @@ def refit(points_ct: np.ndarray, surface, *, iterations: int = 25, gate_mm: floa
     ``scale_gain``: by how much (share, 0-1) that distance is below the unscaled fit's. A scan,
     not a similarity ICP: on a partial shaft a free scale gets stuck near 1 (measured: 1.01 for
     a real sweep shrunk by 15 %) while the scan finds 1.18.
-    The ICP (:func:`~comreg_core.registration.icp.point_to_plane_icp`, all scales in one batch)
+    The ICP (:func:`~comreg_core.registration.geometry.icp.point_to_plane_icp`, all scales in one batch)
     matches to the nearest of :data:`CT_SAMPLES` surface samples with their normals; pairs
     farther apart than ``gate_mm`` and the worst 10 % are left out; at most
     :data:`REFIT_POINTS` points (seeded subset). Without ``scale_scan`` only the rigid refit
@@ -276,7 +276,7 @@ def thresholds_json(th: VerdictThresholds = DEFAULT_THRESHOLDS) -> dict:
 
 def with_prior_reasons(verdict, record: dict | None):
     """``verdict`` (:class:`Verdict`) with the prior's
-    ``reasons`` (:func:`~comreg_core.registration.priors.prior_record`: a result at the edge of
+    ``reasons`` (:func:`~comreg_core.registration.search.priors.prior_record`: a result at the edge of
     a tolerance, a clearly better pose outside the prior, no pose within it) appended and
     then ``"check"``; unchanged without a prior or reasons. The figures gain ``prior_at_edge``.
     """

@@ -1,10 +1,10 @@
 """The network's poses as further starts of a finished pose search.
 
-With a pretrained network, :meth:`Registrar.register <comreg_core.inference.Registrar.register>`
+With a pretrained network, :meth:`Registrar.register <comreg_core.register.Registrar.register>`
 runs the search alone first (the same starts, screening and choice as without a network) and
 then gives the network's poses their chance here: each is refined like a search start, the
 best-scoring one polished on the CT mesh, and it replaces the search's choice only when its
-score is lower by more than a tie (:func:`~comreg_core.registration.scoring.tied`). So the
+score is lower by more than a tie (:func:`~comreg_core.registration.search.scoring.tied`). So the
 chosen score is never worse than the search alone's on the same input, and the network can only
 add a pose the search did not find.
 """
@@ -15,14 +15,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from comreg_core.registration.advice import ambiguity_advice
-from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.icp import apply_poses, coarse_to_fine_icp
-from comreg_core.registration.polish import polish_pose
-from comreg_core.registration.priors import Prior
-from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, choose,
-                                              confidence_over, same_pose, score_poses, tied)
-from comreg_core.registration.surface import SurfaceCloud
+from comreg_core.registration.search.advice import ambiguity_advice
+from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.geometry.icp import apply_poses, coarse_to_fine_icp
+from comreg_core.registration.search.polish import polish_pose
+from comreg_core.registration.search.priors import Prior
+from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult, choose,
+                                                     confidence_over, same_pose, score_poses, tied)
+from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
 
 

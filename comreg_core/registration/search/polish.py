@@ -1,4 +1,4 @@
-"""The polish (step 5 of :mod:`comreg_core.registration.search`): the best pose and the poses
+"""The polish (step 5 of :mod:`comreg_core.registration.search.search`): the best pose and the poses
 tied with it refined against the exact closest points of the CT mesh and re-scored exactly; then
 the choice (step 6)."""
 
@@ -10,15 +10,16 @@ from typing import Any
 
 import numpy as np
 
-from comreg_core.registration.config import (POLISH_PATIENCE, POLISH_TOLERANCE_MM,
-                                             QUICK_POLISH_ITERATIONS, QUICK_POLISH_POINTS,
-                                             SLIDE_PROBE_GAIN, SLIDE_PROBE_MAX_SHARE,
-                                             HypothesisConfig)
-from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
-from comreg_core.registration.metrics import rotation_error_deg
-from comreg_core.registration.scoring import (choose, polish_candidates, same_pose,
-                                              trimmed_mean)
-from comreg_core.registration.surface import SurfaceCloud, ct_length_mm, facing_away, spread_mm
+from comreg_core.registration.search.config import (POLISH_TOLERANCE_MM, QUICK_POLISH_ITERATIONS,
+                                                    QUICK_POLISH_POINTS, SLIDE_PROBE_GAIN,
+                                                    SLIDE_PROBE_MAX_SHARE, HypothesisConfig)
+from comreg_core.registration.geometry.icp import (POLISH_PATIENCE, apply_poses,
+                                                   point_to_plane_icp, strided)
+from comreg_core.registration.geometry.metrics import rotation_error_deg
+from comreg_core.registration.search.scoring import (choose, polish_candidates, same_pose,
+                                                     trimmed_mean)
+from comreg_core.registration.geometry.surface import (SurfaceCloud, ct_length_mm, facing_away,
+                                                       spread_mm)
 from comreg_core.transforms import apply_transform, matmul, project
 
 
@@ -34,7 +35,7 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
     runner-up or None)`` indices.
 
     ``within``: ``(B, 4, 4) poses -> (B,) bool``, the poses a prior allows
-    (:meth:`~comreg_core.registration.priors.Prior.allows`), or None (all). With it only the
+    (:meth:`~comreg_core.registration.search.priors.Prior.allows`), or None (all). With it only the
     allowed poses are polished, chosen (the polished ones among them, else any) and count as
     the runner-up; when it allows none, all are considered. ``slide_probe``: the chosen pose
     of a partial sweep gets :func:`probe_slides` (the full search; a warm start does not;
@@ -94,7 +95,7 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
     ``slid_mm``, ``probe_shift_mm`` (of the US centroid from ``T``) and ``moved_mm`` (from
     before the first polish, as the norms combine). None otherwise, when the sweep spans at
     least :data:`SLIDE_PROBE_MAX_SHARE` of the CT's length (a whole cloud; the span is
-    :func:`~comreg_core.registration.surface.spread_mm`'s, so that a few stray points do not
+    :func:`~comreg_core.registration.geometry.surface.spread_mm`'s, so that a few stray points do not
     make a partial sweep whole), or when ``slide_probe_mm`` is 0."""
     if config.slide_probe_mm <= 0:
         return None
@@ -129,7 +130,7 @@ def polish_pose(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,
                 ) -> tuple[np.ndarray, float, dict[str, Any]]:
     """Step 5 of the search for one pose ``T`` ``(4, 4)``: the polished pose, its
     exact score (trimmed mean distance of ``subset_mm`` ``(n, 3)`` to the mesh, mm) and the
-    polish's record (:attr:`~comreg_core.registration.scoring.Hypothesis.polish`;
+    polish's record (:attr:`~comreg_core.registration.search.scoring.Hypothesis.polish`;
     ``moved_mm`` of the US ``centroid`` ``(3,)``).
     ``quick``: on :data:`QUICK_POLISH_POINTS`
     strided points and at most :data:`QUICK_POLISH_ITERATIONS` (to compare tied poses);

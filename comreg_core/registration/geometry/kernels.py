@@ -1,6 +1,6 @@
 """Compiled kernels (numba) of the pose search's screening: the same point-to-plane ICP and
-trimmed score as :func:`~comreg_core.registration.icp.point_to_plane_icp` with
-:meth:`SurfaceCloud.match_approx` and :func:`~comreg_core.registration.scoring.score_poses`
+trimmed score as :func:`~comreg_core.registration.geometry.icp.point_to_plane_icp` with
+:meth:`SurfaceCloud.match_approx` and :func:`~comreg_core.registration.search.scoring.score_poses`
 with ``approximate=True``, for thousands of start poses at once.
 
 Why compiled: the screening runs ~20 ICP iterations on every start (about 3,900 for a short
@@ -129,7 +129,7 @@ def pose_work(n):
 
 @njit(cache=True)
 def pose_step(moved, q, nrm, d, trim, T, work):
-    """One Gauss-Newton point-to-plane update (:func:`~comreg_core.registration.icp.
+    """One Gauss-Newton point-to-plane update (:func:`~comreg_core.registration.geometry.icp.
     point_to_plane_icp`'s) for one start: its moved source points ``moved`` ``(n, 3)``, their
     matches ``q`` and normals ``nrm`` ``(n, 3)`` and distances ``d`` ``(n,)`` (``inf``:
     unmatched). Leaves out the ``trim`` share of the matched pairs farthest from their match
@@ -257,7 +257,7 @@ def grid_icp(src, T_init, origin, spacing, grid, cloud, normals, iterations, tri
     """Point-to-plane ICP of ``src`` ``(n, 3)`` mm from ``(B, 4, 4)`` start poses with the
     closest-point grid's correspondences (module docstring): ``(B, 4, 4)`` refined poses,
     ``(B,)`` RMS residuals (mm) and ``(B,)`` iterations done. The same steps, trimming,
-    damping and stopping rule as :func:`~comreg_core.registration.icp.point_to_plane_icp`."""
+    damping and stopping rule as :func:`~comreg_core.registration.geometry.icp.point_to_plane_icp`."""
     B = T_init.shape[0]
     T = T_init.copy()
     rmse = np.empty(B)
@@ -281,7 +281,7 @@ def grid_scores(poses, points, origins, origin, spacing, grid, cloud, normals, t
     of the distances to the tangent plane at the grid's nearest cloud point, plus
     ``facing_penalty`` for each point whose surface faces away from its beam origin
     (``origins`` ``(n, 3)``, US frame; an empty ``(0, 3)`` array for none). The same as
-    :func:`~comreg_core.registration.scoring.score_poses` with ``approximate=True``."""
+    :func:`~comreg_core.registration.search.scoring.score_poses` with ``approximate=True``."""
     B, n = poses.shape[0], points.shape[0]
     keep = max(1, n - np.int64(trim * n))
     scores = np.empty(B)
@@ -356,7 +356,7 @@ def _dot(ux, uy, uz, vx, vy, vz):
 @njit(cache=True)
 def _closest_on_triangle(p, vertices, face):
     """The exact closest point ``(x, y, z)`` of ``p`` ``(3,)`` on the triangle ``face`` (three
-    row indices into ``vertices``): :func:`~comreg_core.registration.surface.
+    row indices into ``vertices``): :func:`~comreg_core.registration.geometry.surface.
     closest_points_on_triangles` for one point (the Voronoi-region tests of Ericson, 5.1.5, in
     the same order of precedence), in scalars: no array is allocated per triangle."""
     ax, ay, az = vertices[face[0], 0], vertices[face[0], 1], vertices[face[0], 2]

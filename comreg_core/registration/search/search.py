@@ -26,7 +26,7 @@ alternatives at test time, with no extra training data:
    sweeps the grid built on them alone missed the right basin in 2 of 20 (one of them
    unflagged); with them, 0 of 20. About 3,000 more starts; the screening costs ~1 s more.
 
-2. **Screening** (:func:`~comreg_core.registration.screening.screen_starts`): all starts at once get a quick point-to-plane ICP
+2. **Screening** (:func:`~comreg_core.registration.search.screening.screen_starts`): all starts at once get a quick point-to-plane ICP
    (``screen_iterations`` on ``screen_points`` US points, correspondences read from a
    closest-point grid of the CT, :meth:`SurfaceCloud.nearest_approx`) and a quick score;
    the ``refine_top`` best distinct ones go on, the network's own pose always among them.
@@ -39,7 +39,7 @@ alternatives at test time, with no extra training data:
    farthest-point sampling picks isolated false echoes first (on simulated fibula sweeps ~3 %
    of the points, 10-15 % of an FPS subset, more than ``icp_trim`` leaves out, enough to pull
    the ICP 20 mm off the truth). Point-to-plane ICP
-   (:func:`~comreg_core.registration.icp.coarse_to_fine_icp`), coarse to fine: the
+   (:func:`~comreg_core.registration.geometry.icp.coarse_to_fine_icp`), coarse to fine: the
    ``icp_schedule`` stages on evenly strided subsets (128, then 512 US points, 30 iterations
    each), then ``icp_iterations`` on all ``icp_points``; after each stage only the hypotheses
    whose residual is within ``icp_margin_mm`` of the best go on. (Point-to-point ICP, hard or
@@ -70,12 +70,12 @@ alternatives at test time, with no extra training data:
    basin at 0.17 mm) separate once polished (0.2 mm vs 0.006 mm). Median cost ~0.05 s, ~0.4 s
    with ties. Built from a bare cloud, the target has no :attr:`~SurfaceCloud.surface` and
    the polish is skipped. A partial sweep's chosen pose then gets the *slide probe*
-   (:func:`~comreg_core.registration.polish.probe_slides`, ``slide_probe_mm``): polished again
+   (:func:`~comreg_core.registration.search.polish.probe_slides`, ``slide_probe_mm``): polished again
    from that far along the CT's long axis both ways, a slid pose scoring >= 2 % better
    replaces it (the search can stop in the basin next to the right one along a shaft).
 
 6. **Choice and confidence**: the best score wins; scores within a tie
-   (:func:`~comreg_core.registration.scoring.tied`, 0.1 %) go to the first in generation order.
+   (:func:`~comreg_core.registration.search.scoring.tied`, 0.1 %) go to the first in generation order.
    Two poses are *distinct* when rotated apart by more than ``distinct_deg`` or placing the US
    centroid more than ``distinct_mm`` apart. ``confidence(a over b) = max(score_b - score_a,
    0) / max(score_b, score_floor_mm)`` in [0, 1] (``score_floor_mm``, 0.05 mm: differences
@@ -100,7 +100,7 @@ alternatives at test time, with no extra training data:
    results.
 
 8. **A prior** (``prior``: an initial pose with tolerances, landmark pairs;
-   :mod:`comreg_core.registration.priors`): the starts are built around it instead
+   :mod:`comreg_core.registration.search.priors`): the starts are built around it instead
    (:func:`round_starts`), the screening keeps the poses within it first, refined poses outside
    it are also pulled back onto its edge (``+clamped``), and only poses within it are polished,
    chosen or the runner-up.
@@ -111,9 +111,9 @@ Use it standalone (no network needed)::
     result = search_hypotheses(us_points, T_start, target)   # mm in, mm out
     result.T_ct_us, result.chosen, result.confidence, result.ambiguous
 
-:class:`comreg_core.inference.Registrar` runs it from the ``pca`` base (or the prior's) with or
+:class:`comreg_core.register.Registrar` runs it from the ``pca`` base (or the prior's) with or
 without a network; the network's poses then compete as further starts
-(:mod:`comreg_core.registration.network_starts`). ``hypotheses=False`` (``comreg register
+(:mod:`comreg_core.registration.search.network_starts`). ``hypotheses=False`` (``comreg register
 --no-hypotheses``) turns it off with a network: the paper's plain pipeline exactly.
 """
 
@@ -126,15 +126,15 @@ from typing import Any
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration.advice import ambiguity_advice
-from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.icp import coarse_to_fine_icp
-from comreg_core.registration.polish import choose_and_polish
-from comreg_core.registration.priors import Prior
-from comreg_core.registration.screening import screen_starts
-from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, confidence_over,
-                                              score_poses)
-from comreg_core.registration.surface import SurfaceCloud, ct_length_mm, principal_frame
+from comreg_core.registration.search.advice import ambiguity_advice
+from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.geometry.icp import coarse_to_fine_icp
+from comreg_core.registration.search.polish import choose_and_polish
+from comreg_core.registration.search.priors import Prior
+from comreg_core.registration.search.screening import screen_starts
+from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult, confidence_over,
+                                                     score_poses)
+from comreg_core.registration.geometry.surface import SurfaceCloud, ct_length_mm, principal_frame
 from comreg_core.transforms import (apply_transform, as_points, check_rigid, matmul,
                                     orthonormalize, project, rotate)
 
@@ -311,9 +311,9 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
         beam_origins: ``(N, 3)`` mm, where each US point's beam started (the probe's
             transducer element, US frame), or None. With them every score penalises poses
             under which the CT surface faces away from the probe (``facing_penalty_mm``).
-        prior: a :class:`~comreg_core.registration.priors.Prior` (initial pose, landmarks; in
+        prior: a :class:`~comreg_core.registration.search.priors.Prior` (initial pose, landmarks; in
             the CT's space) or None: the starts are built around it and only poses within it
-            can be chosen (:mod:`comreg_core.registration.priors`).
+            can be chosen (:mod:`comreg_core.registration.search.priors`).
         space: the CT's patient space, for naming the bone's ends in the advice of an
             ambiguous result.
 
@@ -398,7 +398,7 @@ def round_starts(pts: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
                  prior: Prior | None = None) -> dict[str, np.ndarray]:
     """The start poses ``{name: T_ct_us (4, 4) mm}`` of one round (``grid_offset`` 0, then
     0.5): :func:`build_hypotheses` and :func:`patch_orientation_starts`; with a ``prior``, its
-    starts (:mod:`comreg_core.registration.priors`, step 1): around ``T_init``, or the usual
+    starts (:mod:`comreg_core.registration.search.priors`, step 1): around ``T_init``, or the usual
     rotations unslid, moved onto the landmarks; ``T_start`` first unmoved (the network's pose,
     or ``T_init`` without a network)."""
     if prior is not None and prior.T_init is not None:
@@ -421,7 +421,7 @@ def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: Su
                   ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
     """Steps 2-3 of the module docstring for the start poses ``grid`` ``{name: (4, 4)}``:
     screen them (``keep_first``: the first one, the network's own pose, always goes on), refine
-    the kept ones (``within``: see :func:`~comreg_core.registration.screening.screen_starts`). Returns their names, start poses,
+    the kept ones (``within``: see :func:`~comreg_core.registration.search.screening.screen_starts`). Returns their names, start poses,
     ``(K, 4, 4)`` refined poses (mm) and ``(K,)`` ICP residuals (mm)."""
     all_names = list(grid)
     kept, screened = screen_starts(subset_mm, np.stack(list(grid.values())), target, config,

@@ -1,4 +1,4 @@
-"""Screening (step 2 of :mod:`comreg_core.registration.search`): thousands of start poses
+"""Screening (step 2 of :mod:`comreg_core.registration.search.search`): thousands of start poses
 get a quick ICP and a quick score at once, and only the best distinct ones go on to the full
 refinement."""
 
@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from comreg_core.registration import kernels
-from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.icp import apply_poses, strided
-from comreg_core.registration.scoring import same_pose
-from comreg_core.registration.surface import SurfaceCloud
+from comreg_core.registration.geometry import kernels
+from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.geometry.icp import apply_poses, strided
+from comreg_core.registration.search.scoring import same_pose
+from comreg_core.registration.geometry.surface import SurfaceCloud
 
 
 def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceCloud,

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from comreg_core.registration.metrics import rotation_error_deg
-from comreg_core.registration.surface import SurfaceCloud
+from comreg_core.registration.geometry.metrics import rotation_error_deg
+from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import apply_transform
 
 #: Poses turned apart by less than this (deg) differ by a slide along the bone.

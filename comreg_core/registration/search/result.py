@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from comreg_core.registration.scoring import HypothesisResult
+from comreg_core.registration.search.scoring import HypothesisResult
 
 #: Registered points within this distance (mm) of the CT surface count as inliers.
 INLIER_MM = 2.0
@@ -23,10 +23,10 @@ class RegistrationResult:
         registered_points: ``(N, 3)`` the US points mapped by ``T_ct_us``.
         completion_ct: ``(M, 3)`` the completed bone (network output in the US frame) mapped by
             ``T_ct_us`` into the CT frame.
-        timings: seconds per stage (:mod:`comreg_core.inference`).
+        timings: seconds per stage (:mod:`comreg_core.register`).
         runtime_s: registration time (= ``timings["total"]``).
         device: torch device used.
-        seed: the seed given to :meth:`comreg_core.inference.Registrar.register` (torch's
+        seed: the seed given to :meth:`comreg_core.register.Registrar.register` (torch's
             generator is seeded with it; the eval-mode forward pass is deterministic anyway).
         residuals: distances (mm) of ``registered_points`` to the CT surface: ``mean``,
             ``median``, ``p90``, ``p95``, ``max``, ``rmse``, and ``inlier_fraction`` (share

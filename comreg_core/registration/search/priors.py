@@ -14,7 +14,7 @@ What it means (:meth:`Prior.allows`): a pose ``T`` is *within the prior* when
   ``T_init`` places it (``|T c - T_init c|``); and
 - it puts every US landmark within its tolerance of its CT landmark (``|T us - ct|``).
 
-How the pose search uses it (:func:`comreg_core.registration.search.search_hypotheses`):
+How the pose search uses it (:func:`comreg_core.registration.search.search.search_hypotheses`):
 
 1. **Starts.** With ``T_init`` they replace the global grid and the patch orientations:
    ``T_init`` turned about the US centroid it places by shells of angles up to ``max_deg``
@@ -33,11 +33,11 @@ How the pose search uses it (:func:`comreg_core.registration.search.search_hypot
 2. **Choice.** The screening keeps the poses within the prior first; refined poses outside it
    are also pulled back onto its edge (:meth:`Prior.clamp`, ``+clamped``); only poses within
    it are polished, chosen or the runner-up
-   (:func:`~comreg_core.registration.polish.choose_and_polish`'s ``within``).
+   (:func:`~comreg_core.registration.search.polish.choose_and_polish`'s ``within``).
 3. **Record** (:func:`prior_record`, ``result.json``'s ``prior``): the chosen pose's rotation
    and shift from ``T_init``, each landmark's error, ``at_edge`` (beyond :data:`EDGE_SHARE` of
    the rotation's, the shift's or a landmark's tolerance) and ``reasons`` that make the verdict
-   CHECK (:func:`comreg_core.registration.verdict.with_prior_reasons`): a result at the edge (when
+   CHECK (:func:`comreg_core.registration.judgement.verdict.with_prior_reasons`): a result at the edge (when
    the prior excludes the truth the search can only find poses inside that fit worse, and they
    gather at its edge), a pose outside that fits clearly better, no pose within at all.
 """
@@ -380,7 +380,7 @@ def prior_record(prior: Prior, T_ct_us: np.ndarray, centroid: np.ndarray, search
     ``init_file``, ``space``, ``T_init``, ``max_deg``, ``max_mm`` (null without ``T_init``),
     ``landmarks`` (each with its ``error_mm``), ``rotation_from_init_deg``,
     ``shift_from_init_mm``, ``within``, ``at_edge``, ``best_outside`` (the best-scoring
-    hypothesis of ``search``, a :class:`~comreg_core.registration.scoring.HypothesisResult`,
+    hypothesis of ``search``, a :class:`~comreg_core.registration.search.scoring.HypothesisResult`,
     that the prior rules out, with its ``lead`` over the chosen one, or null) and ``reasons``
     (sentences for the verdict: see the module docstring; a pose outside counts when it leads
     by ``min_confidence``, as the search's confidence measures a lead)."""
@@ -490,7 +490,7 @@ def _names(labels: list[str]) -> str:
 
 def prior_allows(prior: Prior, result):
     """``(4, 4) T -> bool``: whether ``prior`` (in the result's space) allows a pose of
-    ``result`` (a :class:`~comreg_core.registration.result.RegistrationResult`; the US centroid:
+    ``result`` (a :class:`~comreg_core.registration.search.result.RegistrationResult`; the US centroid:
     that of the points it registered)."""
     points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
     centroid = points.mean(axis=0)

@@ -2,12 +2,12 @@
 that registration's poses instead of a full search (live registration while scanning,
 ``comreg live``).
 
-The last result's refined hypotheses (:class:`~comreg_core.registration.scoring.
+The last result's refined hypotheses (:class:`~comreg_core.registration.search.scoring.
 HypothesisResult`) hold the chosen pose and the poses that competed with it. The warm search
 takes the chosen pose and the best-scoring distinct others (at most ``top``), refines each on
 the grown cloud by a short ICP against the dense CT cloud (:data:`WARM_ITERATIONS` on
 :data:`WARM_POINTS` of the ``icp_points`` subset), scores them on the subset, polishes and chooses as the full search does
-(:func:`~comreg_core.registration.polish.choose_and_polish`), so the result carries the same
+(:func:`~comreg_core.registration.search.polish.choose_and_polish`), so the result carries the same
 confidence, runner-up and evidence for the verdict. No screening and no new starts: a pose that
 was not among the last result's hypotheses cannot be found here; the caller runs a full search
 when the evidence changed (a new region covered, the verdict flipped).
@@ -22,14 +22,14 @@ from typing import Any
 import numpy as np
 
 from comreg_core.errors import ComRegError
-from comreg_core.registration.advice import ambiguity_advice
-from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.icp import apply_poses, point_to_plane_icp, strided
-from comreg_core.registration.polish import choose_and_polish
-from comreg_core.registration.priors import Prior
-from comreg_core.registration.scoring import (Hypothesis, HypothesisResult, confidence_over,
-                                              same_pose, score_poses)
-from comreg_core.registration.surface import SurfaceCloud
+from comreg_core.registration.search.advice import ambiguity_advice
+from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.geometry.icp import apply_poses, point_to_plane_icp, strided
+from comreg_core.registration.search.polish import choose_and_polish
+from comreg_core.registration.search.priors import Prior
+from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult, confidence_over,
+                                                     same_pose, score_poses)
+from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
 
 #: Poses a warm search refines: the last chosen one and the best distinct others.
@@ -71,10 +71,10 @@ def warm_search(us_points: np.ndarray, previous: HypothesisResult, target: Surfa
                 space: str = "LPS", top: int = WARM_TOP) -> HypothesisResult:
     """Register ``us_points`` ``(N, 3)`` mm (US frame) again from ``previous``'s poses (module
     docstring): the same :class:`HypothesisResult` as
-    :func:`~comreg_core.registration.search.search_hypotheses`, ``starts_tried`` = the poses
+    :func:`~comreg_core.registration.search.search.search_hypotheses`, ``starts_tried`` = the poses
     refined. ``beam_origins`` ``(N, 3)`` mm or None; ``prior`` (in the CT's space) or None:
     only poses within it are chosen."""
-    from comreg_core.registration.search import is_patch, us_subset_indices
+    from comreg_core.registration.search.search import is_patch, us_subset_indices
 
     cfg = config or HypothesisConfig()
     pts = as_points(us_points, "US points")

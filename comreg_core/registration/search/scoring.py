@@ -1,6 +1,6 @@
 """Scores, sameness, confidence and the choice among refined poses; the result types.
 
-Definitions (steps 4 and 6 of :mod:`comreg_core.registration.search`): the **score** of a pose
+Definitions (steps 4 and 6 of :mod:`comreg_core.registration.search.search`): the **score** of a pose
 is the trimmed mean distance (mm) of its registered US points to the CT; two poses are the
 **same** when rotated apart by at most ``distinct_deg`` and placing the US centroid within
 ``distinct_mm``; the **confidence** of a pose scoring ``a`` over one scoring ``b`` is
@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from comreg_core.registration.config import HypothesisConfig
-from comreg_core.registration.icp import apply_poses
+from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.geometry.icp import apply_poses
 
 
 def trimmed_mean(distances: np.ndarray, trim: float) -> np.ndarray:
@@ -136,9 +136,9 @@ class HypothesisResult:
         hypotheses: every refined :class:`Hypothesis`, in generation order.
         starts_tried: start poses built and screened before the best ``refine_top`` were refined.
         advice: when ambiguous, where the runner-up puts the sweep and what to scan to tell the
-            poses apart (:func:`comreg_core.registration.advice.ambiguity_advice`), else None.
+            poses apart (:func:`comreg_core.registration.search.advice.ambiguity_advice`), else None.
         patch: the US cloud was a patch (a short sweep,
-            :func:`~comreg_core.registration.search.is_patch`), searched over all rotations.
+            :func:`~comreg_core.registration.search.search.is_patch`), searched over all rotations.
     """
 
     T_ct_us: np.ndarray

@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration import kernels
+from comreg_core.registration.geometry import kernels
 from comreg_core.io.meshes import SurfaceMesh, read_mesh
 from comreg_core.transforms import as_points, project, symmetric_eigen3
 
@@ -30,7 +30,7 @@ from comreg_core.transforms import as_points, project, symmetric_eigen3
 CLOSEST_POINT_SAMPLES = 200_000
 
 #: ``match(points (..., n, 3)) -> (closest (..., n, 3), normals (..., n, 3), distance (..., n))``:
-#: the correspondences of an ICP (:mod:`comreg_core.registration.icp`); ``distance`` is ``inf``
+#: the correspondences of an ICP (:mod:`comreg_core.registration.geometry.icp`); ``distance`` is ``inf``
 #: where a point has no partner.
 Matcher = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 

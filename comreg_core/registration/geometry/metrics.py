@@ -48,7 +48,7 @@ from __future__ import annotations
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration.surface import as_surface
+from comreg_core.registration.geometry.surface import as_surface
 from comreg_core.transforms import apply_transform, as_points, check_rigid
 
 #: success: RTE strictly below this (mm) ...
@@ -160,7 +160,7 @@ def registration_metrics(T_est: np.ndarray, T_true: np.ndarray, us_points: np.nd
         T_true: ``(4, 4)`` ground-truth ``T_ct_us``.
         us_points: ``(N, 3)`` the US cloud as the method received it (mm).
         ct_surface: the CT surface (anything
-            :func:`~comreg_core.registration.surface.as_surface` accepts).
+            :func:`~comreg_core.registration.geometry.surface.as_surface` accepts).
 
     Returns:
         ``{"RTE_mm", "RRE_deg", "CD_mm", "HD95_mm", "success", "flip"}``: RTE at the centroid of
@@ -188,7 +188,7 @@ def completion_metrics(completion: np.ndarray, T_true: np.ndarray, ct_surface, *
             the CT frame with it (rigid, so the distances equal those to the CT moved into the
             completion's pose); the method's own estimate plays no part.
         ct_surface: the CT surface (anything
-            :func:`~comreg_core.registration.surface.as_surface` accepts).
+            :func:`~comreg_core.registration.geometry.surface.as_surface` accepts).
         n_ct_samples: area-uniform CT surface samples for the CT -> completion direction.
 
     Returns:
