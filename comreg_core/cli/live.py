@@ -258,7 +258,7 @@ def replay(
     """
     from comreg_core.errors import ComRegError
     from comreg_core.io.tracked_us import read_tracked_sweep
-    from comreg_core.live.igtl import ReplayServer, replay_sweep
+    from comreg_core.live.replay import ReplayServer, replay_sweep
     from comreg_core.live.stream import recorded_probe_poses
 
     if not rate > 0:

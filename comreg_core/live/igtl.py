@@ -1,4 +1,6 @@
-"""OpenIGTLink glue (pyigtl): the live client, the replay server and :func:`replay_sweep`.
+"""OpenIGTLink glue (pyigtl): reading a message off a socket (:func:`read_message`), the live
+client (:class:`LiveClient`) and the wire conventions; ``comreg replay``'s server is in
+:mod:`comreg_core.live.replay`.
 
 pyigtl gives the messages (``ImageMessage``, ``TransformMessage``, ``StringMessage``: packing,
 header parsing, unpacking, the CRC) and the client and server classes, which ComReg subclasses
@@ -13,10 +15,7 @@ for what a live registration needs and pyigtl 0.3.4 lacks (measured with its own
   again, also after a refused connection or a network error;
 - a malformed message prints a traceback and an unknown type is dropped silently: here each
   gives one line (``on_event``) and the client keeps going (it reconnects only when the byte
-  stream cannot be followed any more: a header that does not parse);
-- its server sends with a 10 ms socket timeout (a 770 kB IMAGE to a busy client can fail) and
-  installs signal handlers (possible in the main thread only): :class:`ReplayServer` sends with
-  :data:`SEND_TIMEOUT_S` and installs none.
+  stream cannot be followed any more: a header that does not parse).
 
 Wire conventions (PLUS Server's for a tracked probe): per frame an ``IMAGE`` (device ``Image``)
 whose matrix is the identity (pixel units), a ``TRANSFORM`` ``ImageToReference`` (pixel ->
@@ -28,20 +27,13 @@ from __future__ import annotations
 
 import logging
 import socket
-import socketserver
 import struct
-import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
 import pyigtl
-from pyigtl.comm import OpenIGTLinkBase
 from pyigtl.messages import CRC64, MessageBase
-
-from comreg_core.errors import ComRegError
 
 log = logging.getLogger(__name__)
 
@@ -253,209 +245,3 @@ class LiveClient(pyigtl.OpenIGTLinkClient):
         for message in messages:
             self._add_message_to_send_queue(message, wait=False)
         return True
-
-
-class _ReplayHandler(socketserver.BaseRequestHandler):
-    """One client of a :class:`ReplayServer`: sends the queued messages, reads (and keeps) what
-    the client sends back, until the client leaves or the server closes."""
-
-    def handle(self) -> None:
-        server: ReplayServer = self.server
-        sock = self.request
-        server._attach()
-        try:
-            while not server.closing.is_set():
-                try:
-                    message = read_message(sock, 0.02)
-                except MalformedMessage as exc:
-                    log.warning("replay: received %s", exc)
-                    if not exc.in_sync:
-                        return
-                    continue
-                if message is not None:
-                    server.replies.append(message)
-                sock.settimeout(SEND_TIMEOUT_S)
-                while server._send_queued_message_from_socket(sock):
-                    pass
-        except (ConnectionClosed, OSError):
-            pass
-        finally:
-            if server.closing.is_set():  # stop listening before the client learns of the end
-                server.listener_down.wait(5.0)
-            server._detach()
-
-
-class ReplayServer(pyigtl.OpenIGTLinkServer):
-    """An OpenIGTLink server for one client at a time on ``host:port`` (``port`` 0: a free port;
-    :attr:`port` is the one bound). :meth:`send_now` sends to the connected client and waits;
-    :attr:`replies` keeps the last 1,000 messages the client sent. :meth:`close` ends the
-    connection (the client sees the stream end) and frees the port."""
-
-    allow_reuse_address = True
-
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT):
-        OpenIGTLinkBase.__init__(self)
-        self.host = host
-        self.closing = threading.Event()
-        self.listener_down = threading.Event()
-        self.replies: deque = deque(maxlen=1000)
-        self.clients = 0
-        self._lock = threading.Lock()
-        try:
-            socketserver.TCPServer.__init__(self, (host, int(port)), _ReplayHandler)
-        except OSError as exc:
-            raise ComRegError(f"Cannot serve on {host}:{port} ({exc.strerror or exc}).",
-                              "Choose another --port (or stop what uses this one).") from None
-        self.port = int(self.server_address[1])
-        self._thread = threading.Thread(target=self.serve_forever, kwargs={"poll_interval": 0.05},
-                                        daemon=True)
-        self._thread.start()
-
-    def _attach(self) -> None:
-        with self._lock:
-            self.clients += 1
-            self._connected = True
-
-    def _detach(self) -> None:
-        with self._lock:
-            self._connected = False
-            with self.lock_outgoing_messages:
-                self.outgoing_messages.clear()
-
-    def wait_for_client(self, timeout_s: float | None = None) -> bool:
-        """Whether a client is connected, waiting up to ``timeout_s`` (None: for ever)."""
-        end = None if timeout_s is None else time.monotonic() + timeout_s
-        while not self._connected:
-            if self.closing.is_set() or (end is not None and time.monotonic() > end):
-                return False
-            time.sleep(0.01)
-        return True
-
-    def send_now(self, *messages, timeout_s: float = 2 * SEND_TIMEOUT_S) -> bool:
-        """Send ``messages`` to the connected client and wait until they are written; False
-        (nothing sent) when no client is connected or it left meanwhile."""
-        if not self._connected:
-            return False
-        for message in messages:
-            self._add_message_to_send_queue(message, wait=False)
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            with self.lock_outgoing_messages:
-                if not self.outgoing_messages:
-                    return self._connected
-            if not self._connected:
-                return False
-            time.sleep(0.002)
-        return False
-
-    def close(self) -> None:
-        """Close the connection and the server (idempotent)."""
-        if self.closing.is_set():
-            return
-        self.closing.set()
-        try:  # refuse new connections first: a client reconnecting at once must not be
-            self.socket.shutdown(socket.SHUT_RDWR)  # accepted by a server that is going away
-        except OSError:
-            pass
-        self.listener_down.set()
-        self.shutdown()
-        self.server_close()
-        self._thread.join(timeout=5.0)
-
-
-@dataclass
-class ReplayStats:
-    """What :func:`replay_sweep` did: ``frames`` served (sent or not), ``sent`` to a client,
-    ``unsent`` (no client connected then), ``without_pose`` (invalid frames: IMAGE only),
-    ``without_probe`` (valid frames sent without a probe pose), ``duration_s``."""
-
-    frames: int = 0
-    sent: int = 0
-    unsent: int = 0
-    without_pose: int = 0
-    without_probe: int = 0
-    duration_s: float = 0.0
-
-
-def frame_messages(sweep, index: int, timestamp: float, T_ref_probe: np.ndarray | None = None,
-                   image_device: str = IMAGE_DEVICE, pose_device: str = IMAGE_POSE_DEVICE,
-                   probe_device: str = PROBE_POSE_DEVICE) -> list:
-    """The messages of frame ``index`` of a :class:`~comreg_core.io.sweeps.TrackedSweep`, as
-    PLUS Server sends a tracked frame: an IMAGE (``(1, H, W)``, identity matrix: pixel units)
-    and, for a valid frame, a TRANSFORM ``pose_device`` = ``T_ref_pixel`` (pixel -> reference
-    mm) and, when ``T_ref_probe`` ``(4, 4)`` (probe mm -> reference mm) is given and finite, a
-    TRANSFORM ``probe_device`` = it; all stamped ``timestamp`` (s)."""
-    image = np.ascontiguousarray(sweep.frames[index])[None]
-    messages = [pyigtl.ImageMessage(image, ijk_to_world_matrix=np.eye(4), timestamp=timestamp,
-                                    device_name=image_device)]
-    if sweep.valid[index]:
-        messages.append(pyigtl.TransformMessage(sweep.T_ref_pixel[index], timestamp=timestamp,
-                                                device_name=pose_device))
-        if T_ref_probe is not None and np.isfinite(T_ref_probe).all():
-            messages.append(pyigtl.TransformMessage(T_ref_probe, timestamp=timestamp,
-                                                    device_name=probe_device))
-    return messages
-
-
-def replay_sweep(sweep, server: ReplayServer, *, rate: float = 1.0, first_frame: int = 0,
-                 wait_s: float | None = None, stop: threading.Event | None = None,
-                 on_frame: Callable[[int, bool], None] | None = None,
-                 probe_poses: np.ndarray | None = None) -> ReplayStats:
-    """Serve ``sweep`` (a :class:`~comreg_core.io.sweeps.TrackedSweep`) from frame
-    ``first_frame`` on through ``server`` as PLUS Server would (:func:`frame_messages`; with
-    ``probe_poses`` ``(N, 4, 4)``, probe mm -> reference mm, NaN where unknown, each frame's
-    ProbeToReference too), at its recorded rate times ``rate`` (timestamps in s; unknown ones
-    at 10 frames/s), then close the server. Waits for a client first (up to ``wait_s``; None:
-    for ever); frames due while no client is connected are counted ``unsent``, as a live
-    server would lose them.
-    ``on_frame(index, sent)`` after each frame; ``stop`` ends it early."""
-    if not 0 <= first_frame < sweep.n_frames:
-        raise ComRegError(f"--first-frame {first_frame} is outside the sweep's "
-                          f"{sweep.n_frames} frames.",
-                          f"Give a frame number from 0 to {sweep.n_frames - 1}.")
-    if not rate > 0:
-        raise ComRegError(f"--rate {rate:g} is not a positive speed.", "Give e.g. --rate 1.")
-    stop = stop or threading.Event()
-    stats = ReplayStats()
-    try:
-        if not server.wait_for_client(wait_s):
-            if stop.is_set() or server.closing.is_set():
-                return stats
-            raise ComRegError(f"No client connected to {server.host}:{server.port} within "
-                              f"{wait_s:g} s.", "Start 'comreg live' (or 3D Slicer's "
-                              "OpenIGTLink connector) first, or wait longer (--wait).")
-        times = _schedule(sweep.timestamps[first_frame:], rate)
-        start = time.monotonic()
-        for k, due in enumerate(times):
-            index = first_frame + k
-            while (pause := start + due - time.monotonic()) > 0 and not stop.is_set():
-                time.sleep(min(pause, 0.05))
-            if stop.is_set():
-                break
-            stamp = sweep.timestamps[index]
-            stamp = float(stamp) if np.isfinite(stamp) else time.time()
-            probe = None if probe_poses is None else probe_poses[index]
-            sent = server.send_now(*frame_messages(sweep, index, stamp, probe))
-            stats.frames += 1
-            stats.sent += int(sent)
-            stats.unsent += int(not sent)
-            stats.without_pose += int(not sweep.valid[index])
-            stats.without_probe += int(bool(sweep.valid[index]) and (
-                probe is None or not np.isfinite(probe).all()))
-            if on_frame is not None:
-                on_frame(index, sent)
-        stats.duration_s = time.monotonic() - start
-    finally:
-        server.close()
-    return stats
-
-
-def _schedule(timestamps: np.ndarray, rate: float) -> np.ndarray:
-    """``(N,)`` send times (s from the first frame) of frames recorded at ``timestamps`` (s,
-    NaN = unknown), played ``rate`` times as fast; non-increasing steps count as 0."""
-    t = np.asarray(timestamps, dtype=np.float64)
-    steps = np.diff(t)
-    good = np.isfinite(steps) & (steps >= 0)
-    fallback = float(np.median(steps[good])) if good.any() else 0.1
-    steps = np.where(good, steps, fallback)
-    return np.concatenate([[0.0], np.cumsum(steps)]) / rate

@@ -15,7 +15,7 @@ import pyigtl
 import pytest
 
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.live.igtl import frame_messages
+from comreg_core.live.replay import frame_messages
 from comreg_core.live.run import FrameReceiver
 from tests.live.conftest import cut_sweep
 

@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from comreg_core.io import read_points
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.live.igtl import ReplayServer, frame_messages
+from comreg_core.live.replay import ReplayServer, frame_messages
 from comreg_core.live.run import FrameReceiver, finish_live, run_live, slicer_transform
 from comreg_core.live.session import LiveSession
 from comreg_core.live.updates import UPDATE_COLUMNS, read_updates, row_transform
