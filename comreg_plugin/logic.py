@@ -2,11 +2,12 @@
 
 ``ComRegLogic(scene)`` works inside 3D Slicer (default scene: ``slicer.mrmlScene``) and headless
 on slicer-core (default: a new ``vtkMRMLScene``). It checks its inputs and only calls
-``comreg_core``: CT segmentation or bone mesh -> bone models; tracked US sweep or point cloud ->
-US points; ``comreg pretrain`` in a background process
-(:mod:`comreg_plugin.pretraining_job`); registration (:mod:`comreg_plugin.registration`) -> the
-US->CT ``vtkMRMLLinearTransformNode`` (to parent, RAS) with the US points under it and the
-completed bone; transform and scene files (:mod:`comreg_plugin.scene_io`).
+``comreg_core``: CT segmentation or bone mesh -> bone models, tracked US sweep, US volume or
+point cloud -> US points (:mod:`comreg_plugin.bone_models`); ``comreg pretrain`` in a background
+process (:mod:`comreg_plugin.pretraining_job`); registration (:mod:`comreg_plugin.registration`)
+-> the US->CT ``vtkMRMLLinearTransformNode`` (to parent, RAS) with the US points under it and
+the completed bone (:mod:`comreg_plugin.result_nodes`); transform and scene files
+(:mod:`comreg_plugin.scene_io`).
 
 Coordinates: the scene is RAS (Slicer's convention); files are in the patient space they declare
 (LPS unless tagged) and ComReg's library works in the CT's space (LPS by default). Every crossing
@@ -21,24 +22,19 @@ from typing import Optional
 
 import numpy as np
 
-from comreg_core.errors import ComRegError, UnsupportedFormatError
-from comreg_core.io._files import file_extension, require_input_file
-from comreg_core.progress import Progress, silent
-from comreg_core.transforms import apply_transform, space_change
+from comreg_core.errors import ComRegError
+from comreg_core.io._files import require_input_file
+from comreg_core.progress import Progress
+from comreg_plugin import bone_models, result_nodes
+from comreg_plugin.bone_models import BONE_COLOR, US_POINTS_COLOR, US_POINTS_NODE_NAME
 from comreg_plugin.parameter_node import ComRegParameterNode
 from comreg_plugin.pretraining_job import (PretrainingJob, PretrainingStatus, checkRunFolder,
                                            launchPretraining)
-from comreg_plugin.registration import (COMPLETED_BONE_NODE_NAME, COMPLETION_COLOR,
-                                        TRANSFORM_NODE_NAME, RegistrationMethods,
-                                        RegistrationSummary, resultAttributes,
-                                        runRegistration)
-from comreg_plugin.scene_io import (addModelNode, readScene,
-                                    readSlicerSegmentation, requireNode,
-                                    segmentationNodeFromArrays, surfaceMeshFromModel, uniqueName,
-                                    vtkMatrixFromArray, writeScene, writeTransform)
+from comreg_plugin.registration import RegistrationMethods, RegistrationSummary, runRegistration
+from comreg_plugin.scene_io import (addModelNode, readScene, requireNode, surfaceMeshFromModel,
+                                    writeScene, writeTransform)
 from comreg_plugin.scene_inputs import (addSweepBrowser, arrayFromPointsNode, priorFromNodes,
-                                        requirePointsNode, segmentationFromNode,
-                                        trackedSweepFromBrowser, volumeFromNode)
+                                        requirePointsNode, trackedSweepFromBrowser)
 from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModuleLogic,
                                          _StandInLogic, register_segmentation_converters,
                                          require_slicer, sequences_logic)
@@ -46,12 +42,6 @@ from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModuleLo
 slicer = require_slicer()
 
 log = logging.getLogger(__name__)
-
-#: Node attribute prefix for values ComReg stores on nodes.
-ATTRIBUTE_PREFIX = "ComReg."
-US_POINTS_NODE_NAME = "US bone points"
-BONE_COLOR = (0.95, 0.9, 0.75)
-US_POINTS_COLOR = (0.1, 0.55, 1.0)
 
 
 class ComRegLogic(ScriptedLoadableModuleLogic):
@@ -89,16 +79,12 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
 
     def addBoneModel(self, mesh, name: str, color=BONE_COLOR):
         """A closed-surface model node of a :class:`~comreg_core.io.SurfaceMesh` (any space)."""
-        ras = mesh.in_space("RAS")
-        node = self.addModel(ras.vertices, ras.faces, name, color)
-        node.SetAttribute(ATTRIBUTE_PREFIX + "role", "ct_bone")
-        return node
+        return bone_models.addBoneModel(self.scene, mesh, name, color)
 
     def addPointsModel(self, points: np.ndarray, space: str, name: str = US_POINTS_NODE_NAME,
                        color=US_POINTS_COLOR, node=None):
         """A model node of vertices from ``(N, 3)`` points given in ``space``."""
-        ras = apply_transform(space_change(space, "RAS"), np.asarray(points, dtype=np.float64))
-        return self.addModel(ras, None, name, color, node=node)
+        return bone_models.addPointsModel(self.scene, points, space, name, color, node)
 
     # -- CT ---------------------------------------------------------------------------------
 
@@ -122,27 +108,9 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             InputFileNotFoundError, UnsupportedFormatError, CorruptFileError,
             LabelNotFoundError, EmptyMaskError (from comreg_core).
         """
-        from comreg_core.io import SEGMENTATION_READ_EXTENSIONS, read_segmentation
-
-        path = require_input_file(path, "CT segmentation")
-        ext = file_extension(path)
-        if ext not in SEGMENTATION_READ_EXTENSIONS:
-            raise UnsupportedFormatError(path, "CT segmentation", SEGMENTATION_READ_EXTENSIONS)
-        report = progress or silent
-        seg = read_segmentation(path)
-        segments = seg.segments
-        if segmentNames is not None:
-            segments = [seg.find_segment(name=name) for name in segmentNames]
-        base = Path(path).name[: -len(ext)] or "CT"
-        if ext == ".seg.nrrd":
-            segNode = readSlicerSegmentation(self.scene, path, base)
-        else:
-            segNode = segmentationNodeFromArrays(self.scene, seg, base, BONE_COLOR)
-        segNode.CreateDefaultDisplayNodes()
-        models = self._boneModels(seg, segments, options, Path(path).name, report)
+        segNode, models = bone_models.loadSegmentationModels(self.scene, path, segmentNames,
+                                                             options, progress)
         self._useCT(segNode, models)
-        log.info("Loaded '%s': %d segment(s), %d bone model(s)", path, len(seg.segments),
-                 len(models))
         return segNode, models
 
     def boneModelsFromSegmentation(self, segmentationNode=None, segmentNames=None, options=None,
@@ -152,28 +120,9 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         ``segmentation``), by the same extraction as :meth:`loadSegmentation`."""
         segmentationNode = segmentationNode if segmentationNode is not None \
             else self.getParameterNode().segmentation
-        seg = segmentationFromNode(segmentationNode)
-        segments = seg.segments if segmentNames is None else [
-            seg.find_segment(name=name) for name in segmentNames]
-        models = self._boneModels(seg, segments, options, segmentationNode.GetName(),
-                                  progress or silent)
+        models = bone_models.segmentationNodeModels(self.scene, segmentationNode, segmentNames,
+                                                    options, progress)
         self._useCT(segmentationNode, models)
-        return models
-
-    def _boneModels(self, seg, segments, options, source: str, report) -> list:
-        from comreg_core.surfaces.ct import extract_bone_surface
-
-        models = []
-        report(0, len(segments) + 1, "reading")
-        for i, segment in enumerate(segments):
-            report(i + 1, len(segments) + 1, f"surface of '{segment.name}'")
-            mesh = extract_bone_surface(seg, segment=segment, options=options)
-            model = self.addBoneModel(mesh, f"{segment.name} bone",
-                                      segment.color or BONE_COLOR)
-            model.SetAttribute(ATTRIBUTE_PREFIX + "segment", segment.name)
-            model.SetAttribute(ATTRIBUTE_PREFIX + "source", source)
-            models.append(model)
-        report(len(segments) + 1, len(segments) + 1, "done")
         return models
 
     def _useCT(self, segNode, models) -> None:
@@ -185,11 +134,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
     def loadBoneMesh(self, path, name: Optional[str] = None):
         """Load a bone mesh file (``.stl``, ``.ply``, ``.obj``, ``.vtk``, ``.vtp``; LPS unless
         its ``SPACE=`` tag says otherwise) as the CT bone model."""
-        from comreg_core.io import read_mesh
-
-        mesh = read_mesh(path)
-        model = self.addBoneModel(mesh, name or Path(path).stem)
-        model.SetAttribute(ATTRIBUTE_PREFIX + "source", Path(path).name)
+        model = bone_models.loadMeshModel(self.scene, path, name)
         self.getParameterNode().ctModel = model
         return model
 
@@ -210,13 +155,9 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             ``(pointsNode, USExtractionResult)``; the node becomes the parameter node's
             ``usPoints``.
         """
-        from comreg_core.io import read_tracked_sweep
-        from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
-
-        if not isinstance(config, USExtractionConfig):
-            config = load_us_extraction_config(config)
-        sweep = read_tracked_sweep(path, calibration=calibration, reference=config.reference)
-        return self._usPointsOfSweep(sweep, config, name, Path(path).name, progress)
+        node, result = bone_models.loadSweepPointsModel(self.scene, path, calibration, config,
+                                                        name, progress)
+        return self._useUSPoints(node), result
 
     def usPointsFromSequence(self, browserNode=None, imageSequence=None, transformSequence=None,
                              config=None, name=US_POINTS_NODE_NAME,
@@ -226,14 +167,13 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         poses from its ``ImageToReference`` transform sequence
         (:func:`comreg_plugin.scene_inputs.trackedSweepFromBrowser`); the points are in the
         tracking reference frame. Returns ``(pointsNode, USExtractionResult)``."""
-        from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
-
-        if not isinstance(config, USExtractionConfig):
-            config = load_us_extraction_config(config)
+        config = bone_models.extractionConfig(config)
         browserNode = browserNode if browserNode is not None else self.getParameterNode().sweep
         sweep = trackedSweepFromBrowser(browserNode, imageSequence, transformSequence)
         self.getParameterNode().sweep = browserNode
-        return self._usPointsOfSweep(sweep, config, name, browserNode.GetName(), progress)
+        node, result = bone_models.sweepPointsModel(self.scene, sweep, config, name,
+                                                    browserNode.GetName(), progress)
+        return self._useUSPoints(node), result
 
     def usPointsFromVolume(self, volumeNode, beamDirection: str = "auto", config=None,
                            name=US_POINTS_NODE_NAME, progress: Optional[Progress] = None
@@ -242,15 +182,10 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         from SlicerIGT's volume reconstruction;
         :func:`comreg_core.surfaces.us_volume.extract_volume_surface`): the beam ``"auto"`` or a
         voxel axis (``"-y"``, ...). Returns ``(pointsNode, USExtractionResult)``."""
-        from comreg_core.surfaces.us_config import USExtractionConfig, load_us_extraction_config
-        from comreg_core.surfaces.us_volume import extract_volume_surface
-
-        if not isinstance(config, USExtractionConfig):
-            config = load_us_extraction_config(config)
-        result, _ = extract_volume_surface(volumeFromNode(volumeNode), beamDirection, config,
-                                           progress=progress)
+        node, result = bone_models.volumePointsModel(self.scene, volumeNode, beamDirection,
+                                                     config, name, progress)
         self.getParameterNode().usVolume = volumeNode
-        return self._addUSPoints(result, "RAS", name, volumeNode.GetName())
+        return self._useUSPoints(node), result
 
     def addSweepSequence(self, path, calibration=None, name: str = "Sweep"):
         """Read a tracked sweep file or frame folder and show it as a Sequence browser (frames
@@ -263,32 +198,14 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         self.getParameterNode().sweep = browser
         return browser
 
-    def _usPointsOfSweep(self, sweep, config, name, source: str, progress) -> tuple:
-        from comreg_core.surfaces.us import extract_us_surface
-
-        return self._addUSPoints(extract_us_surface(sweep, config, progress=progress), "LPS",
-                                 name, source)
-
-    def _addUSPoints(self, result, space: str, name, source: str) -> tuple:
-        node = self.addPointsModel(result.points.points, space, name)
-        node.SetAttribute(ATTRIBUTE_PREFIX + "role", "us_points")
-        node.SetAttribute(ATTRIBUTE_PREFIX + "source", source)
-        node.SetAttribute(ATTRIBUTE_PREFIX + "extraction", result.summary())
+    def _useUSPoints(self, node):
         self.getParameterNode().usPoints = node
-        log.info("US sweep '%s': %s", source, result.summary())
-        return node, result
+        return node
 
     def loadUSPoints(self, path, name=US_POINTS_NODE_NAME):
         """Load US bone points from a point cloud file (``.ply``, ``.pcd``, ``.xyz``, ``.npy``,
         ...; LPS unless tagged) as the parameter node's ``usPoints``."""
-        from comreg_core.io import read_points
-
-        cloud = read_points(path)
-        node = self.addPointsModel(cloud.points, cloud.space, name)
-        node.SetAttribute(ATTRIBUTE_PREFIX + "role", "us_points")
-        node.SetAttribute(ATTRIBUTE_PREFIX + "source", Path(path).name)
-        self.getParameterNode().usPoints = node
-        return node
+        return self._useUSPoints(bone_models.loadPointsModel(self.scene, path, name))
 
     # -- pretraining ------------------------------------------------------------------------
 
@@ -389,9 +306,10 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         Args:
             usPointsNode: the US points model (default: the parameter node's ``usPoints``); its
                 own coordinates (without any parent transform) are the US frame.
-            method: ``"comreg"`` (needs ``runDirectory``), ``"ransac"`` (needs the CT model),
-                or a callable taking ``(N, 3)`` LPS points and returning a result with
-                ``T_ct_us`` (a :class:`~comreg_core.registration.search.result.RegistrationResult`,
+            method: ``"comreg"`` (needs ``runDirectory``), ``"search"`` or ``"ransac"`` (need
+                the CT model), or a callable taking ``(N, 3)`` LPS points and returning a
+                result with ``T_ct_us`` (a
+                :class:`~comreg_core.registration.search.result.RegistrationResult`,
                 :class:`~comreg_core.evaluation.outputs.RegistrationOutput`, a dict or a 4x4
                 array). Default: the parameter node's ``method``.
             runDirectory: the pretrained run (default: the parameter node's).
@@ -413,27 +331,11 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         parameter node.
         """
         p = self.getParameterNode()
-        usPointsNode = usPointsNode if usPointsNode is not None else p.usPoints
-        if usPointsNode is None:
-            raise ComRegError("There are no US points to register.",
-                              "Load a tracked sweep or a US point cloud first.")
-        requirePointsNode(usPointsNode)
-        if ctModelNode is not None:
-            requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
-                        "Pick the CT bone model (loaded from a segmentation or mesh).")
-        transformNode = outputTransformNode if outputTransformNode is not None \
-            else p.outputTransform
-        if transformNode is not None:  # checked before the work, not after
-            requireNode(transformNode, "vtkMRMLLinearTransformNode", "output transform",
-                        "Pick a linear transform node for the result, or none for a new one.")
-        completedBoneNode = completedBoneNode if completedBoneNode is not None \
-            else p.completedBone
-        if completedBoneNode is not None:
-            requireNode(completedBoneNode, "vtkMRMLModelNode", "completed bone output",
-                        "Pick a model node for the completed bone, or none for a new one.")
+        usPointsNode = self._usPointsToRegister(usPointsNode, ctModelNode)
+        transformNode, completedBoneNode = result_nodes.outputNodes(p, outputTransformNode,
+                                                                    completedBoneNode)
         method = method if method is not None else p.method
-        seed = int(seed)
-        device = device or p.device
+        seed, device = int(seed), device or p.device
         prior = priorFromNodes(initialTransformNode, ctLandmarksNode, usLandmarksNode,
                                parameters=p)
         space, run, methodName, runDirectory = self._methods.prepare(
@@ -441,37 +343,30 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             device=device, prior=prior)
         output, T, T_ras, completion_ct = runRegistration(
             run, arrayFromPointsNode(usPointsNode), space)
-
-        if transformNode is None:
-            transformNode = self.scene.AddNewNodeByClass(
-                "vtkMRMLLinearTransformNode", uniqueName(self.scene, TRANSFORM_NODE_NAME))
-        transformNode.SetMatrixTransformToParent(vtkMatrixFromArray(T_ras))
-        usPointsNode.SetAndObserveTransformNodeID(transformNode.GetID())
-
-        completedNode = None
-        if completion_ct is not None and len(completion_ct):
-            completedNode = self.addPointsModel(completion_ct, space, COMPLETED_BONE_NODE_NAME,
-                                                COMPLETION_COLOR, node=completedBoneNode)
-            completedNode.SetAttribute(ATTRIBUTE_PREFIX + "role", "completed_bone")
-
-        info = dict(output.info)
-        for key, value in resultAttributes(output, methodName, runDirectory).items():
-            transformNode.SetAttribute(ATTRIBUTE_PREFIX + key, value)
-        p.outputTransform = transformNode
-        p.usPoints = usPointsNode
-        p.completedBone = completedNode
-        p.runtimeSeconds = float(output.runtime_s)
-        if "ambiguous" in info:
-            p.ambiguous = bool(info["ambiguous"])
-            transformNode.SetAttribute(ATTRIBUTE_PREFIX + "ambiguous",
-                                       "true" if p.ambiguous else "false")
-        if "confidence" in info and info["confidence"] is not None:
-            p.confidence = float(info["confidence"])
-            transformNode.SetAttribute(ATTRIBUTE_PREFIX + "confidence", repr(p.confidence))
+        transformNode = result_nodes.showResult(self.scene, transformNode, usPointsNode, T_ras)
+        completedNode = result_nodes.addCompletedBone(self.scene, completion_ct, space,
+                                                      completedBoneNode)
+        result_nodes.recordResult(p, transformNode, usPointsNode, completedNode, output,
+                                  methodName, runDirectory)
         log.info("Registered '%s' with %s in %.3f s", usPointsNode.GetName(), methodName,
                  output.runtime_s)
         return RegistrationSummary(transformNode, completedNode, T, T_ras, space, methodName,
-                                   float(output.runtime_s), info)
+                                   float(output.runtime_s), dict(output.info))
+
+    def _usPointsToRegister(self, usPointsNode, ctModelNode):
+        """The US points node to register (the parameter node's unless given), checked with
+        the CT model node when one is given."""
+        usPointsNode = usPointsNode if usPointsNode is not None \
+            else self.getParameterNode().usPoints
+        if usPointsNode is None:
+            raise ComRegError("There are no US points to register.",
+                              "Load a tracked sweep or a US point cloud first.")
+        requirePointsNode(usPointsNode)
+        if ctModelNode is not None:
+            requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
+                        "Pick the CT bone model (loaded from a segmentation or mesh).")
+        return usPointsNode
+
 
     # -- files ------------------------------------------------------------------------------
 
