@@ -37,6 +37,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,6 +45,11 @@ from comreg_core import runs
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import check_output_folder
 from comreg_core.io.json_files import write_json
+
+if TYPE_CHECKING:
+    from comreg_core.io.meshes import SurfaceMesh
+    from comreg_core.registration.geometry.surface import CTSurface
+    from comreg_core.registration.search.result import RegistrationResult
 
 log = logging.getLogger(__name__)
 
@@ -174,6 +180,29 @@ def _model_for(ct_path: Path, out_dir: Path, device: str, train_minutes: float,
     return run_dir, True
 
 
+@dataclass(frozen=True)
+class _Truth:
+    """What the demo measures against: ``surface`` (the CT surface shared by the truth, the
+    errors and the evaluation), ``T_ct_us`` ``(4, 4)`` (the pseudo ground truth of the sweep's
+    points) and ``tracking`` (the recorded tracking's ``RTE_mm`` and ``RRE_deg`` from it)."""
+
+    surface: CTSurface
+    T_ct_us: np.ndarray
+    tracking: dict[str, float]
+
+
+@dataclass(frozen=True)
+class _Moved:
+    """The sweep's points under a known misalignment: ``T_moved_ct`` ``(4, 4)`` moves them,
+    ``points`` ``(N, 3)`` (mm) are the moved points, written to ``path``, and ``T_ct_us_truth``
+    ``(4, 4)`` maps them back onto the truth."""
+
+    T_moved_ct: np.ndarray
+    T_ct_us_truth: np.ndarray
+    points: np.ndarray
+    path: Path
+
+
 def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
              train_minutes: float = 10.0, trials: int = 10, seed: int = 0,
              step: Step | None = None) -> DemoResult:
@@ -187,84 +216,130 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
         seed: seed of the misalignment and of the trials.
         step: called with a line before each stage (the CLI prints it).
     """
-    from comreg_core.evaluation.evaluate import evaluate, write_metrics
-    from comreg_core.registration.geometry.metrics import (registration_metrics,
-                                                           rotation_error_deg,
-                                                           translation_error_mm)
-    from comreg_core.registration.geometry.surface import CTSurface
-    from comreg_core.register import Registrar
-    from comreg_core.register import register_to_directory
-    from comreg_core.io import PointCloud, read_mesh, save_transform, write_points
+    from comreg_core.evaluation.evaluate import write_metrics
     from comreg_core.report import write_report_for_registration
-    from comreg_core.simulation import sample_initial_pose
-    from comreg_core.surfaces.us import extract_us_to_file
-    from comreg_core.transforms import apply_transform, invert_rigid
 
     step = step or (lambda line: log.info("%s", line))
     _sample_files()
     out = check_output_folder(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-
-    step(f"extracting the CT bone surface from {SAMPLE_SEGMENTATION.name}")
-    ct_path = write_sample_ct_surface(out / "ct_bone.stl")
-    ct = read_mesh(ct_path)  # as stored (STL keeps float32 vertices): the CT the model knows
-
-    step(f"finding the bone in the {SAMPLE_SWEEP.name} frames")
-    us = extract_us_to_file(SAMPLE_SWEEP, out / "us_points.ply")
-    us_points = PointCloud(us.points.points, "LPS").in_space(ct.space).points
-
+    ct_path, ct, us_points = _extract_inputs(out, step)
     model, trained = _model_for(ct_path, out, device, train_minutes, step)
-
-    step(f"finding the truth: {TRUTH}")
-    surface = CTSurface(ct)  # shared by the truth, the errors and the evaluation
-    T_truth = pseudo_ground_truth(us_points, surface)  # recorded tracking: identity
-    centroid = us_points.mean(axis=0)
-    tracking = {"RTE_mm": translation_error_mm(np.eye(4), T_truth, centroid),
-                "RRE_deg": rotation_error_deg(np.eye(4), T_truth)}
-
-    rng = np.random.default_rng(seed)
-    T_moved_ct = sample_initial_pose(rng, "paper", center=centroid)
-    T_ct_us_truth = T_truth @ invert_rigid(T_moved_ct)
-    moved = apply_transform(T_moved_ct, us_points)
-    moved_path = write_points(PointCloud(moved, ct.space), out / "us_points_moved.ply")
-    save_transform(T_ct_us_truth, out / "T_ct_us_truth.tfm", space=ct.space)
-
-    step("registering the moved US points to the CT (completion, coarse pose, ICP)")
+    truth = _find_truth(us_points, ct, step)
+    moved = _misalign(us_points, truth, ct.space, out, seed)
     registration_dir = out / "registration"
-    result = register_to_directory(model, moved_path, registration_dir, device=device,
-                                   seed=seed, ct_mesh=ct_path, sweep=SAMPLE_SWEEP,
-                                   T_us_ref=T_moved_ct)  # tracking and CT share one frame
-    errors = registration_metrics(result.T_ct_us, T_ct_us_truth, moved, surface)
-    verdict = json.loads((registration_dir / runs.RESULT).read_text(encoding="utf-8"))["verdict"]
-    success_rate = flip_rate = search_success_rate = search_flip_rate = None
+    result, errors, verdict = _register(model, moved, truth, ct_path, registration_dir,
+                                        device=device, seed=seed, step=step)
     # "registration.T_ct_us" marks metrics.json as made for this registration (the report
     # shows no other), with its errors against the truth, what that is, and the tracking's
     metrics = {"registration": {"T_ct_us": result.T_ct_us.tolist(), "errors_vs_truth": errors,
-                                "truth": TRUTH, "T_ct_recorded": T_truth.tolist(),
-                                "tracking_vs_truth": tracking}}
-    if trials > 0:
-        step(f"evaluating {trials} more random starts")
-        methods = {"search": Registrar.from_ct(ct),
-                   "comreg": Registrar.from_run(model, device, ct_mesh=ct)}
-        metrics.update(evaluate(methods, us_points, surface, trials=trials, seed=seed,
-                                T_gt=T_truth))
-        summary = metrics["summary"]
-        success_rate, flip_rate = (summary["comreg"][k] for k in ("success_rate", "flip_rate"))
-        search_success_rate, search_flip_rate = (summary["search"][k]
-                                                 for k in ("success_rate", "flip_rate"))
+                                "truth": TRUTH, "T_ct_recorded": truth.T_ct_us.tolist(),
+                                "tracking_vs_truth": truth.tracking}}
+    success_rate, flip_rate, search_success_rate, search_flip_rate = _evaluate_starts(
+        metrics, us_points, ct, truth, model, device=device, trials=trials, seed=seed, step=step)
     write_metrics(metrics, registration_dir / runs.METRICS)
 
     step("rendering the report")
     report = write_report_for_registration(registration_dir, ct_mesh=ct_path)
     demo = DemoResult(out, report, Path(model), trained, result.n_points, errors["RTE_mm"],
                       errors["RRE_deg"], result.runtime_s, success_rate, flip_rate,
-                      bool(errors["success"]), verdict, tracking["RTE_mm"], tracking["RRE_deg"],
-                      search_success_rate, search_flip_rate)
-    summary = {"RTE_mm": demo.RTE_mm, "RRE_deg": demo.RRE_deg, "success": demo.success,
-               "verdict": demo.verdict, "truth": TRUTH, "tracking_vs_truth": tracking,
-               "runtime_s": demo.runtime_s, "model": str(model), "trained": trained,
-               "n_us_points": demo.n_us_points, "success_rate": success_rate,
-               "flip_rate": flip_rate, "search_success_rate": search_success_rate,
-               "search_flip_rate": search_flip_rate, "report": str(report)}
-    write_json(summary, out / "demo.json")
+                      bool(errors["success"]), verdict, truth.tracking["RTE_mm"],
+                      truth.tracking["RRE_deg"], search_success_rate, search_flip_rate)
+    _write_summary(demo, truth, model, out / "demo.json")
     return demo
+
+
+def _extract_inputs(out: Path, step: Step) -> tuple[Path, SurfaceMesh, np.ndarray]:
+    """The sample's CT bone surface as ``out/ct_bone.stl`` (its path and the mesh as stored: STL
+    keeps float32 vertices, the CT the model knows) and the bone points found in its sweep's
+    frames as ``out/us_points.ply`` (``(N, 3)`` mm, in the CT's space)."""
+    from comreg_core.io import PointCloud, read_mesh
+    from comreg_core.surfaces.us import extract_us_to_file
+
+    step(f"extracting the CT bone surface from {SAMPLE_SEGMENTATION.name}")
+    ct_path = write_sample_ct_surface(out / "ct_bone.stl")
+    ct = read_mesh(ct_path)
+
+    step(f"finding the bone in the {SAMPLE_SWEEP.name} frames")
+    us = extract_us_to_file(SAMPLE_SWEEP, out / "us_points.ply")
+    return ct_path, ct, PointCloud(us.points.points, "LPS").in_space(ct.space).points
+
+
+def _find_truth(us_points: np.ndarray, ct: SurfaceMesh, step: Step) -> _Truth:
+    """The pseudo ground truth of ``us_points`` (recorded tracking: identity) and how far the
+    recorded tracking lies from it."""
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
+    from comreg_core.registration.geometry.surface import CTSurface
+
+    step(f"finding the truth: {TRUTH}")
+    surface = CTSurface(ct)
+    T_truth = pseudo_ground_truth(us_points, surface)
+    centroid = us_points.mean(axis=0)
+    return _Truth(surface, T_truth,
+                  {"RTE_mm": translation_error_mm(np.eye(4), T_truth, centroid),
+                   "RRE_deg": rotation_error_deg(np.eye(4), T_truth)})
+
+
+def _misalign(us_points: np.ndarray, truth: _Truth, space: str, out: Path, seed: int) -> _Moved:
+    """Move ``us_points`` by the paper's random perturbation (drawn from ``seed``) about their
+    centroid; writes ``us_points_moved.ply`` and ``T_ct_us_truth.tfm`` into ``out``."""
+    from comreg_core.io import PointCloud, save_transform, write_points
+    from comreg_core.simulation import sample_initial_pose
+    from comreg_core.transforms import apply_transform, invert_rigid
+
+    rng = np.random.default_rng(seed)
+    T_moved_ct = sample_initial_pose(rng, "paper", center=us_points.mean(axis=0))
+    T_ct_us_truth = truth.T_ct_us @ invert_rigid(T_moved_ct)
+    moved = apply_transform(T_moved_ct, us_points)
+    moved_path = write_points(PointCloud(moved, space), out / "us_points_moved.ply")
+    save_transform(T_ct_us_truth, out / "T_ct_us_truth.tfm", space=space)
+    return _Moved(T_moved_ct, T_ct_us_truth, moved, moved_path)
+
+
+def _register(model: Path, moved: _Moved, truth: _Truth, ct_path: Path, registration_dir: Path,
+              *, device: str, seed: int, step: Step
+              ) -> tuple[RegistrationResult, dict[str, Any], str]:
+    """``comreg register`` of the moved points into ``registration_dir``: its result, its
+    errors against the truth and its verdict (``"ok"``/``"check"``, read from its files)."""
+    from comreg_core.register import register_to_directory
+    from comreg_core.registration.geometry.metrics import registration_metrics
+
+    step("registering the moved US points to the CT (completion, coarse pose, ICP)")
+    result = register_to_directory(model, moved.path, registration_dir, device=device,
+                                   seed=seed, ct_mesh=ct_path, sweep=SAMPLE_SWEEP,
+                                   T_us_ref=moved.T_moved_ct)  # tracking and CT share one frame
+    errors = registration_metrics(result.T_ct_us, moved.T_ct_us_truth, moved.points,
+                                  truth.surface)
+    verdict = json.loads((registration_dir / runs.RESULT).read_text(encoding="utf-8"))["verdict"]
+    return result, errors, verdict
+
+
+def _evaluate_starts(metrics: dict[str, Any], us_points: np.ndarray, ct: SurfaceMesh, truth: _Truth,
+                     model: Path, *, device: str, trials: int, seed: int, step: Step
+                     ) -> tuple[float | None, float | None, float | None, float | None]:
+    """``comreg evaluate`` of ``trials`` random starts of ``us_points``, with the network and by
+    the search alone, added to ``metrics``; the success and flip rates of both (None when
+    ``trials`` is 0)."""
+    from comreg_core.evaluation.evaluate import evaluate
+    from comreg_core.register import Registrar
+
+    if trials <= 0:
+        return None, None, None, None
+    step(f"evaluating {trials} more random starts")
+    methods = {"search": Registrar.from_ct(ct),
+               "comreg": Registrar.from_run(model, device, ct_mesh=ct)}
+    metrics.update(evaluate(methods, us_points, truth.surface, trials=trials, seed=seed,
+                            T_gt=truth.T_ct_us))
+    summary = metrics["summary"]
+    return (summary["comreg"]["success_rate"], summary["comreg"]["flip_rate"],
+            summary["search"]["success_rate"], summary["search"]["flip_rate"])
+
+
+def _write_summary(demo: DemoResult, truth: _Truth, model: Path, path: Path) -> None:
+    """The figures of ``demo`` as ``demo.json``."""
+    write_json({"RTE_mm": demo.RTE_mm, "RRE_deg": demo.RRE_deg, "success": demo.success,
+                "verdict": demo.verdict, "truth": TRUTH, "tracking_vs_truth": truth.tracking,
+                "runtime_s": demo.runtime_s, "model": str(model), "trained": demo.trained,
+                "n_us_points": demo.n_us_points, "success_rate": demo.success_rate,
+                "flip_rate": demo.flip_rate, "search_success_rate": demo.search_success_rate,
+                "search_flip_rate": demo.search_flip_rate, "report": str(demo.report)}, path)

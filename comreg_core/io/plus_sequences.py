@@ -43,16 +43,40 @@ def read_plus_sequence(path: str | Path, *, calibration: str | Path | PlusDevice
     path = Path(path)
     require_extension(path, "PLUS sequence", SWEEP_EXTENSIONS)
     path = require_input_file(path, "ultrasound sequence")
+    fields, frames = _read_tracked_frames(path)
+    n, H, W = frames.shape
+    frames = frames_to_mf(path, fields, frames)
+    per_frame = _per_frame_fields(path, fields, n)
+    static = _static_transforms(calibration, W, H)
+    names = sorted({key[: -len("Transform")] for rec in per_frame for key in rec
+                    if key.endswith("Transform") and _TRANSFORM_NAME.match(key[:-9])})
+    chain, reference = _transform_chain(path, image, reference, names, static)
+    log.info("%s: %d frames %dx%d, %s = %s", path, n, W, H, f"{image}To{reference}",
+             " @ ".join(("inv(%s)" % name if inverse else name) for name, inverse in
+                        reversed(chain)))
+    T, valid = _compose_poses(path, per_frame, chain, names, static, f"{image}To{reference}")
+    T, spacing = _pixel_units(path, T, valid, f"{image}To{reference}")
+    timestamps = np.array([parse_float(rec.get("Timestamp")) for rec in per_frame])
+    return TrackedSweep(frames, spacing, T, timestamps, valid, reference,
+                        [f"Frame{i:04d}" for i in range(n)], path)
+
+
+def _read_tracked_frames(path: Path) -> tuple[dict[str, str], np.ndarray]:
+    """The header fields and the ``(N, H, W)`` frames of a PLUS sequence, as stored; raises
+    :class:`ComRegError` for an image without per-frame tracking fields."""
     fields, frames = read_plus_frames(path)
     if not has_plus_frame_fields(fields):
         raise ComRegError(f"'{path}' has no per-frame tracking fields (Seq_FrameXXXX_...): it is "
                           "an image or volume, not a PLUS tracked ultrasound sequence.",
                           "Pass the sequence file recorded by PLUS (.igs.mha, .seq.mha, "
                           ".igs.nrrd), a 3D Slicer volume sequence or a frame folder.")
-    n, H, W = frames.shape
-    frames = frames_to_mf(path, fields, frames)
-    per_frame = _per_frame_fields(path, fields, n)
+    return fields, frames
 
+
+def _static_transforms(calibration: str | Path | PlusDeviceSet | None, W: int, H: int
+                       ) -> dict[str, np.ndarray]:
+    """The static ``(4, 4)`` transforms of ``calibration`` (a device-set XML or a read one) by
+    name, checked against ``W x H`` px frames; empty without one."""
     device_set = None
     if isinstance(calibration, PlusDeviceSet):
         device_set = calibration
@@ -66,14 +90,17 @@ def read_plus_sequence(path: str | Path, *, calibration: str | Path | PlusDevice
     static = dict(device_set.transforms) if device_set else {}
     if device_set is not None:
         _check_device_set_fits(device_set, W, H)
+    return static
 
-    names = sorted({key[: -len("Transform")] for rec in per_frame for key in rec
-                    if key.endswith("Transform") and _TRANSFORM_NAME.match(key[:-9])})
-    chain, reference = _transform_chain(path, image, reference, names, static)
-    log.info("%s: %d frames %dx%d, %s = %s", path, n, W, H, f"{image}To{reference}",
-             " @ ".join(("inv(%s)" % name if inverse else name) for name, inverse in
-                        reversed(chain)))
 
+def _compose_poses(path: Path, per_frame: list[dict[str, str]], chain: list[tuple[str, bool]],
+                   names: list[str], static: dict[str, np.ndarray], pose: str
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's ``(N, 4, 4)`` ``pose`` (pixels -> reference, still scaled by the pixel size)
+    along ``chain``, and ``(N,)`` whether it is valid: every per-frame transform of the chain
+    OK, the image status OK and the product finite. Logs the frames left out; raises
+    :class:`NoValidFramesError` when none is valid."""
+    n = len(per_frame)
     T = np.repeat(np.eye(4)[None], n, axis=0)
     valid = np.ones(n, dtype=bool)
     reasons: dict[str, int] = {}
@@ -97,19 +124,26 @@ def read_plus_sequence(path: str | Path, *, calibration: str | Path | PlusDevice
     valid &= np.isfinite(T).all(axis=(1, 2))
     if (~valid).any():
         detail = ", ".join(f"{count} {reason}" for reason, count in reasons.items())
-        log.warning("%s: %d of %d frames have no valid %sTo%s pose (%s) and are left out, as "
-                    "PLUS does", path, int((~valid).sum()), n, image, reference, detail)
+        log.warning("%s: %d of %d frames have no valid %s pose (%s) and are left out, as "
+                    "PLUS does", path, int((~valid).sum()), n, pose, detail)
     if not valid.any():
         raise NoValidFramesError(
-            f"None of the {n} frames in '{path}' has a valid {image}To{reference} pose "
+            f"None of the {n} frames in '{path}' has a valid {pose} pose "
             f"({', '.join(f'{c} {r}' for r, c in reasons.items())}).",
             "Check that the probe and the reference marker were visible to the tracker.")
+    return T, valid
 
+
+def _pixel_units(path: Path, T: np.ndarray, valid: np.ndarray, pose: str
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``T`` ``(N, 4, 4)`` with the pixel size divided out of its columns, and the ``(2,)`` pixel
+    size (mm, along x then y) read from the first valid frame's pose; raises
+    :class:`CalibrationMismatchError` for a size no calibration in mm gives."""
     first = T[np.flatnonzero(valid)[0]]
     scale = np.linalg.norm(first[:3, :3], axis=0)
     if not (1e-4 < scale[0] < 10 and 1e-4 < scale[1] < 10):
         raise CalibrationMismatchError(
-            f"The {image}To{reference} chain of '{path}' gives a pixel size of "
+            f"The {pose} chain of '{path}' gives a pixel size of "
             f"{scale[0]:.3g} x {scale[1]:.3g} mm.",
             "The ImageToProbe calibration should map pixels to millimetres (PLUS fCal "
             "output, about 0.05-0.5 mm per pixel); check the configuration file.")
@@ -117,10 +151,7 @@ def read_plus_sequence(path: str | Path, *, calibration: str | Path | PlusDevice
         log.warning("%s: unusual pixel size %.3g x %.3g mm; is the calibration in mm per pixel?",
                     path, scale[0], scale[1])
     unscale = np.diag([1 / scale[0], 1 / scale[1], 1 / scale[2] if scale[2] > 0 else 1.0, 1.0])
-    T = matmul(T, unscale)
-    timestamps = np.array([parse_float(rec.get("Timestamp")) for rec in per_frame])
-    return TrackedSweep(frames, scale[:2], T, timestamps, valid, reference,
-                        [f"Frame{i:04d}" for i in range(n)], path)
+    return matmul(T, unscale), scale[:2]
 
 
 def _per_frame_fields(path: Path, fields: dict[str, str], n: int) -> list[dict[str, str]]:

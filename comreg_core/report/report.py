@@ -5,11 +5,10 @@ Output (inside ``out_dir``, which may already hold the run's other files)::
     report.html                      the page (inline CSS, no scripts, no external resources)
     report_images/<scene>_<view>.png the screenshots it shows (relative links)
 
-Why relative image links and not base64 by default: the issue asks that the report "references
-existing images", the PNGs are useful on their own (README, slides, the Slicer module), the page
-stays small and opens fast, and a run folder is already the unit that is kept and shared. For a
-single file to e-mail, ``embed_images=True`` puts the PNGs into the page as ``data:`` URIs and
-writes no image folder.
+Images are linked, not embedded, by default: the report references existing images, the PNGs
+are useful on their own (README, slides, the Slicer module), the page stays small and opens fast,
+and a run folder is already the unit that is kept and shared. For a single file to e-mail,
+``embed_images=True`` puts the PNGs into the page as ``data:`` URIs and writes no image folder.
 
 Writing is all or nothing: everything is made in a hidden staging folder inside ``out_dir`` and
 moved into place only when every screenshot and the page are done (``report_images/`` first,
@@ -26,7 +25,8 @@ import platform
 import shutil
 import tempfile
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -40,13 +40,12 @@ from comreg_core.io.meshes import SurfaceMesh, read_mesh
 from comreg_core.report.backend import ensure_offscreen_rendering
 from comreg_core.report.cameras import VIEW_NAMES
 from comreg_core.report.html import Figure, Section, build_html
-from comreg_core.report.scenes import (DEFAULT_STYLE, SLAB_MARGIN_MM, SceneData, Screenshot,
-                                       Style, render_screenshots)
+from comreg_core.report.scenes import SLAB_MARGIN_MM, SceneData, Screenshot, render_screenshots
+from comreg_core.report.style import DEFAULT_STYLE, Style
 
 log = logging.getLogger(__name__)
 
 IMAGES_DIR = "report_images"
-
 
 
 def image_name(scene: str, view: str) -> str:
@@ -64,8 +63,7 @@ def write_png(image: np.ndarray, path: Path) -> None:
 
 def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
                  us_before: np.ndarray | None = None, us_after: np.ndarray | None = None,
-                 completion: np.ndarray | None = None,
-                 metrics: Mapping[str, Any] | None = None,
+                 completion: np.ndarray | None = None, metrics: Mapping[str, Any] | None = None,
                  inputs: Mapping[str, Any] | None = None, seed: int | None = None,
                  device: str | None = None, title: str | None = None,
                  views: Sequence[str] = VIEW_NAMES, scenes: Sequence[str] | None = None,
@@ -73,7 +71,8 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
                  lateral_side: str = "left", style: Style = DEFAULT_STYLE,
                  progress: Progress | None = None, verdict=None, sweep=None,
                  T_ct_ref: np.ndarray | None = None, n_frames: int = 4) -> Path:
-    """Render the overlay screenshots and write ``report.html`` into ``out_dir``.
+    """Render the screenshots and write ``report.html`` into ``out_dir``; returns its path. On
+    OpenGLUnavailableError or bad inputs (InvalidGeometryError, ...) nothing is written.
 
     Args:
         out_dir: the run folder (created if missing; other files in it are left alone).
@@ -81,96 +80,120 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
             Everything else is in its patient space (LPS or RAS, mm).
         us_before: ``(N, 3)`` US bone points before registration, as received (initial pose).
         us_after: ``(N, 3)`` the same points mapped into the CT by the estimated ``T_ct_us``.
-        completion: ``(M, 3)`` the completed bone in the CT frame (the network's completion under
-            the estimated transform), coloured by distance to the CT surface.
-        metrics: any JSON-like mapping: one table row per leaf (nested groups as
-            ``"group / row"``), with the label in words, the value and its unit in a column of
-            its own. A :class:`~comreg_core.report.html.Quantity` value keeps its key as the
-            label and gives its unit; other keys (``RTE_mm``, ``RRE_deg``, ``CD_mm``,
-            ``runtime_s``, nested summaries, ...) are put into words and take their unit from
-            their ``_mm``/``_deg``/``_s``/``_percent`` suffix
+        completion: ``(M, 3)`` the network's completed bone in the CT frame.
+        metrics: any JSON-like mapping, one table row per leaf, labels in words and units apart
             (:func:`~comreg_core.report.html.metric_rows`).
         inputs: what the run used (file paths, parameters), shown as given; point counts and the
             CT mesh's file, size and space are added.
-        seed, device: shown in the "Run" table.
-        title: the page title (default "ComReg registration report").
-        views: camera presets (:data:`~comreg_core.report.cameras.VIEW_NAMES`).
-        scenes: scenes to render (default: all the inputs allow, see
-            :meth:`~comreg_core.report.scenes.SceneData.available_scenes`).
+        seed, device: shown in the "Run" table. title: the page title.
+        views, scenes: camera presets (:data:`~comreg_core.report.cameras.VIEW_NAMES`) and
+            scenes (default: :meth:`~comreg_core.report.scenes.SceneData.available_scenes`).
         window_size: screenshot size in pixels ``(width, height)``.
-        embed_images: put the PNGs into the page as base64 ``data:`` URIs (one self-contained
-            file) instead of ``report_images/``.
+        embed_images: the PNGs inside the page as base64 ``data:`` URIs, no ``report_images/``.
         lateral_side: "left" or "right": the side the lateral view looks from.
-        style: colours and sizes.
-        progress: ``progress(done, total, view)`` after each screenshot.
-        verdict: a :class:`~comreg_core.registration.judgement.verdict.Verdict`: the page then starts with
-            ``Verdict: OK`` or ``Verdict: CHECK`` and its reasons.
+        style: colours and sizes. progress: ``progress(done, total, name)`` after each shot.
+        verdict: a :class:`~comreg_core.registration.judgement.verdict.Verdict`: the page then
+            starts with ``Verdict: OK`` or ``Verdict: CHECK`` and its reasons.
         sweep: the :class:`~comreg_core.io.TrackedSweep` the US points came from, with
-            ``T_ct_ref`` (``(4, 4)``: its reference frame -> CT under the registration): the
-            page then shows ``n_frames`` of its B-mode frames, evenly spread over the valid
-            ones, with the registered CT contour drawn in
-            (:func:`~comreg_core.report.sections.frame_overlays`). With ``us_after`` the page
-            always shows CT cuts with the registered points near them
-            (:func:`~comreg_core.report.sections.ct_sections`).
-
-    Returns:
-        The path of ``report.html``.
-
-    Raises:
-        OpenGLUnavailableError: no off-screen OpenGL; says what to install. Nothing is written.
-        InvalidGeometryError, InputFileNotFoundError, ...: bad inputs. Nothing is written.
+            ``T_ct_ref`` (``(4, 4)``: its reference frame -> CT): the page then shows
+            ``n_frames`` of its valid B-mode frames with the registered CT contour
+            (:func:`~comreg_core.report.sections.frame_overlays`). With ``us_after`` it shows
+            CT cuts with the registered points (:func:`~comreg_core.report.sections.ct_sections`).
     """
     out_dir = check_output_folder(out_dir, what="report folder")
-    if not isinstance(ct_mesh, SurfaceMesh):
-        ct_mesh = read_mesh(ct_mesh)
-    data = SceneData(ct_mesh, us_before, us_after, completion)
+    data = SceneData(ct_mesh if isinstance(ct_mesh, SurfaceMesh) else read_mesh(ct_mesh),
+                     us_before, us_after, completion)
     scenes = list(scenes) if scenes is not None else data.available_scenes()
     views = list(views)
     backend = ensure_offscreen_rendering()  # fail before making any folder
-    total = len(scenes) * len(views)
-
     out_dir.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".report.", suffix=".tmp", dir=out_dir))
-    try:
-        images_dir = staging / IMAGES_DIR
-        images_dir.mkdir()
-        shots: list[Screenshot] = []
-        sources: dict[tuple[str, str], str] = {}
-        started = time.perf_counter()
-        for shot in render_screenshots(data, scenes, views, window_size=window_size, style=style,
-                                       lateral_side=lateral_side):
-            name = image_name(shot.scene, shot.view)
-            write_png(shot.image, images_dir / name)
-            sources[(shot.scene, shot.view)] = (_data_uri(images_dir / name) if embed_images
-                                                else f"{IMAGES_DIR}/{name}")
-            shots.append(shot)
-            if progress is not None:
-                progress(len(shots), total, name)
-        render_s = time.perf_counter() - started
-        cuts = _cross_sections(data, style, sweep, T_ct_ref, n_frames)
-        for picture in cuts:
-            name = f"{picture.name}.png"
-            write_png(picture.image, images_dir / name)
-            sources[("cuts", picture.name)] = (_data_uri(images_dir / name) if embed_images
-                                               else f"{IMAGES_DIR}/{name}")
-        page = build_html(
-            title=title or "ComReg registration report",
-            sections=_sections(shots, sources, lateral_side, data) + _cut_sections(cuts, sources),
-            metrics=metrics,
-            inputs=_inputs(inputs, data),
-            run=[("Seed", seed), ("Device", device)],
-            versions=_versions(backend, len(shots), render_s, window_size),
-            notes=_notes(data, lateral_side, style),
-            legend=_legend(data, style),
-            verdict=None if verdict is None else (verdict.headline, verdict.reasons))
-        with open(staging / runs.REPORT, "w", encoding="utf-8", newline="\n") as f:
-            f.write(page)
+    with _staging_folder(out_dir) as staging:
+        images = _Images(staging / IMAGES_DIR, embed_images)
+        shots, render_s = _render_scenes(images, data, scenes, views, window_size=window_size,
+                                         style=style, lateral_side=lateral_side,
+                                         progress=progress)
+        cuts = _render_cuts(images, data, style, sweep, T_ct_ref, n_frames)
+        _write_page(staging / runs.REPORT, data, shots, cuts, images.sources, title=title,
+                    metrics=metrics, inputs=inputs, run=[("Seed", seed), ("Device", device)],
+                    versions=_versions(backend, len(shots), render_s, window_size),
+                    lateral_side=lateral_side, style=style, verdict=verdict)
         _publish(staging, out_dir, with_images=not embed_images)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     report = out_dir / runs.REPORT
     log.info("wrote %s (%d screenshots)", report, len(shots))
     return report
+
+
+@contextmanager
+def _staging_folder(out_dir: Path) -> Iterator[Path]:
+    """A hidden folder inside ``out_dir`` to make the report in, removed on exit (after
+    :func:`_publish` moved what it holds, or on any error)."""
+    staging = Path(tempfile.mkdtemp(prefix=".report.", suffix=".tmp", dir=out_dir))
+    try:
+        yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _write_page(path: Path, data: SceneData, shots: list[Screenshot], cuts: list,
+                sources: dict[tuple[str, str], str], *, title: str | None, metrics, inputs,
+                run: list[tuple[str, Any]], versions: list[tuple[str, Any]], lateral_side: str,
+                style: Style, verdict) -> None:
+    """The HTML page (:func:`~comreg_core.report.html.build_html`) of the screenshots and the
+    2D pictures (``cuts``), linked by ``sources``, as ``path`` (UTF-8, LF line ends)."""
+    page = build_html(
+        title=title or "ComReg registration report",
+        sections=_sections(shots, sources, lateral_side, data) + _cut_sections(cuts, sources),
+        metrics=metrics,
+        inputs=_inputs(inputs, data),
+        run=run,
+        versions=versions,
+        notes=_notes(data, lateral_side, style),
+        legend=_legend(data, style),
+        verdict=None if verdict is None else (verdict.headline, verdict.reasons))
+    with open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(page)
+
+
+class _Images:
+    """The report's PNG folder (the staging ``report_images/``) and what the page links for each
+    picture: ``sources[(group, name)]`` a relative path, or a ``data:`` URI when embedded."""
+
+    def __init__(self, folder: Path, embed: bool):
+        self.folder, self.embed = folder, embed
+        self.sources: dict[tuple[str, str], str] = {}
+        folder.mkdir()
+
+    def add(self, key: tuple[str, str], image: np.ndarray, name: str) -> None:
+        """Write ``image`` ``(H, W, 3)`` uint8 as ``name`` and record its link under ``key``."""
+        write_png(image, self.folder / name)
+        self.sources[key] = (_data_uri(self.folder / name) if self.embed
+                             else f"{IMAGES_DIR}/{name}")
+
+
+def _render_scenes(images: _Images, data: SceneData, scenes: list[str], views: list[str], *,
+                   window_size: tuple[int, int], style: Style, lateral_side: str,
+                   progress: Progress | None) -> tuple[list[Screenshot], float]:
+    """Every scene from every view into ``images``; the screenshots and the seconds it took."""
+    total = len(scenes) * len(views)
+    shots: list[Screenshot] = []
+    started = time.perf_counter()
+    for shot in render_screenshots(data, scenes, views, window_size=window_size, style=style,
+                                   lateral_side=lateral_side):
+        name = image_name(shot.scene, shot.view)
+        images.add((shot.scene, shot.view), shot.image, name)
+        shots.append(shot)
+        if progress is not None:
+            progress(len(shots), total, name)
+    return shots, time.perf_counter() - started
+
+
+def _render_cuts(images: _Images, data: SceneData, style: Style, sweep, T_ct_ref,
+                 n_frames: int) -> list:
+    """The 2D pictures (:func:`_cross_sections`) into ``images``, under ``("cuts", name)``."""
+    cuts = _cross_sections(data, style, sweep, T_ct_ref, n_frames)
+    for picture in cuts:
+        images.add(("cuts", picture.name), picture.image, f"{picture.name}.png")
+    return cuts
 
 
 def _publish(staging: Path, out_dir: Path, *, with_images: bool) -> None:

@@ -2,9 +2,10 @@
 
 Every coordinate is in the CT mesh's patient space (LPS or RAS, mm); the US points are expected
 already in that frame ("before": as received, i.e. under the initial pose; "after": mapped by the
-estimated ``T_ct_us``). Rendering is deterministic: a fixed window size, fixed colours, parallel
-projection with fixed presets (:mod:`comreg_core.report.cameras`), no anti-aliasing, no random
-anything, and a theme of its own (the process-wide pyvista theme is neither read nor changed).
+estimated ``T_ct_us``). Rendering is deterministic: a fixed window size, fixed colours
+(:mod:`comreg_core.report.style`), parallel projection with fixed presets
+(:mod:`comreg_core.report.cameras`), no anti-aliasing, no random anything, and a theme of its own
+(the process-wide pyvista theme is neither read nor changed).
 
 Scenes (:data:`SCENES`):
 
@@ -30,97 +31,12 @@ from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.report.backend import ensure_offscreen_rendering
 from comreg_core.report.cameras import (VIEW_NAMES, BoneFrame, CameraView, bone_frame,
                                         frame_points, view_presets)
+from comreg_core.report.style import DEFAULT_STYLE, Style, lookup_table, make_theme, unit_rgb
 from comreg_core.transforms import as_points
 
 log = logging.getLogger(__name__)
 
 SCENES = ("registered", "overlay", "completion")
-
-# Colours as 0-255 sRGB. Vermillion and blue are the Okabe-Ito colour-blind-safe pair.
-BONE_RGB = (241, 214, 145)  # 3D Slicer's "bone" colour
-US_BEFORE_RGB = (213, 94, 0)  # vermillion
-US_AFTER_RGB = (0, 114, 178)  # blue
-BACKGROUND_RGB = (255, 255, 255)
-TEXT_RGB = (20, 20, 20)
-
-#: Viridis (matplotlib's, sampled every 16 of its 256 entries and at the end): perceptually
-#: uniform, readable in grey and by colour-blind viewers; dark purple = 0 mm, yellow = far.
-VIRIDIS_ANCHORS = np.array([
-    (0.2670, 0.0049, 0.3294), (0.2823, 0.0950, 0.4173), (0.2788, 0.1755, 0.4834),
-    (0.2590, 0.2515, 0.5247), (0.2297, 0.3224, 0.5457), (0.1994, 0.3876, 0.5546),
-    (0.1727, 0.4488, 0.5579), (0.1490, 0.5081, 0.5572), (0.1276, 0.5669, 0.5506),
-    (0.1206, 0.6258, 0.5335), (0.1579, 0.6838, 0.5017), (0.2461, 0.7389, 0.4520),
-    (0.3692, 0.7889, 0.3829), (0.5160, 0.8312, 0.2943), (0.6785, 0.8637, 0.1895),
-    (0.8456, 0.8873, 0.0997), (0.9932, 0.9062, 0.1439)])
-
-
-def colormap_rgb(t: np.ndarray) -> np.ndarray:
-    """Viridis colours ``(N, 3)`` (0-255 float) at ``t`` in [0, 1] (clipped), linear between
-    anchors: the same table the rendered lookup table uses."""
-    t = np.clip(np.asarray(t, np.float64), 0.0, 1.0)
-    x = np.linspace(0.0, 1.0, len(VIRIDIS_ANCHORS))
-    return np.stack([np.interp(t, x, VIRIDIS_ANCHORS[:, k]) for k in range(3)], axis=-1) * 255.0
-
-
-@dataclass(frozen=True)
-class Style:
-    """Everything about how scenes look; the defaults are what reports use.
-
-    Attributes:
-        bone_opacity: opacity of the CT mesh (semi-transparent so points behind it show).
-        distance_range_mm: colour range of the completion's distance to the CT; beyond the top
-            is drawn in the top colour.
-        point_size_fraction: US point diameter as a fraction of the image height (>= 3 pixels).
-        completion_point_size_fraction: the same for completion points.
-        font_fraction: text height as a fraction of the image height.
-    """
-
-    bone_rgb: tuple[int, int, int] = BONE_RGB
-    bone_opacity: float = 0.5
-    us_before_rgb: tuple[int, int, int] = US_BEFORE_RGB
-    us_after_rgb: tuple[int, int, int] = US_AFTER_RGB
-    background_rgb: tuple[int, int, int] = BACKGROUND_RGB
-    text_rgb: tuple[int, int, int] = TEXT_RGB
-    distance_range_mm: tuple[float, float] = (0.0, 5.0)
-    point_size_fraction: float = 1 / 130
-    completion_point_size_fraction: float = 1 / 170
-    font_fraction: float = 1 / 42
-
-
-DEFAULT_STYLE = Style()
-
-
-def _unit(rgb) -> tuple[float, float, float]:
-    return tuple(float(c) / 255.0 for c in rgb)
-
-
-def make_theme(style: Style = DEFAULT_STYLE):
-    """A pyvista theme for reproducible screenshots: plain background, no anti-aliasing (MSAA and
-    FXAA output differs between OpenGL drivers), no edges, smooth shading, fixed fonts."""
-    import pyvista as pv
-
-    theme = pv.themes.DocumentTheme()
-    theme.background = _unit(style.background_rgb)
-    theme.font.color = _unit(style.text_rgb)
-    theme.font.family = "arial"
-    theme.anti_aliasing = None
-    theme.multi_samples = 0
-    theme.smooth_shading = True
-    theme.show_edges = False
-    theme.lighting = True
-    theme.render_points_as_spheres = True
-    return theme
-
-
-def _lookup_table(style: Style):
-    import pyvista as pv
-
-    lut = pv.LookupTable()
-    lut.values = np.concatenate(
-        [np.round(colormap_rgb(np.linspace(0, 1, 256))), np.full((256, 1), 255.0)],
-        axis=1).astype(np.uint8)
-    lut.scalar_range = tuple(float(v) for v in style.distance_range_mm)
-    return lut
 
 
 @dataclass
@@ -243,14 +159,14 @@ class SceneRenderer:
         data, style, p = self.data, self.style, self.plotter
         height = self.window_size[1]
         ct = data.ct.to_pyvista()
-        bone = dict(color=_unit(style.bone_rgb), opacity=style.bone_opacity, smooth_shading=True,
+        bone = dict(color=unit_rgb(style.bone_rgb), opacity=style.bone_opacity, smooth_shading=True,
                     specular=0.2)
         self._ct_actor = p.add_mesh(ct, name="ct", **bone)
         legend = [("CT bone surface", style.bone_rgb)]
         point_sets = []
         point_px = max(3.0, height * style.point_size_fraction)
         if self.scene == "overlay":
-            p.add_points(data.us_before, color=_unit(style.us_before_rgb), point_size=point_px,
+            p.add_points(data.us_before, color=unit_rgb(style.us_before_rgb), point_size=point_px,
                          render_points_as_spheres=True, name="us_before")
             point_sets.append(data.us_before)
             legend.append((f"US before registration ({len(data.us_before)})",
@@ -260,7 +176,7 @@ class SceneRenderer:
                                   "US points: distance to the CT surface", "us_after")
             point_sets.append(data.us_after)
         if self.scene == "overlay" and data.us_after is not None:
-            p.add_points(data.us_after, color=_unit(style.us_after_rgb), point_size=point_px,
+            p.add_points(data.us_after, color=unit_rgb(style.us_after_rgb), point_size=point_px,
                          render_points_as_spheres=True, name="us_after")
             point_sets.append(data.us_after)
             legend.append((f"US after registration ({len(data.us_after)})", style.us_after_rgb))
@@ -288,13 +204,13 @@ class SceneRenderer:
         cloud["distance_mm"] = distance_mm
         lo, hi = self.style.distance_range_mm
         self.plotter.add_mesh(
-            cloud, scalars="distance_mm", cmap=_lookup_table(self.style), clim=(lo, hi),
+            cloud, scalars="distance_mm", cmap=lookup_table(self.style), clim=(lo, hi),
             point_size=size_px, render_points_as_spheres=True, name=name,
             show_scalar_bar=self.show_text,
             scalar_bar_args=dict(
                 title=f"{title} (mm; >= {hi:g} in yellow)", vertical=False, position_x=0.2,
                 position_y=0.015, width=0.6, height=0.085, n_labels=6, fmt="%.1f",
-                color=_unit(self.style.text_rgb), title_font_size=self._font,
+                color=unit_rgb(self.style.text_rgb), title_font_size=self._font,
                 label_font_size=self._font, bold=False, shadow=False))
 
     def _slab(self, ct):
@@ -356,7 +272,7 @@ class SceneRenderer:
         text called ``name``; returns the vtkTextActor."""
         actor = self.plotter.add_text(text, position=(int(round(x)), int(round(y))),
                                       font_size=size, name=name,
-                                      color=_unit(rgb or self.style.text_rgb))
+                                      color=unit_rgb(rgb or self.style.text_rgb))
         prop = actor.GetTextProperty()
         prop.SetFontSize(int(size))  # pyvista doubles font_size for positioned text
         prop.SetJustification({"left": 0, "center": 1, "right": 2}[halign])
@@ -392,7 +308,7 @@ class SceneRenderer:
             mapper.SetInputConnection(disc.GetOutputPort())
             actor = vtk.vtkActor2D()
             actor.SetMapper(mapper)
-            actor.GetProperty().SetColor(*_unit(rgb))
+            actor.GetProperty().SetColor(*unit_rgb(rgb))
             self.plotter.add_actor(actor, name=f"legend_disc_{i}", reset_camera=False,
                                    pickable=False)
 
@@ -428,7 +344,7 @@ class SceneRenderer:
         mapper.SetInputConnection(line.GetOutputPort())
         actor = vtk.vtkActor2D()
         actor.SetMapper(mapper)
-        actor.GetProperty().SetColor(*_unit(self.style.text_rgb))
+        actor.GetProperty().SetColor(*unit_rgb(self.style.text_rgb))
         actor.GetProperty().SetLineWidth(max(2.0, height / 250))
         self.plotter.add_actor(actor, name="scale_bar", reset_camera=False, pickable=False)
         self._text(f"{length:g} mm", x0, y0 + 0.01 * height, size=self._font,

@@ -19,7 +19,7 @@ import numpy as np
 
 from comreg_core.io.meshes import SurfaceMesh
 from comreg_core.report.cameras import BoneFrame
-from comreg_core.report.scenes import DEFAULT_STYLE, Style, colormap_rgb
+from comreg_core.report.style import DEFAULT_STYLE, Style, colormap_rgb
 from comreg_core.transforms import apply_transform, invert_rigid
 
 #: Registered points at most this far from a CT cut are drawn on it (mm).

@@ -23,7 +23,8 @@ import pytest
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.report.cameras import VIEW_NAMES
 from comreg_core.report.scenes import (SCENES, SLAB_MARGIN_MM, SceneData, SceneRenderer,
-                                       colormap_rgb, render_scene, render_screenshots)
+                                       render_scene, render_screenshots)
+from comreg_core.report.style import colormap_rgb
 from tests.report.support import (REFERENCE_DIR, TEST_WINDOW, UPDATE_ENV, after_mask,
                                   background_fraction, before_mask, bone_mask, compare_images,
                                   near_mask)

@@ -9,7 +9,7 @@ import pytest
 
 from comreg_core.registration.geometry.surface import CTSurface
 from comreg_core.report.sections import SECTION_HALF_WIDTH_MM, ct_sections, frame_overlays
-from comreg_core.report.scenes import colormap_rgb
+from comreg_core.report.style import colormap_rgb
 from comreg_core.transforms import apply_transform
 from tests.helpers import FIBULA_STL
 
