@@ -314,12 +314,13 @@ def priorFromNodes(initialTransformNode=None, ctLandmarksNode=None, usLandmarksN
     registration's output does (the US points placed under it land on the CT): its transform
     to world, RAS. ``ctLandmarksNode`` / ``usLandmarksNode``: markups point lists on the CT and
     in the US points' own frame (each node's coordinates without its parent transform), paired
-    by label (:func:`comreg_core.registration.search.priors.match_landmarks`), tolerance
+    by label (:func:`comreg_core.register.inputs.match_landmarks`), tolerance
     ``landmarkToleranceMm`` unless a point's description says ``tol=5``. ``parameters``: the
     module's parameter node: nodes not given and the tolerances are its (``initialTransform``,
     ``ctLandmarks``, ``usLandmarks``, ``initialToleranceDeg``, ...).
     """
-    from comreg_core.registration.search.priors import Prior, match_landmarks
+    from comreg_core.register.inputs import match_landmarks
+    from comreg_core.registration.search.priors import Prior
 
     if parameters is not None:
         p = parameters

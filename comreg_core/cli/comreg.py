@@ -12,8 +12,9 @@ from comreg_core.cli.errors import CommandApp, set_verbose
 app = CommandApp(
     name="comreg",
     help="ComReg: patient-specific CT-ultrasound bone surface registration.\n\n"
-    "Extract the CT bone surface, pretrain on ultrasound sweeps simulated from it, then register "
-    "a real tracked-ultrasound bone surface in one forward pass. Every command prints what it "
+    "Extract the CT bone surface, register a real tracked-ultrasound bone surface to it by a "
+    "pose search (optionally with a network pretrained on sweeps simulated from this CT), and "
+    "get a verdict on the result. Every command prints what it "
     "wrote; errors you can fix exit with status 2 and say what to do.",
     no_args_is_help=True,
     add_completion=False,

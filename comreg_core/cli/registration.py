@@ -69,9 +69,9 @@ def register(
     out: Path = REGISTER_OUT,
 ) -> None:
     """Register a US bone surface to the CT: with --ct alone by the pose search (principal axes,
-    flips, turns and slides of the US cloud, refined by ICP and scored against the CT), with
-    --model in one forward pass of the pretrained network (completion, coarse pose, ICP), then
-    the search around its pose (unless --no-hypotheses).
+    flips, turns and slides of the US cloud, refined by ICP and scored against the CT); with
+    --model the same search, then the pretrained network's poses (completion, coarse pose, ICP)
+    as further starts, kept only when clearly better (--no-hypotheses: the network alone).
 
     Writes result.json (T_ct_us 4x4 in mm, the coarse transform, timings, residuals, the
     chosen hypothesis, confidence and the ambiguous flag), transform.tfm (ITK, LPS, as 3D Slicer

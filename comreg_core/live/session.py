@@ -1,50 +1,24 @@
 """The live registration loop's state: each update takes the frames that arrived, adds their bone
-points and registers the grown sweep (:class:`LiveSession`).
+points and registers the grown sweep (:class:`LiveSession`; docs/live.md for the whole story).
 
-**Warm or full.** An update registers *warm* (:func:`warm_register`: the registrar's warm
-start, which refines the last result's chosen pose and its best distinct competitors on the
-grown cloud), unless the evidence changed, when it runs the *full* search (as ``comreg
-register`` does): the first registration; the bone covered along the CT's long axis grew by
-:attr:`LiveSession.full_every_mm` since the last full search (unless the last update was a full
-search: the frames that came while it ran are registered warm first, so a slow full search,
-during which more than ``full_every_mm`` of bone arrives, is not followed by another at once);
-the warm pose moved beyond
-:data:`WARM_TOLERANCE` from the last update's (it switched to another of its poses); or its
-verdict differs from the last update's (then the full search decides it, in the same update).
-So the verdict only ever turns OK, or back to CHECK, on a full search.
-
-**In the background.** With a :class:`~comreg_core.live.background.FullSearchWorker` (``comreg
-live`` starts one), every update after the first is warm, and the full search runs in the
-worker's process on the points of the update that asked for it (for the same reasons as above,
-one at a time) while the updates go on. The update after its answer came registers warm from
-the full search's result instead of the last update's (mode "warm+full"), checks the scale and
-records it as the full search of those points. A warm update whose verdict would turn OK, or
-whose OK pose moved, says CHECK until that answer came ("a full search is confirming"), so the
-verdict still only turns OK on a full search.
-
-**Verdict.** Every update is judged as ``comreg register`` judges a result
-(:func:`~comreg_core.register.judge.judge`: residuals, refit, coverage, on
-at most :data:`VERDICT_POINTS` of the points) with the result's own evidence: the margin of its
-best clinically different pose (and, with a calibration, ``p_correct`` at the sweep's extent)
-or its confidence. A warm result's evidence covers the competitors it carried over from the
-last full search; new ones are found by the next full search. The US calibration's scale is
-checked (the refit's scale scan, ~0.07 s) on full searches only. An OK verdict must also have
-*settled* (:data:`SETTLED_TOLERANCE`): the pose agrees with the last full search made on at
-least ``full_every_mm`` less bone, else the update says CHECK; a partial sweep's pose can slide
-along the shaft by a few millimetres while every other test passes, and the first OK needs two
-full searches. On a sweep spanning under half the CT, an OK verdict also needs its two halves
-to agree (:func:`~comreg_core.registration.search.polish.halves_disagreement_deg` within
-:data:`HALVES_TOLERANCE_DEG`, measured by the full search, kept by the warm updates after it):
-a shaft pins its rotation about its own axis only weakly.
-
-**Prior.** What the operating room knows (a rough initial pose, landmarks touched with a tracked
-pointer: :class:`~comreg_core.registration.search.priors.Prior`) bounds every registration, full or
-warm, as it bounds ``comreg register``'s, and its reasons (a result at its edge, a clearly
-better pose outside it) make the update CHECK. On a long bone's shaft it is what rules out the
-bone reversed end to end before the sweep reaches an end.
-
-**Advice.** ``"enough"`` when the verdict is OK, else which end of the bone to scan towards
-(:func:`scan_advice`).
+- **Warm or full.** An update refines the last result's poses on the grown cloud
+  (:func:`warm_register`) unless the evidence changed: the first registration, the bone covered
+  along the CT grew by :attr:`LiveSession.full_every_mm` since the last full search (not right
+  after one), the warm pose moved beyond :data:`WARM_TOLERANCE`, or its verdict changed; then
+  the full search runs, in the update or in a
+  :class:`~comreg_core.live.background.FullSearchWorker`'s process (mode "warm+full" when its
+  answer is used). The verdict only turns OK, or back to CHECK, on a full search.
+- **Verdict.** The one judge (:func:`~comreg_core.register.judge.judge`) on at most
+  :data:`VERDICT_POINTS` points with the result's own evidence; the scale is checked on full
+  searches only. An OK must also have *settled* (:data:`SETTLED_TOLERANCE` from the full
+  search on ``full_every_mm`` less bone) and, on a short sweep, its two halves must agree
+  (:func:`~comreg_core.registration.search.polish.halves_disagreement_deg` within
+  :data:`HALVES_TOLERANCE_DEG`).
+- **Prior.** An initial pose or landmarks
+  (:class:`~comreg_core.registration.search.priors.Prior`) bound every registration, and their
+  reasons make the update CHECK.
+- **Advice.** ``"enough"`` when OK, else which end of the bone to scan towards
+  (:func:`~comreg_core.registration.search.advice.scan_advice`).
 """
 
 from __future__ import annotations
@@ -57,18 +31,19 @@ from dataclasses import replace
 import numpy as np
 
 from comreg_core.errors import ComRegError
-from comreg_core.registration.search.advice import end_names
+from comreg_core.registration.search.advice import scan_advice
 from comreg_core.register.judge import Evidence, is_short_sweep, judge
 from comreg_core.registration.judgement.calibration import TOLERANCE_DEG, Calibration, extent_share
 from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.registration.search.polish import halves_disagreement_deg
-from comreg_core.registration.search.priors import Prior, prior_allows
+from comreg_core.registration.judgement.prior_reasons import prior_allows
+from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.geometry.surface import ct_length_mm
 from comreg_core.live.background import (FullSearchDone, FullSearchJob, FullSearchWorker,
                                          warm_up_registrar)
 from comreg_core.live.stream import Frame, SweepPoints, coalesce, covered_length_mm
 from comreg_core.live.updates import LiveUpdate
-from comreg_core.transforms import apply_transform, space_change
+from comreg_core.transforms import apply_transform
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +63,6 @@ LIVE_POINTS = 4000
 VERDICT_POINTS = 1000
 #: Frames with bone needed before the first registration.
 MIN_FRAMES_WITH_BONE = 3
-#: An end of the bone counts as reached when the points come this close to it (mm).
-END_REACHED_MM = 15.0
 
 
 def warm_register(registrar, points: np.ndarray, origins: np.ndarray | None, last,
@@ -406,27 +379,3 @@ class LiveSession:
                 len(pts), VERDICT_POINTS, replace=False))]
         return judge(pts, result.T_ct_us, self.registrar.surface, evidence,
                      scale_scan=scale_scan)
-
-
-def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:
-    """Where to scan next: towards the end of the bone the registered points ``(N, 3)`` (CT
-    frame, mm) lie nearer to, along the CT's long axis (``target``: its
-    :class:`~comreg_core.registration.geometry.surface.SurfaceCloud`, centre and axes), or towards the
-    other end when they already reach that one (within :data:`END_REACHED_MM`). The ends are
-    named as anatomy names a limb's: the superior end proximal, the inferior end distal (other
-    axes by their direction, e.g. "the left end")."""
-    axis = target.axes[:, 0]
-    along_ct = (target.points - target.centre) @ axis
-    lo, hi = float(along_ct.min()), float(along_ct.max())
-    along = (points_ct - target.centre) @ axis
-    a, b = float(np.percentile(along, 5)), float(np.percentile(along, 95))
-    plus, minus = end_names(space_change(space, "LPS")[:3, :3] @ axis)
-    towards_plus = 0.5 * (a + b) > 0.5 * (lo + hi)
-    if towards_plus and hi - b < END_REACHED_MM:
-        towards_plus = False
-    elif not towards_plus and a - lo < END_REACHED_MM:
-        towards_plus = True
-    name = plus if towards_plus else minus
-    limb = {"superior": "proximal", "inferior": "distal"}
-    return f"scan towards the {limb.get(name, name)} end" + (
-        f" ({name})" if name in limb else "")

@@ -26,7 +26,8 @@ from comreg_core.register.registrar import Registrar
 from comreg_core.registration.judgement.calibration import Calibration
 from comreg_core.registration.search.config import HypothesisConfig
 from comreg_core.registration.geometry.inputs import MAX_US_POINTS
-from comreg_core.registration.search.priors import Prior, prior_allows
+from comreg_core.registration.judgement.prior_reasons import prior_allows
+from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.result import RegistrationResult
 from comreg_core.registration.geometry.surface import ct_length_mm
 from comreg_core.transforms import apply_transform, check_rigid, invert_rigid
@@ -64,60 +65,21 @@ def register_to_directory(run_dir: str | Path | None,
     ``run_dir`` None, by the pose search alone on the CT mesh ``ct_mesh``); write ``out_dir``.
 
     ``us_points_path`` may be a list of files: several tracked sweeps in one tracker frame,
-    registered as one rigid body. Their points are joined into one cloud (each converted into
-    the CT's space first) and registered once; the beam origins are used only when every file
-    has them (else none are, with a warning). ``sweep``/``sweep_calibration``/``T_us_ref``
-    describe one sweep's points, so they are refused with several files.
+    joined (each in the CT's space) and registered as one rigid body; their beam origins are
+    used only when every file has them. ``sweep``/``sweep_calibration``/``T_us_ref`` describe
+    one sweep's points (the report draws its frames). ``calibration``: the verdict's
+    calibration file (default: the run folder's own), checked before any work and against the
+    CT. ``prior``: an initial pose and/or landmarks (:func:`~comreg_core.register.inputs.
+    load_prior`): the search keeps to it, and its reasons join the verdict's.
 
-    Files (written once the registration and its verdict are done, each atomically;
-    ``result.json`` last):
-
-    - ``transform.tfm``: ``T_ct_us`` as an ITK transform (LPS, ITK's resampling direction, as
-      3D Slicer writes it: :func:`comreg_core.io.save_transform`).
-    - ``registered_us.ply``: the US points mapped into the CT frame (CT space tag); with several
-      inputs all of them, and each input's alone in ``registered_us_<k>.ply`` (k = 1, 2, ...).
-    - ``completion_ct.ply``: the completed bone in the CT frame (not without a network).
-    - ``config.yaml``: inputs and settings (run folder, US file, device, seed, ICP points, the
-      hypotheses settings).
-    - ``result.json``: ``T_ct_us``, ``T_ct_us_coarse`` (4x4 mm), ``timings_s`` (per stage),
-      ``runtime_s``, ``device``, ``seed``, ``n_points``, ``residuals_mm``, ``icp_rmse_mm``,
-      ``confidence``, ``ambiguous`` and ``hypotheses`` (:meth:`RegistrationResult.to_json`;
-      null with ``hypotheses=False``), ``verdict`` ("ok"/"check"), ``verdict_reasons`` and
-      ``verdict_figures`` (:mod:`comreg_core.registration.judgement.verdict`), ``space``,
-      ``ct_fingerprint``, ``run_dir``, ``us_points`` (a path; a list of paths with several
-      inputs) and ``ct_mesh`` (absolute paths, so ``comreg report`` works from any directory),
-      ``us_inputs`` (per input: ``path``, ``n_points``, ``beam_origins``, ``residuals_mm`` of its
-      points after registration, ``registered_us``), ``files``, and ``sweep`` (null, or the
-      tracked sweep the points came from: ``path``, ``calibration`` and ``T_us_ref``, the
-      ``(4, 4)`` map from its reference frame to the US points' frame, identity for points
-      straight from ``comreg extract-us``), from which the report draws B-mode frames with the
-      registered CT contour; ``prior`` (null, or with a ``prior``: where the result lies in it,
-      :func:`~comreg_core.registration.search.priors.prior_record`: ``init_file``, ``max_deg``,
-      ``max_mm``, ``landmarks``, ``rotation_from_init_deg``, ``shift_from_init_mm``,
-      ``at_edge``, ``reasons``, ...). Strict JSON: a number that is not finite is null, and
-      ``null_reasons`` says where and why (:mod:`comreg_core.io.json_files`).
-
-    ``calibration``: the verdict's calibration file (default: the run folder's own), checked
-    before any work (:meth:`Calibration.load`; and :meth:`Calibration.check_ct` against the
-    CT registered to, once it is loaded).
-
-    ``prior``: an initial pose and/or landmarks (:func:`load_prior` reads them from files):
-    the search keeps to it, and its reasons (a result at the edge of a tolerance, ...) are
-    added to the verdict's, which is then CHECK (:mod:`comreg_core.register.judge`).
-
-    The US cloud is converted into the CT's patient space first (PLY/PCD ``SPACE=`` tag).
-    ``out_dir`` is checked before any work (:func:`~comreg_core.io._files.check_output_folder`:
-    never a run folder or inside one, never an input, writable).
+    Files (each written atomically once the result and its verdict are known, ``result.json``
+    last; their contents: docs/guide.md, "result.json"): ``transform.tfm`` (``T_ct_us``, ITK,
+    LPS), ``registered_us.ply`` (and ``registered_us_<k>.ply`` per input), ``completion_ct.ply``
+    (with a network), ``config.yaml`` (a valid ``--config``) and ``result.json`` (strict JSON).
+    ``out_dir`` is checked before any work (never a run folder, never an input, writable).
     """
-    if run_dir is None and ct_mesh is None:
-        raise ComRegError("Nothing to register to: no CT mesh and no pretrained run.",
-                          "Give the CT bone mesh (--ct CT_MESH), and a run (--model RUN_DIR) "
-                          "to use the network too.")
     paths = input_paths(us_points_path)
-    if len(paths) > 1 and any(x is not None for x in (sweep, sweep_calibration, T_us_ref)):
-        raise ComRegError(f"--sweep and --calibration describe one sweep's points, but "
-                          f"{len(paths)} US points files were given.",
-                          "Drop --sweep/--calibration, or register one US points file.")
+    _check_request(run_dir, ct_mesh, paths, (sweep, sweep_calibration, T_us_ref))
     out = check_output_folder(out_dir, inputs=[run_dir, *paths, ct_mesh])
     sweep_record = _sweep_record(sweep, sweep_calibration, T_us_ref)
     calibration_file = calibration_path(calibration, run_dir)
@@ -134,25 +96,15 @@ def register_to_directory(run_dir: str | Path | None,
     inputs_record = input_records(paths, clouds, result, registrar)
     result.info["us_inputs"] = inputs_record
     files = _output_files(registrar, inputs_record)
-    given = [str(path) for path in paths]
-    inputs = {"run_dir": None if run_dir is None else str(run_dir),
-              "us_points": given[0] if len(given) == 1 else given,
-              "device": device, "seed": int(seed),
-              "icp_points": None if registrar.model is None
-              else registrar.model.config.icp.num_points,
-              "ct_mesh": None if ct_mesh is None else str(ct_mesh),
-              "beam_origins": origins is not None,
-              "prior": None if prior is None else prior_inputs(prior)}
-    settings = {"hypotheses": to_dict(registrar.hypothesis_config), "inputs": inputs}
+    settings = {"hypotheses": to_dict(registrar.hypothesis_config),
+                "inputs": _inputs_setting(run_dir, paths, device, seed, registrar, ct_mesh,
+                                          origins is not None, prior)}
     allowed = None
     if prior is not None:  # the competitor is looked for among the poses the prior allows
         allowed = prior_allows(prior.in_space(registrar.space), result)
     verdict, evidence = registration_verdict(result, registrar, calibration_record, allowed)
     payload = {**result.to_json(), **verdict.to_json(), **evidence.to_json(),
-               "calibration": None if calibration_record is None else {
-                   "sweeps": calibration_record.sweeps,
-                   "correct_share": calibration_record.correct_share,
-                   "ok_probability": calibration_record.ok_probability},
+               "calibration": _calibration_summary(calibration_record),
                "space": registrar.space,
                "beam_origins_used": origins is not None,
                "ct_fingerprint": registrar.fingerprint,
@@ -163,6 +115,48 @@ def register_to_directory(run_dir: str | Path | None,
                "ct_mesh": None if ct_mesh is None else str(Path(ct_mesh).absolute()),
                "sweep": sweep_record, "prior": result.info.get("prior"), "files": files}
     _write_outputs(out, files, result, registrar, clouds, settings, payload)
+    _log_outcome(result, registrar, verdict, out)
+    return result
+
+
+def _check_request(run_dir, ct_mesh, paths: list[Path], one_sweep: tuple) -> None:
+    """Refuse what cannot be registered: no CT and no run; a sweep's record (``one_sweep``:
+    sweep, its calibration, ``T_us_ref``) with several US points files."""
+    if run_dir is None and ct_mesh is None:
+        raise ComRegError("Nothing to register to: no CT mesh and no pretrained run.",
+                          "Give the CT bone mesh (--ct CT_MESH), and a run (--model RUN_DIR) "
+                          "to use the network too.")
+    if len(paths) > 1 and any(x is not None for x in one_sweep):
+        raise ComRegError(f"--sweep and --calibration describe one sweep's points, but "
+                          f"{len(paths)} US points files were given.",
+                          "Drop --sweep/--calibration, or register one US points file.")
+
+
+def _inputs_setting(run_dir, paths: list[Path], device: str, seed: int, registrar: Registrar,
+                    ct_mesh, beam_origins: bool, prior: Prior | None) -> dict:
+    """``config.yaml``'s ``inputs:`` record."""
+    given = [str(path) for path in paths]
+    return {"run_dir": None if run_dir is None else str(run_dir),
+            "us_points": given[0] if len(given) == 1 else given,
+            "device": device, "seed": int(seed),
+            "icp_points": None if registrar.model is None
+            else registrar.model.config.icp.num_points,
+            "ct_mesh": None if ct_mesh is None else str(ct_mesh),
+            "beam_origins": beam_origins,
+            "prior": None if prior is None else prior_inputs(prior)}
+
+
+def _calibration_summary(calibration: Calibration | None) -> dict | None:
+    """``result.json``'s ``calibration``: what the verdict's calibration was fitted on."""
+    if calibration is None:
+        return None
+    return {"sweeps": calibration.sweeps, "correct_share": calibration.correct_share,
+            "ok_probability": calibration.ok_probability}
+
+
+def _log_outcome(result: RegistrationResult, registrar: Registrar, verdict, out: Path) -> None:
+    """Log what a user should know: time and place, the run's warnings, a CHECK verdict and
+    an ambiguous result."""
     log.info("Registered %d points in %.3f s (%s); result in '%s'", result.n_points,
              result.runtime_s, result.device, out)
     for warning in registrar.warnings:
@@ -174,7 +168,6 @@ def register_to_directory(run_dir: str | Path | None,
                     "of '%s' (confidence %.2f); check the result visually.",
                     result.hypotheses.runner_up, result.hypotheses.score_gap_mm,
                     result.hypotheses.chosen, result.confidence)
-    return result
 
 
 def _registrar(run_dir, ct_mesh, device: str, icp_points, hypotheses) -> Registrar:

@@ -11,13 +11,13 @@ from typing import Sequence
 
 import numpy as np
 
-from comreg_core.errors import ComRegError
+from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.io import PointCloud
 from comreg_core.io._files import require_near_origin
 from comreg_core import runs
 from comreg_core.registration.judgement.calibration import Calibration
-from comreg_core.registration.search.priors import Prior
-from comreg_core.transforms import check_rigid
+from comreg_core.registration.search.priors import DEFAULT_LANDMARK_TOLERANCE_MM, Landmark, Prior
+from comreg_core.transforms import apply_transform, check_rigid, space_change
 
 log = logging.getLogger(__name__)
 
@@ -93,9 +93,7 @@ def load_prior(init: str | Path | None = None, init_tolerance=None,
     from comreg_core.errors import InvalidTransformError
     from comreg_core.io.markups import read_markups
     from comreg_core.io.transform_files import load_transform
-    from comreg_core.registration.search.priors import (DEFAULT_LANDMARK_TOLERANCE_MM,
-                                                        DEFAULT_MAX_DEG, DEFAULT_MAX_MM,
-                                                        match_landmarks)
+    from comreg_core.registration.search.priors import DEFAULT_MAX_DEG, DEFAULT_MAX_MM
 
     if init is None and init_tolerance is not None:
         raise ComRegError("--init-tolerance was given without an initial pose.",
@@ -175,3 +173,45 @@ def parse_tolerance(text: str) -> tuple[float, float]:
                           "Give two numbers, degrees then millimetres, e.g. "
                           "--init-tolerance 30,30.") from None
     return deg, mm
+
+
+def match_landmarks(ct, us, *, default_tolerance_mm: float = DEFAULT_LANDMARK_TOLERANCE_MM,
+                    space: str = "LPS") -> tuple[Landmark, ...]:
+    """Pair the CT and US landmarks by label (objects with ``labels``, ``points`` ``(N, 3)``,
+    ``space``, ``tolerances_mm`` and ``path``: :class:`comreg_core.io.markups.Markups`), both
+    taken to ``space``. A pair's tolerance: its description's (``tol=5``; the smaller of the
+    two when both have one), else ``default_tolerance_mm``.
+
+    Raises:
+        ComRegError: a label twice in one file, a label in only one of them, no pair.
+    """
+    sides = []
+    for what, markups in (("CT", ct), ("US", us)):
+        labels = list(markups.labels)
+        twice = sorted({label for label in labels if labels.count(label) > 1})
+        if twice:
+            raise InvalidGeometryError(
+                f"The {what} landmarks ('{markups.path}') name '{twice[0]}' more than once.",
+                "Give each landmark its own label: the labels pair CT and US landmarks.")
+        points = apply_transform(space_change(markups.space, space), markups.points)
+        tolerances = list(markups.tolerances_mm) or [None] * len(labels)
+        sides.append({label: (p, t) for label, p, t in zip(labels, points, tolerances)})
+    only_ct = [label for label in sides[0] if label not in sides[1]]
+    only_us = [label for label in sides[1] if label not in sides[0]]
+    if only_ct or only_us:
+        parts = ([f"{_names(only_ct)} only in the CT landmarks ('{ct.path}')"] if only_ct
+                 else []) + ([f"{_names(only_us)} only in the US landmarks ('{us.path}')"]
+                             if only_us else [])
+        raise InvalidGeometryError(f"The landmarks do not pair up: {'; '.join(parts)}.",
+                                   "Give each landmark the same label in both files.")
+    pairs = []
+    for label, (ct_point, ct_tol) in sides[0].items():
+        us_point, us_tol = sides[1][label]
+        given = [t for t in (ct_tol, us_tol) if t is not None]
+        pairs.append(Landmark(label, ct_point, us_point,
+                              min(given) if given else float(default_tolerance_mm)))
+    return tuple(pairs)
+
+
+def _names(labels: list[str]) -> str:
+    return ", ".join(f"'{label}'" for label in labels)

@@ -46,7 +46,7 @@ class Evidence:
         p_correct: the calibrated probability that the pose is within 4 mm / 5 deg, or None
             without a calibration.
         ok_probability: the least ``p_correct`` that is OK (the calibration's).
-        prior: the prior's record (:func:`~comreg_core.registration.search.priors.prior_record`) or
+        prior: the prior's record (:func:`~comreg_core.registration.judgement.prior_reasons.prior_record`) or
             None.
     """
 
@@ -96,15 +96,15 @@ class Evidence:
 
 
 def judge(points_us: np.ndarray, T_ct_us: np.ndarray, ct_surface, evidence: Evidence, *,
-          scale_scan: bool = True, distances: np.ndarray | None = None) -> Verdict:
+          scale_scan: bool = True) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` mm) for the ``(n, 3)`` US points (US frame, mm)
     on the CT (anything :func:`~comreg_core.registration.geometry.surface.as_surface` takes), with the
     registration's ``evidence``. ``scale_scan=False`` leaves out the scale check (a live warm
-    update); ``distances``: the registered points' distances to the CT if known (mm)."""
+    update)."""
     verdict = judge_registration(points_us, T_ct_us, ct_surface,
                                  confidence=evidence.confidence, ambiguous=evidence.ambiguous,
                                  p_correct=evidence.p_correct,
                                  ok_probability=evidence.ok_probability,
                                  short_sweep=is_short_sweep(evidence.extent_share),
-                                 scale_scan=scale_scan, distances=distances)
+                                 scale_scan=scale_scan)
     return with_prior_reasons(verdict, evidence.prior)

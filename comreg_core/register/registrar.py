@@ -33,7 +33,8 @@ from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
 from comreg_core.registration.geometry.inputs import (beam_origins_for, limit_us_points,
                                                       subset_notice)
 from comreg_core.registration.search.network_starts import add_network_starts
-from comreg_core.registration.search.priors import Prior, prior_record
+from comreg_core.registration.judgement.prior_reasons import prior_record
+from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.result import RegistrationResult, residual_statistics
 from comreg_core.registration.search.scoring import HypothesisResult
 from comreg_core.registration.search.search import principal_axes_pose, us_subset_indices
@@ -204,7 +205,7 @@ class Registrar:
                 tolerances, landmark pairs; in any space, taken to the CT's) or None. The
                 search then starts around it and keeps only poses within it (without a
                 network ``T_init`` replaces the principal-axes start); ``info["prior"]`` is
-                its record (:func:`~comreg_core.registration.search.priors.prior_record`: where the
+                its record (:func:`~comreg_core.registration.judgement.prior_reasons.prior_record`: where the
                 result lies in it, ``at_edge``, ``reasons`` for the verdict).
             warm_start: an earlier result of this registrar for the same sweep before it grew
                 (live registration): its poses are refined on ``points`` instead of a full
@@ -221,46 +222,17 @@ class Registrar:
                 raise ComRegError("An initial pose or landmarks need the pose search, which is "
                                   "turned off.", "Drop --no-hypotheses (hypotheses=False).")
             prior = prior.in_space(self.space)
-        t = {}
+        if warm_start is not None and (warm_start.hypotheses is None or not hyp_cfg.enabled):
+            raise ComRegError("A warm start needs the pose search, on in both registrations.",
+                              "Register with hypotheses on.")
+        t: dict[str, float] = {}
         start = time.perf_counter()
-        n_given = len(points) if hasattr(points, "__len__") else None
-        origins = None
-        if beam_origins is not None:  # subset both alike (above MAX_US_POINTS)
-            both = np.hstack([as_points(points, "US points"),
-                              beam_origins_for(beam_origins, len(points))])
-            both = limit_us_points(both, seed)
-            points, origins = both[:, :3], both[:, 3:]
-        pts = self.check_points(points, seed)  # before the CT side is prepared
+        pts, origins, warnings = self._inputs(points, beam_origins, seed)
         check_s = time.perf_counter() - start
-        if self.network is not None:
-            self.network.encoding  # cached CT half: not part of a registration's time
-        target = self.hypothesis_target(hyp_cfg.target_points) if hyp_cfg.enabled else None
-        if target is not None and hyp_cfg.refine_top:
-            target.closest_point_grid  # built once per CT: not part of a registration's time
-        mesh_refine = self.network is not None and self.network.model.config.icp.mesh_refine
-        if (target is not None or mesh_refine) and self.surface is not None:
-            self.surface.closest(self.ct_points[:1])  # likewise (its KD-tree)
+        target = self._prepare_ct(hyp_cfg)  # built once per CT: not part of the time
         start = time.perf_counter() - check_s  # the checks count as preprocessing
-        warnings = list(self.warnings)
-        if n_given is not None and n_given > len(pts):
-            warnings.append(subset_notice(n_given, len(pts)))
-        if warm_start is not None:
-            if warm_start.hypotheses is None or not hyp_cfg.enabled:
-                raise ComRegError("A warm start needs the pose search, on in both "
-                                  "registrations.", "Register with hypotheses on.")
-            T = T_coarse = warm_start.T_ct_us
-            dense, icp_rmse = None, float("nan")
-            t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
-                     icp=0.0, postprocess=0.0)
-        elif self.network is None:
-            T = T_coarse = search_start(pts, target, prior)
-            dense, icp_rmse = None, float("nan")
-            t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
-                     icp=0.0, postprocess=0.0)
-        else:
-            answer = self.network.pose(pts, seed, self.surface, t, start)
-            T, T_coarse, dense, icp_rmse = (answer.T_ct_us, answer.T_coarse, answer.completion,
-                                            answer.icp_rmse_mm)
+        T, T_coarse, dense, icp_rmse = self._start_pose(pts, target, prior, warm_start, seed,
+                                                        t, start)
         hyp, t["hypotheses"] = None, 0.0
         if hyp_cfg.enabled:
             mark = time.perf_counter()
@@ -284,7 +256,64 @@ class Registrar:
         mark = time.perf_counter()
         residuals = self.residuals(registered) if residuals else {}
         t["residuals"] = time.perf_counter() - mark
-        info = {"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(t),
+        info = self._info(T, T_coarse, t, residuals, warnings, hyp, warm_start, prior, pts,
+                          hyp_cfg)
+        return RegistrationResult(
+            T_ct_us=T, T_ct_us_coarse=T_coarse, registered_points=registered,
+            completion_ct=completion_ct, timings=t, runtime_s=t["total"],
+            device=self.device, seed=int(seed), residuals=residuals,
+            icp_rmse=icp_rmse, n_points=len(pts), hypotheses=hyp, info=info)
+
+    def _inputs(self, points, beam_origins, seed: int):
+        """``(points (N, 3), beam origins (N, 3) or None, warnings)``: the US cloud checked
+        (:meth:`check_points`), points and origins subset alike above ``MAX_US_POINTS``."""
+        n_given = len(points) if hasattr(points, "__len__") else None
+        origins = None
+        if beam_origins is not None:  # subset both alike (above MAX_US_POINTS)
+            both = np.hstack([as_points(points, "US points"),
+                              beam_origins_for(beam_origins, len(points))])
+            both = limit_us_points(both, seed)
+            points, origins = both[:, :3], both[:, 3:]
+        pts = self.check_points(points, seed)  # before the CT side is prepared
+        warnings = list(self.warnings)
+        if n_given is not None and n_given > len(pts):
+            warnings.append(subset_notice(n_given, len(pts)))
+        return pts, origins, warnings
+
+    def _prepare_ct(self, config: HypothesisConfig) -> SurfaceCloud | None:
+        """The search's CT cloud (None with the search off), with everything a registration
+        reads built once per CT: the network's CT half, the closest-point grid, the mesh's
+        KD-tree."""
+        if self.network is not None:
+            self.network.encoding  # cached CT half
+        target = self.hypothesis_target(config.target_points) if config.enabled else None
+        if target is not None and config.refine_top:
+            target.closest_point_grid
+        mesh_refine = self.network is not None and self.network.model.config.icp.mesh_refine
+        if (target is not None or mesh_refine) and self.surface is not None:
+            self.surface.closest(self.ct_points[:1])
+        return target
+
+    def _start_pose(self, pts, target, prior, warm_start, seed: int, t: dict[str, float],
+                    start: float):
+        """``(T_ct_us, T_coarse (4, 4), completion (M, 3) US frame or None, ICP RMS mm)``
+        before the search: the warm start's pose, the search's own start, or the network's
+        answer; stage times into ``t``."""
+        if warm_start is not None or self.network is None:
+            T = warm_start.T_ct_us if warm_start is not None else search_start(pts, target,
+                                                                                prior)
+            t.update(preprocess=time.perf_counter() - start, completion_and_coarse_pose=0.0,
+                     icp=0.0, postprocess=0.0)
+            return T, T, None, float("nan")
+        answer = self.network.pose(pts, seed, self.surface, t, start)
+        return answer.T_ct_us, answer.T_coarse, answer.completion, answer.icp_rmse_mm
+
+    @staticmethod
+    def _info(T, T_coarse, timings, residuals, warnings, hyp, warm_start, prior, pts,
+              config: HypothesisConfig) -> dict:
+        """The result's ``info``: the coarse pose, timings, residuals, warnings, the search's
+        record and flags, and the prior's record."""
+        info = {"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(timings),
                 "residuals_mm": residuals, "warnings": warnings,
                 "hypotheses": None if hyp is None else hyp.to_json(),
                 "warm_start": warm_start is not None}
@@ -292,13 +321,9 @@ class Registrar:
             info.update(ambiguous=hyp.ambiguous, confidence=hyp.confidence)
         if prior is not None:
             info["prior"] = prior_record(prior, T, pts.mean(axis=0), hyp,
-                                         min_confidence=hyp_cfg.min_confidence,
-                                         score_floor_mm=hyp_cfg.score_floor_mm)
-        return RegistrationResult(
-            T_ct_us=T, T_ct_us_coarse=T_coarse, registered_points=registered,
-            completion_ct=completion_ct, timings=t, runtime_s=t["total"],
-            device=self.device, seed=int(seed), residuals=residuals,
-            icp_rmse=icp_rmse, n_points=len(pts), hypotheses=hyp, info=info)
+                                         min_confidence=config.min_confidence,
+                                         score_floor_mm=config.score_floor_mm)
+        return info
 
     __call__ = register
 

@@ -114,7 +114,7 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
     truly lie in the CT (tracking -> CT; identity: as given)."""
     from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
     from comreg_core.register.folder import registration_verdict
-    from comreg_core.registration.search.priors import prior_allows
+    from comreg_core.registration.judgement.prior_reasons import prior_allows
     from comreg_core.registration.judgement.verdict import with_prior_reasons
     from comreg_core.registration.geometry.metrics import registration_metrics
     from comreg_core.registration.geometry.surface import CTSurface

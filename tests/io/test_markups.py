@@ -13,7 +13,7 @@ from comreg_core.errors import (ComRegError, CorruptFileError, InputFileNotFound
                                 InvalidGeometryError, UnsupportedFormatError)
 from comreg_core.io import describe_file
 from comreg_core.io.markups import read_markups
-from comreg_core.registration.search.priors import match_landmarks
+from comreg_core.register.inputs import match_landmarks
 from tests.helpers import assert_close
 
 #: Known points in LPS (mm) and their labels; "knee" carries its own tolerance.

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.live.session import LiveSession, scan_advice
+from comreg_core.live.session import LiveSession
+from comreg_core.registration.search.advice import scan_advice
 from comreg_core.live.updates import UPDATE_COLUMNS, UpdatesLog, read_updates, row_transform
 from comreg_core.live.stream import Frame
 from tests.helpers import assert_close

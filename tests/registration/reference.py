@@ -12,7 +12,7 @@ def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: 
                                 ) -> np.ndarray:
     """Exact closest point of each point ``p[i]`` on triangle ``(a[i], b[i], c[i])`` (all
     ``(..., 3)``), by the Voronoi-region tests of Ericson, *Real-Time Collision Detection*, 5.1.5,
-    vectorised (the code ``kernels.closest_on_candidates`` replaced): its reference."""
+    vectorised (the code ``mesh_kernels.closest_on_candidates`` replaced): its reference."""
     dot = lambda u, v: np.einsum("...j,...j->...", u, v)  # noqa: E731
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = dot(ab, ap), dot(ac, ap)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from comreg_core.registration.geometry import kernels
+from comreg_core.registration.geometry import kernels, mesh_kernels
 from comreg_core.registration.search.config import HypothesisConfig
 from comreg_core.registration.geometry.icp import point_to_plane_icp, strided
 from comreg_core.registration.search.scoring import score_poses
@@ -119,7 +119,7 @@ def test_closest_on_candidates_matches_the_numpy_voronoi_tests(fibula_surface):
     vertices, faces = fibula_surface.vertices, fibula_surface.faces
     points = vertices[rng.integers(0, len(vertices), 300)] + rng.normal(size=(300, 3)) * 3.0
     candidates = rng.integers(0, len(faces), size=(300, 8))
-    closest, face, dist = kernels.closest_on_candidates(points, candidates, vertices, faces)
+    closest, face, dist = mesh_kernels.closest_on_candidates(points, candidates, vertices, faces)
     tri = vertices[faces[candidates]]
     q = closest_points_on_triangles(points[:, None], tri[..., 0, :], tri[..., 1, :],
                                     tri[..., 2, :])

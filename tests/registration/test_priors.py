@@ -14,7 +14,8 @@ from comreg_core.register import Registrar
 from comreg_core.io import save_transform
 from comreg_core.register import load_prior
 from comreg_core.registration.geometry.metrics import registration_metrics
-from comreg_core.registration.search.priors import Landmark, Prior, prior_record
+from comreg_core.registration.judgement.prior_reasons import prior_record
+from comreg_core.registration.search.priors import Landmark, Prior
 from comreg_core.registration.search.search import rotation_about
 from comreg_core.registration.judgement.verdict import Verdict, with_prior_reasons
 from comreg_core.simulation import sample_initial_pose

@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration.geometry import kernels
+from comreg_core.registration.geometry import mesh_kernels
 from comreg_core.registration.geometry.surface import (CTSurface, SurfaceCloud, estimate_normals,
                                                        sample_triangles)
 from tests.helpers import BOX_CENTRE, assert_close, box_distance
@@ -61,7 +61,7 @@ def test_closest_point_on_a_triangle_in_every_region():
              (4.0, 3, 0): tuple(np.array([4.0, 0, 0]) + np.array([-4.0, 3, 0]) * (
                  np.dot([0.0, 3, 0], [-4.0, 3, 0]) / 25))}
     for p, expected in cases.items():
-        got = np.array(kernels._closest_on_triangle(np.array(p), np.stack([a, b, c]),
+        got = np.array(mesh_kernels._closest_on_triangle(np.array(p), np.stack([a, b, c]),
                                                     np.array([0, 1, 2])))
         assert_close(got, expected, atol=1e-12, what=f"closest point to {p}")
 

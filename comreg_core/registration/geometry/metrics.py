@@ -49,7 +49,7 @@ import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration.geometry.surface import as_surface
-from comreg_core.transforms import apply_transform, as_points, check_rigid
+from comreg_core.transforms import apply_transform, as_points, check_rigid, matmul
 
 #: success: RTE strictly below this (mm) ...
 SUCCESS_RTE_MM = 2.0
@@ -80,10 +80,19 @@ def rotation_error_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
     """
     R_est = _rotation(R_est, "estimated rotation")
     R_true = _rotation(R_true, "ground-truth rotation")
-    R = R_est.T @ R_true
-    cos = (np.trace(R) - 1.0) / 2.0
-    sin = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return float(np.degrees(np.arctan2(sin, cos)))
+    return float(rotation_angles_deg(R_est[None], R_true)[0])
+
+
+def rotation_angles_deg(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
+    """``(B,)`` angles (deg) of :func:`rotation_error_deg` between each of ``(B, 3, 3)`` (or
+    ``(B, 4, 4)``) rotations and one ``(3, 3)`` (or ``(4, 4)``), in a fixed order of operations
+    (the same bits on every CPU: no BLAS)."""
+    R_est = np.asarray(R_est, dtype=np.float64)[:, :3, :3]
+    R = matmul(np.swapaxes(R_est, 1, 2), np.asarray(R_true, dtype=np.float64)[:3, :3])
+    cos = ((R[:, 0, 0] + R[:, 1, 1]) + R[:, 2, 2] - 1.0) / 2.0
+    v = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]])
+    sin = 0.5 * np.sqrt((v[0] * v[0] + v[1] * v[1]) + v[2] * v[2])
+    return np.degrees(np.arctan2(sin, cos))
 
 
 def _rotation(R, what: str) -> np.ndarray:

@@ -8,7 +8,7 @@
 - :class:`SurfaceCloud`: dense points on the surface with normals, a KD-tree and a
   closest-point grid: the target of the pose search's ICP and its score.
 - :func:`sample_triangles`, :func:`estimate_normals`, :func:`principal_frame`: the geometry
-  underneath (exact closest points on triangles: ``kernels.closest_on_candidates``).
+  underneath (exact closest points on triangles: ``mesh_kernels.closest_on_candidates``).
 
 Numpy, scipy, pykdtree and VTK only: no torch, nothing above ``io`` in this package's layers.
 """
@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration.geometry import kernels
+from comreg_core.registration.geometry import kernels, mesh_kernels
 from comreg_core.io.meshes import SurfaceMesh, read_mesh
 from comreg_core.transforms import as_points, project, symmetric_eigen3
 
@@ -220,7 +220,7 @@ class _ClosestPoints:
             idx = np.where(np.isfinite(d[ok]), idx[ok], idx[ok][:, :1])
             faces = self.sample_face[idx]  # (n_ok, k)
             with kernels.PARALLEL:
-                closest[ok], face, dist[ok] = kernels.closest_on_candidates(
+                closest[ok], face, dist[ok] = mesh_kernels.closest_on_candidates(
                     np.ascontiguousarray(points[ok], dtype=np.float64),
                     np.ascontiguousarray(faces, dtype=np.int64), self.vertices, self.faces)
             normals[ok] = self.face_normals[face]

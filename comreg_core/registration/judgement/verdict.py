@@ -1,7 +1,7 @@
 """The verdict of a registration, from its files alone: ``OK`` or ``CHECK``, with reasons in words.
 
 Inputs: the US points as received, the transform ``T_ct_us`` (mm) and the CT bone mesh; plus the
-pose check's ``confidence`` / ``ambiguous`` when the hypotheses stage ran. No ground truth, no
+pose search's ``confidence`` / ``ambiguous`` when it ran. No ground truth, no
 network. :func:`judge_registration` computes these figures (all distances in mm, exact
 point-to-triangle distances of :class:`~comreg_core.registration.geometry.surface.CTSurface`):
 
@@ -23,36 +23,12 @@ point-to-triangle distances of :class:`~comreg_core.registration.geometry.surfac
 
 ``CHECK`` when any figure is beyond its threshold (:class:`VerdictThresholds`), else ``OK``.
 
-How the thresholds were chosen (``scripts/calibrate_verdict.py``, shared fibula CT, 404 mm long):
-the shared real fibula sweep (9.5k points from its 111 B-mode frames; poses: recorded tracking,
-and ICP from it, which is what a correct ComReg registration gives) and 4 simulated sweeps
-(paper's simulator, seeds 100-103; 3 % false echoes), each judged at its true pose and with the
-failures the issue names: the cloud slid 10 / 20 mm along the bone's long axis, and scaled about
-its centroid by 0.85 / 0.90 / 1.10 / 1.15 (then rigidly ICP-fitted: the best a rigid
-registration can do with that cloud). Measured (median / p90 / within 2 mm / refit shift /
-refit scale):
-
-- correct, simulated: 0.00-0.01 mm / 0.01 mm / 0.97 / < 0.1 mm / 1.000;
-- correct, real: ICP from the recorded pose 0.29 mm / 0.88 mm / 0.95 / 0.2 mm / 1.00; the
-  recorded pose itself 0.42 / 1.21 / 0.95 / 3.3 mm / 1.00 (OK too); coverage 0.19-0.20;
-- slide 10 / 20 mm, real: refit shift 6.9-10.2 / 16.8-22.6 mm, p90 2.0-4.9 mm;
-- scale 0.85 / 0.90 / 1.10 / 1.15 after rigid ICP, real: median 0.39-0.71 mm (as low as the
-  correct pose's), best scale 1.16 / 1.08 / 0.92 / 0.88, fitting 19-58 % closer than scale 1;
-- slide 20 mm, simulated: median 0.35-0.69 mm, p90 2.0-6.6 mm, within 2 mm 0.77-0.90, refit
-  shift ~20 mm;
-- scale 0.85 / 1.15 after rigid ICP, simulated: median 0.19-0.54 mm, p90 0.65-12.7 mm: the
-  residuals alone do *not* separate a 15 % scale error from the real sweep's noise; the refit
-  scale does.
-
-The residual limits sit well above the real sweep's own noise (US detection error, tracking) so
-that correct registrations of real sweeps pass, the refit-shift limit above the ~3 mm the
-recorded real pose is from its ICP optimum, and the scale limit halfway between the correct
-sweeps' worst and a 10 % calibration error.
+How the thresholds were chosen: docs/calibration.md ("The verdict's fixed limits").
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -128,8 +104,7 @@ class Verdict:
 def judge_registration(us_points, T_ct_us, ct_surface, *, confidence: float | None = None,
                        ambiguous: bool | None = None, p_correct: float | None = None,
                        ok_probability: float = 0.95, short_sweep: bool = False,
-                       thresholds: VerdictThresholds = DEFAULT_THRESHOLDS,
-                       distances: np.ndarray | None = None, scale_scan: bool = True) -> Verdict:
+                       scale_scan: bool = True) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` rigid, mm) for ``us_points`` (``(N, 3)`` mm, as
     received) on ``ct_surface`` (anything :func:`~comreg_core.registration.geometry.surface.as_surface`
     takes). ``confidence``/``ambiguous``: the pose check's, None when it did not run.
@@ -139,20 +114,19 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, confidence: float | No
     ``p_correct`` estimates). ``short_sweep``: a sweep spanning under half the CT's length,
     whose best-fitting scale says nothing (a short stretch of shaft fits at many scales: at
     their true pose 4 of 11 real 30-60 mm fibula runs fit 16-25 % closer scaled by 0.8-1.16), so
-    the scale check is left out. ``distances``: the registered points' distances to the CT if
-    already computed (mm). ``scale_scan=False`` skips the refit's scale scan and so the scale
+    the scale check is left out. ``scale_scan=False`` skips the refit's scale scan and so the scale
     check (``refit_scale`` and ``refit_scale_gain`` are None; a short sweep ignores them
     anyway): a live update's verdict, up to ~0.1 s sooner."""
     surface = as_surface(ct_surface)
     points = apply_transform(check_rigid(T_ct_us), as_points(us_points, "US points"))
-    d = surface.distance(points) if distances is None else np.asarray(distances, np.float64)
+    d = surface.distance(points)
     shift, scale, gain = refit(points, surface, scale_scan=scale_scan)
     figures = {"median_mm": float(np.median(d)), "p90_mm": float(np.percentile(d, 90)),
                "within_2mm": float(np.mean(d <= NEAR_MM)), "coverage": coverage(points, surface),
                "refit_shift_mm": shift, "refit_scale": scale, "refit_scale_gain": gain,
                "confidence": None if confidence is None else float(confidence),
                "p_correct": None if p_correct is None else float(p_correct)}
-    reasons = _reasons(figures, bool(ambiguous), thresholds, ok_probability, short_sweep)
+    reasons = _reasons(figures, bool(ambiguous), DEFAULT_THRESHOLDS, ok_probability, short_sweep)
     return Verdict("check" if reasons else "ok", reasons, figures)
 
 
@@ -269,14 +243,9 @@ def _fit_score(points: np.ndarray, cloud, gate_mm: float) -> float:
     return float(r[r <= np.quantile(r, 0.9)].mean())
 
 
-def thresholds_json(th: VerdictThresholds = DEFAULT_THRESHOLDS) -> dict:
-    """The thresholds as a JSON-able dict."""
-    return asdict(th)
-
-
 def with_prior_reasons(verdict, record: dict | None):
     """``verdict`` (:class:`Verdict`) with the prior's
-    ``reasons`` (:func:`~comreg_core.registration.search.priors.prior_record`: a result at the edge of
+    ``reasons`` (:func:`~comreg_core.registration.judgement.prior_reasons.prior_record`: a result at the edge of
     a tolerance, a clearly better pose outside the prior, no pose within it) appended and
     then ``"check"``; unchanged without a prior or reasons. The figures gain ``prior_at_edge``.
     """

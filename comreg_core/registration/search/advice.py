@@ -16,7 +16,7 @@ import numpy as np
 
 from comreg_core.registration.geometry.metrics import rotation_error_deg
 from comreg_core.registration.geometry.surface import SurfaceCloud
-from comreg_core.transforms import apply_transform
+from comreg_core.transforms import apply_transform, space_change
 
 #: Poses turned apart by less than this (deg) differ by a slide along the bone.
 SLIDE_ONLY_DEG = 30.0
@@ -75,3 +75,31 @@ def ambiguity_advice(T_chosen: np.ndarray, T_other: np.ndarray, us_centroid: np.
     return {"slide_mm": a2 - a1, "turn_deg": turn, "lateral_mm": float(np.linalg.norm(across)),
             "at_percent_of_length": 100.0 * (a1 - lo) / length,
             "other_at_percent": 100.0 * (a2 - lo) / length, "advice": advice}
+
+
+#: An end of the bone counts as reached when the points come this close to it (mm).
+END_REACHED_MM = 15.0
+
+
+def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:
+    """Where to scan next: towards the end of the bone the registered points ``(N, 3)`` (CT
+    frame, mm) lie nearer to, along the CT's long axis (``target``: its
+    :class:`~comreg_core.registration.geometry.surface.SurfaceCloud`, centre and axes), or towards the
+    other end when they already reach that one (within :data:`END_REACHED_MM`). The ends are
+    named as anatomy names a limb's: the superior end proximal, the inferior end distal (other
+    axes by their direction, e.g. "the left end")."""
+    axis = target.axes[:, 0]
+    along_ct = (target.points - target.centre) @ axis
+    lo, hi = float(along_ct.min()), float(along_ct.max())
+    along = (points_ct - target.centre) @ axis
+    a, b = float(np.percentile(along, 5)), float(np.percentile(along, 95))
+    plus, minus = end_names(space_change(space, "LPS")[:3, :3] @ axis)
+    towards_plus = 0.5 * (a + b) > 0.5 * (lo + hi)
+    if towards_plus and hi - b < END_REACHED_MM:
+        towards_plus = False
+    elif not towards_plus and a - lo < END_REACHED_MM:
+        towards_plus = True
+    name = plus if towards_plus else minus
+    limb = {"superior": "proximal", "inferior": "distal"}
+    return f"scan towards the {limb.get(name, name)} end" + (
+        f" ({name})" if name in limb else "")

@@ -20,7 +20,7 @@ How the pose search uses it (:func:`comreg_core.registration.search.search.searc
    ``T_init`` turned about the US centroid it places by shells of angles up to ``max_deg``
    (:data:`STEP_DEG` apart, coarser beyond :data:`MAX_ROTATIONS` rotations), each shell about
    axes spread evenly over the sphere (:meth:`Prior.init_rotations`); each rotation then shifted
-   by up to ``max_mm`` (:func:`shift_vectors`): slid along the CT's long axis in
+   by up to ``max_mm`` (:func:`~comreg_core.registration.search.prior_starts.shift_vectors`): slid along the CT's long axis in
    ``slide_step_mm`` steps (ICP cannot undo a slide along a shaft), combined with no move
    across it, the move onto it (as the global grid starts, inside the bone) or ``max_mm / 2``
    either way along either short axis. Defaults (30 deg, 30 mm): 63 rotations, about 2,500
@@ -34,12 +34,8 @@ How the pose search uses it (:func:`comreg_core.registration.search.search.searc
    are also pulled back onto its edge (:meth:`Prior.clamp`, ``+clamped``); only poses within
    it are polished, chosen or the runner-up
    (:func:`~comreg_core.registration.search.polish.choose_and_polish`'s ``within``).
-3. **Record** (:func:`prior_record`, ``result.json``'s ``prior``): the chosen pose's rotation
-   and shift from ``T_init``, each landmark's error, ``at_edge`` (beyond :data:`EDGE_SHARE` of
-   the rotation's, the shift's or a landmark's tolerance) and ``reasons`` that make the verdict
-   CHECK (:func:`comreg_core.registration.judgement.verdict.with_prior_reasons`): a result at the edge (when
-   the prior excludes the truth the search can only find poses inside that fit worse, and they
-   gather at its edge), a pose outside that fits clearly better, no pose within at all.
+3. **Record** (:mod:`comreg_core.registration.judgement.prior_reasons`): ``result.json``'s
+   ``prior`` and the reasons it gives the verdict.
 """
 
 from __future__ import annotations
@@ -50,9 +46,12 @@ from typing import Any
 
 import numpy as np
 
-from comreg_core.errors import ComRegError, InvalidGeometryError
+from comreg_core.errors import ComRegError
+from comreg_core.registration.geometry.metrics import rotation_angles_deg
+from comreg_core.registration.search.prior_starts import (least_rotation, rotation_shells,
+                                                         shift_vectors, sphere_points)
 from comreg_core.transforms import (apply_transform, as_points, check_rigid, check_space,
-                                    invert_rigid, matmul, project, rotate, space_change)
+                                    matmul, rotate, space_change)
 
 #: Tolerances when only an initial pose is given (``--init`` without ``--init-tolerance``).
 DEFAULT_MAX_DEG = 30.0
@@ -60,12 +59,6 @@ DEFAULT_MAX_MM = 30.0
 #: A landmark's tolerance (mm) when neither its description (``tol=5``) nor
 #: ``--landmark-tolerance`` gives one.
 DEFAULT_LANDMARK_TOLERANCE_MM = 10.0
-#: The chosen pose is *at the edge* of a tolerance beyond this share of it.
-EDGE_SHARE = 0.9
-#: Spacing (deg) of the rotation shells and axes of the starts around ``T_init``.
-STEP_DEG = 15.0
-#: At most this many rotations around ``T_init`` (the spacing grows for wide tolerances).
-MAX_ROTATIONS = 100
 #: A generic axis (unit) turning the axis set of the second round's starts.
 _TURN_AXIS = np.array([1.0, 2.0, 3.0]) / math.sqrt(14.0)
 
@@ -149,7 +142,7 @@ class Prior:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
         rotation, shift = np.zeros(len(poses)), np.zeros(len(poses))
         if self.T_init is not None:
-            rotation = rotation_between_deg(poses, self.T_init)
+            rotation = rotation_angles_deg(poses, self.T_init)
             placed = rotate(centroid[None], poses[:, :3, :3])[:, 0] + poses[:, :3, 3]
             shift = np.linalg.norm(placed - apply_transform(self.T_init, centroid[None])[0],
                                    axis=1)
@@ -285,214 +278,3 @@ class Prior:
         T[:3, :3] = Vt.T @ D @ U.T
         T[:3, 3] = ct.mean(axis=0) - T[:3, :3] @ us.mean(axis=0)
         return T
-
-
-# ---------------------------------------------------------------------------------- geometry
-
-
-def rotation_between_deg(poses: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """``(B,)`` angles (deg) of the rotations taking ``T``'s rotation to each of the
-    ``(B, 4, 4)`` poses'."""
-    cos = (np.einsum("bij,ij->b", poses[:, :3, :3], T[:3, :3]) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
-def least_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``(3, 3)``: the smallest rotation turning direction ``a`` onto direction ``b``."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(project(a, b))
-    if c < -1.0 + 1e-9:  # opposite: half a turn about any axis across them
-        axis = np.cross(a, np.eye(3)[np.argmin(np.abs(a))])
-        axis /= np.linalg.norm(axis)
-        return 2.0 * np.outer(axis, axis) - np.eye(3)
-    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + K + matmul(K, K) / (1.0 + c)
-
-
-def sphere_points(count: int) -> np.ndarray:
-    """``(count, 3)`` unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
-    i = np.arange(count) + 0.5
-    z = 1.0 - 2.0 * i / count
-    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def rotation_shells(max_deg: float, grid_offset: float = 0.0
-                    ) -> tuple[np.ndarray, list[int]]:
-    """The angles (deg) of the rotation shells up to ``max_deg`` and the number of axes of
-    each: shells about :data:`STEP_DEG` apart, each with as many axes as keep neighbouring
-    rotations about one shell step apart (4 pi (2 sin(angle / 2) / step)^2); the step grows
-    until there are at most :data:`MAX_ROTATIONS`. ``grid_offset`` 0.5: the shells halfway
-    between."""
-    step = STEP_DEG
-    while True:
-        n = max(1, math.ceil(max_deg / step - 1e-9))
-        if sum(_shell_counts(max_deg / n, n, 0.0)[1]) <= MAX_ROTATIONS or step >= 180:
-            return _shell_counts(max_deg / n, n, grid_offset)
-        step *= 1.25
-
-
-def _shell_counts(width: float, n: int, grid_offset: float) -> tuple[np.ndarray, list[int]]:
-    shells = (np.arange(1, n + 1) - grid_offset) * width
-    return shells, [max(4, round(4 * math.pi * (2 * math.sin(math.radians(a) / 2)
-                                                / math.radians(width)) ** 2)) for a in shells]
-
-
-def shift_vectors(placed: np.ndarray, centre: np.ndarray, axes: np.ndarray, reach_mm: float,
-                  slide_step_mm: float, grid_offset: float = 0.0) -> dict[str, np.ndarray]:
-    """``{suffix: (3,) mm}``: the shifts tried for a start placing the US centroid at
-    ``placed`` ``(3,)``, each at most ``reach_mm`` long: a slide along the CT's long axis
-    ``axes[:, 0]`` by a multiple of ``slide_step_mm`` (``+ grid_offset`` steps; only 0 when the
-    step is 0) plus one of: nothing, the move across the axis onto it (the line through the
-    CT's ``centre``; ``+onaxis``: as the global grid starts, inside the bone, which ICP leaves
-    best) and ``reach_mm / 2`` along ``axes[:, 1]`` or ``axes[:, 2]`` either way
-    (``+a1+15``)."""
-    a0 = axes[:, 0] / np.linalg.norm(axes[:, 0])
-    slides = [0.0] if not grid_offset else []
-    if slide_step_mm > 0:
-        k = np.arange(1, int(reach_mm // slide_step_mm) + 2) - grid_offset
-        steps = k[k * slide_step_mm <= reach_mm + 1e-9] * slide_step_mm
-        slides += [s for step in steps for s in (step, -step)]
-    offset = np.asarray(centre, dtype=np.float64) - placed
-    across = {"": np.zeros(3), "+onaxis": offset - project(offset, a0) * a0}
-    for k in (1, 2):
-        for sign in (1, -1):
-            across[f"+a{k}{'+' if sign > 0 else '-'}{reach_mm / 2:g}"] = \
-                sign * reach_mm / 2 * axes[:, k] / np.linalg.norm(axes[:, k])
-    if np.linalg.norm(across["+onaxis"]) < 1.0:  # already on it
-        del across["+onaxis"]
-    out = {}
-    for slide in slides:
-        for label, move in across.items():
-            shift = slide * a0 + move
-            if np.linalg.norm(shift) <= reach_mm + 1e-9:
-                out[(f"+slide{slide:g}" if slide else "") + label] = shift
-    return out
-
-
-# ------------------------------------------------------------------------------ the record
-
-
-def prior_record(prior: Prior, T_ct_us: np.ndarray, centroid: np.ndarray, search=None, *,
-                 min_confidence: float = 0.3, score_floor_mm: float = 0.05) -> dict[str, Any]:
-    """``result.json``'s ``prior`` for the chosen ``T_ct_us`` and the US ``centroid`` (mm):
-    ``init_file``, ``space``, ``T_init``, ``max_deg``, ``max_mm`` (null without ``T_init``),
-    ``landmarks`` (each with its ``error_mm``), ``rotation_from_init_deg``,
-    ``shift_from_init_mm``, ``within``, ``at_edge``, ``best_outside`` (the best-scoring
-    hypothesis of ``search``, a :class:`~comreg_core.registration.search.scoring.HypothesisResult`,
-    that the prior rules out, with its ``lead`` over the chosen one, or null) and ``reasons``
-    (sentences for the verdict: see the module docstring; a pose outside counts when it leads
-    by ``min_confidence``, as the search's confidence measures a lead)."""
-    T = np.asarray(T_ct_us, dtype=np.float64)[None]
-    rotation, shift, landmark = (a[0] for a in prior.errors(T, centroid))
-    init = prior.T_init is not None
-    landmarks = [{**lm.to_json(), "error_mm": float(e)}
-                 for lm, e in zip(prior.landmarks, landmark)]
-    within = bool(prior.allows(T, centroid)[0])
-    reasons = []
-    edges = []
-    if init and rotation > EDGE_SHARE * prior.max_deg:
-        edges.append(f"{rotation:.1f} of {prior.max_deg:g} deg")
-    if init and shift > EDGE_SHARE * prior.max_mm:
-        edges.append(f"{shift:.1f} of {prior.max_mm:g} mm")
-    lm_edges = [f"landmark '{lm['label']}' {lm['error_mm']:.1f} of {lm['tolerance_mm']:g} mm"
-                for lm in landmarks if lm["error_mm"] > EDGE_SHARE * lm["tolerance_mm"]]
-    if not within:
-        reasons.append("No pose within the prior fits the US points: the result lies outside "
-                       f"its tolerances ({', '.join(edges + lm_edges)}); check the initial "
-                       "pose and the landmarks.")
-    elif edges or lm_edges:
-        what = "the initial pose's tolerance" if edges else "the landmarks' tolerance"
-        reasons.append(f"The result sits at the edge of {what} ({', '.join(edges + lm_edges)})"
-                       ": the prior may exclude the true pose.")
-    best_outside = None
-    if search is not None:
-        best_outside = _best_outside(prior, centroid, search.hypotheses)
-        chosen = search.best.score_mm
-        if best_outside is not None and math.isfinite(chosen):
-            lead = max(chosen - best_outside["score_mm"], 0.0) / max(chosen, score_floor_mm)
-            best_outside["lead"] = float(lead)
-            if lead >= min_confidence:
-                reasons.append(
-                    f"A pose outside the prior fits the US points clearly better (score "
-                    f"{best_outside['score_mm']:.2f} vs {chosen:.2f} mm"
-                    + (f", {best_outside['rotation_from_init_deg']:.0f} deg / "
-                       f"{best_outside['shift_from_init_mm']:.0f} mm from the initial pose"
-                       if init else "") + "): the prior may exclude the true pose.")
-    return {"init_file": prior.init_file, "space": prior.space,
-            "T_init": None if not init else prior.T_init.tolist(),
-            "max_deg": float(prior.max_deg) if init else None,
-            "max_mm": float(prior.max_mm) if init else None, "landmarks": landmarks,
-            "rotation_from_init_deg": float(rotation) if init else None,
-            "shift_from_init_mm": float(shift) if init else None, "within": within,
-            "at_edge": bool(edges or lm_edges), "best_outside": best_outside,
-            "reasons": reasons}
-
-
-def _best_outside(prior: Prior, centroid, hypotheses) -> dict[str, Any] | None:
-    outside = [h for h in hypotheses if math.isfinite(h.score_mm)
-               and not prior.allows(h.T_ct_us[None], centroid)[0]]
-    if not outside:
-        return None
-    best = min(outside, key=lambda h: h.score_mm)
-    rotation, shift, _ = prior.errors(best.T_ct_us[None], centroid)
-    init = prior.T_init is not None
-    return {"name": best.name, "score_mm": float(best.score_mm),
-            "rotation_from_init_deg": float(rotation[0]) if init else None,
-            "shift_from_init_mm": float(shift[0]) if init else None}
-
-
-# ------------------------------------------------------------------------------- from inputs
-
-
-def match_landmarks(ct, us, *, default_tolerance_mm: float = DEFAULT_LANDMARK_TOLERANCE_MM,
-                    space: str = "LPS") -> tuple[Landmark, ...]:
-    """Pair the CT and US landmarks by label (objects with ``labels``, ``points`` ``(N, 3)``,
-    ``space``, ``tolerances_mm`` and ``path``: :class:`comreg_core.io.markups.Markups`), both
-    taken to ``space``. A pair's tolerance: its description's (``tol=5``; the smaller of the
-    two when both have one), else ``default_tolerance_mm``.
-
-    Raises:
-        ComRegError: a label twice in one file, a label in only one of them, no pair.
-    """
-    sides = []
-    for what, markups in (("CT", ct), ("US", us)):
-        labels = list(markups.labels)
-        twice = sorted({label for label in labels if labels.count(label) > 1})
-        if twice:
-            raise InvalidGeometryError(
-                f"The {what} landmarks ('{markups.path}') name '{twice[0]}' more than once.",
-                "Give each landmark its own label: the labels pair CT and US landmarks.")
-        points = apply_transform(space_change(markups.space, space), markups.points)
-        tolerances = list(markups.tolerances_mm) or [None] * len(labels)
-        sides.append({label: (p, t) for label, p, t in zip(labels, points, tolerances)})
-    only_ct = [label for label in sides[0] if label not in sides[1]]
-    only_us = [label for label in sides[1] if label not in sides[0]]
-    if only_ct or only_us:
-        parts = ([f"{_names(only_ct)} only in the CT landmarks ('{ct.path}')"] if only_ct
-                 else []) + ([f"{_names(only_us)} only in the US landmarks ('{us.path}')"]
-                             if only_us else [])
-        raise InvalidGeometryError(f"The landmarks do not pair up: {'; '.join(parts)}.",
-                                   "Give each landmark the same label in both files.")
-    pairs = []
-    for label, (ct_point, ct_tol) in sides[0].items():
-        us_point, us_tol = sides[1][label]
-        given = [t for t in (ct_tol, us_tol) if t is not None]
-        pairs.append(Landmark(label, ct_point, us_point,
-                              min(given) if given else float(default_tolerance_mm)))
-    return tuple(pairs)
-
-
-def _names(labels: list[str]) -> str:
-    return ", ".join(f"'{label}'" for label in labels)
-
-
-def prior_allows(prior: Prior, result):
-    """``(4, 4) T -> bool``: whether ``prior`` (in the result's space) allows a pose of
-    ``result`` (a :class:`~comreg_core.registration.search.result.RegistrationResult`; the US centroid:
-    that of the points it registered)."""
-    points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
-    centroid = points.mean(axis=0)
-    return lambda T: bool(prior.allows(np.asarray(T)[None], centroid)[0])
-

@@ -1,126 +1,52 @@
-"""Test-time pose hypotheses: no flips, no spins about the shaft, and a confidence flag.
+"""The pose search: many start poses, screened, refined and scored; the best kept, with a
+confidence. A partial sweep of a long, near-symmetric bone fits several poses (flipped end to
+end, turned about or slid along the shaft); the search tries them all. Steps (all ``T_ct_us``,
+mm; docs/guide.md "The pose search" for the user's view, docs/results.md for why each step is
+as it is):
 
-A partial US sweep of a long, near-symmetric bone (fibula, tibia or femur shaft) fits several
-poses: flipped end to end, turned about the shaft, or the one the network found. The learned
-coarse pose only has to land in ICP's basin; when it lands in the basin of a symmetric
-alternative, plain ICP converges there and the result is a flip. This module tries the
-alternatives at test time, with no extra training data:
+1. **Starts**: around a base pose (``pca``: the US cloud's principal axes on the CT's; a
+   prior's initial pose; with a completion, its principal-axes solve), rotations about the
+   long axis by ``360 k / shaft_rotations`` deg, each flipped end to end, each slid along the
+   axis by multiples of ``slide_step_mm`` over +-``slide_range_mm`` (names like
+   ``pca+flip+rot90+slide24``). A *patch* (:func:`is_patch`) also gets
+   :data:`PATCH_ORIENTATIONS` orientations over all rotations, each slid
+   (:func:`patch_orientation_starts`).
+2. **Screening** (:func:`~comreg_core.registration.search.screening.screen_starts`): a quick
+   ICP and score of every start; the ``refine_top`` best distinct ones go on.
+3. **Refinement**: one batched, coarse-to-fine point-to-plane ICP
+   (:func:`~comreg_core.registration.geometry.icp.coarse_to_fine_icp`) of a seeded uniform
+   subset of ``icp_points`` US points against ``target_points`` CT samples.
+4. **Score** (mm, lower is better): the trimmed mean point-to-plane distance of the subset to
+   the CT (the smallest ``1 - score_trim`` share).
+5. **Polish and choice** (:func:`~comreg_core.registration.search.polish.choose_and_polish`):
+   the best pose and those close to it (confidence below ``min_confidence``) polished on the
+   exact mesh and re-scored; the best wins, ties (0.1 %,
+   :func:`~comreg_core.registration.search.scoring.tied`) by generation order; a partial
+   sweep's choice gets the slide probe.
+6. **Confidence**: of the chosen pose over the best *distinct* one (the runner-up):
+   ``max(score_b - score_a, 0) / max(score_b, score_floor_mm)``; ``ambiguous`` below
+   ``min_confidence`` (``patch_min_confidence`` for a patch).
+7. **Second round** for an ambiguous result: steps 1-3 on the grid interleaved with the first
+   (turns and slides shifted by half a step), and the choice again among both rounds.
+8. **A prior** (:mod:`comreg_core.registration.search.priors`): the starts around it, only
+   poses within it polished, chosen or the runner-up, refined poses outside it pulled back
+   onto its edge (``+clamped``).
 
-1. **Start poses** (all ``T_ct_us``, mm). Bases: ``network`` (the network's pose after its
-   ICP), ``coarse`` (its coarse pose before the ICP, when given) and ``pca`` (with a
-   completion: the full-to-full solve of the completed shape against the CT by principal axes;
-   the completion is a whole bone, so this is well posed up to the axes' signs, which the flips
-   below cover). Around each base ``T_b``: ``G @ T_b`` with
-   ``G`` a rigid motion of the *CT frame* about the principal axes of the completed bone placed
-   by ``T_b`` (centroid ``c``, axes ``a0`` = long, ``a1``, ``a2``; the CT's own frame without a
-   completion): rotations about ``a0`` by ``360 k / shaft_rotations`` deg (``+rot45``, ...),
-   each also flipped end to end (180 deg about ``a1``, ``+flip``), and
-   each of these slid along ``a0`` by multiples of ``slide_step_mm`` over +-``slide_range_mm``
-   (default half the CT's length; ``+slide-16``, ...), for the slides along the shaft ICP
-   cannot undo. Names read like ``network+flip+rot90+slide24``. With the defaults that is
-   3 bases x 16 rotations x ~50 slides, about 2,400 starts on a fibula. A *patch* (a short
-   sweep: its largest spread under ``patch_max_share`` of the CT's length) also gets
-   :data:`PATCH_ORIENTATIONS` (60) orientations spread evenly over all rotations, each slid along
-   the shaft (:func:`patch_orientation_starts`, ``patch7+slide16``): a short sweep's own
-   principal axes need not run along the bone, and on simulated 40-50 mm one-face fibula
-   sweeps the grid built on them alone missed the right basin in 2 of 20 (one of them
-   unflagged); with them, 0 of 20. About 3,000 more starts; the screening costs ~1 s more.
-
-2. **Screening** (:func:`~comreg_core.registration.search.screening.screen_starts`): all starts at once get a quick point-to-plane ICP
-   (``screen_iterations`` on ``screen_points`` US points, correspondences read from a
-   closest-point grid of the CT, :meth:`SurfaceCloud.nearest_approx`) and a quick score;
-   the ``refine_top`` best distinct ones go on, the network's own pose always among them.
-   Scoring *after* a few ICP steps matters: before them the right basin's starts rank in the
-   hundreds, after them first.
-
-3. **Refinement**: the kept starts are refined together, in one batch, of a subset of the
-   US cloud (``icp_points``, seeded uniform random) against a dense cloud of the CT surface
-   (``target_points`` area-uniform samples with their triangles' normals). Not an FPS subset:
-   farthest-point sampling picks isolated false echoes first (on simulated fibula sweeps ~3 %
-   of the points, 10-15 % of an FPS subset, more than ``icp_trim`` leaves out, enough to pull
-   the ICP 20 mm off the truth). Point-to-plane ICP
-   (:func:`~comreg_core.registration.geometry.icp.coarse_to_fine_icp`), coarse to fine: the
-   ``icp_schedule`` stages on evenly strided subsets (128, then 512 US points, 30 iterations
-   each), then ``icp_iterations`` on all ``icp_points``; after each stage only the hypotheses
-   whose residual is within ``icp_margin_mm`` of the best go on. (Point-to-point ICP, hard or
-   soft, crawls along a shaft, where the surface slides under the points: measured in
-   ``tests/benchmarks/bench_hypotheses.py`` before it was dropped.)
-
-4. **Score** (mm, lower is better): the trimmed mean distance of the hypothesis' registered US
-   subset to the CT surface: the mean of the smallest ``1 - score_trim`` share of the
-   point-to-surface distances, each taken to the tangent plane of the nearest dense CT point
-   (KD-tree, pykdtree; :meth:`SurfaceCloud.surface_distances`: unlike the plain
-   nearest-point distance it has almost no bias from the sample spacing, so a perfect fit
-   scores near 0 and the gaps between poses are not blurred). Trimming keeps false bone echoes
-   and parts of the sweep the CT does not explain from dominating.
-
-5. **Polish** (needs the mesh): the best-scoring pose and the distinct poses *tied*
-   with it (confidence below ``min_confidence``, step 6; at most ``polish_top``) get a last
-   point-to-plane ICP of the same US subset against the *exact* closest points of the CT mesh
-   and their triangles' normals (the same ICP with :meth:`CTSurface.matcher`'s
-   correspondences, as the ``icp-gt``
-   baseline), pairs farther apart than ``polish_max_distance_mm`` (2 mm) left
-   out, and are re-scored with exact distances to the mesh. With several such poses each first
-   gets a quick polish (:data:`QUICK_POLISH_POINTS` points, :data:`QUICK_POLISH_ITERATIONS`),
-   and the chosen one is then polished in full (at most ``polish_iterations``). Why: the
-   refinement matches to the nearest of the dense CT samples and trims a share of the points,
-   so false echoes a few mm off the bone still pull on it; on simulated fibula sweeps it stopped
-   2-3 deg or 2-11 mm off in 5 of 100 trials that the gated exact polish brought to within
-   0.1 deg / 0.1 mm, and poses that the refinement scored alike (a flip at 0.19 mm, the truth's
-   basin at 0.17 mm) separate once polished (0.2 mm vs 0.006 mm). Median cost ~0.05 s, ~0.4 s
-   with ties. Built from a bare cloud, the target has no :attr:`~SurfaceCloud.surface` and
-   the polish is skipped. A partial sweep's chosen pose then gets the *slide probe*
-   (:func:`~comreg_core.registration.search.polish.probe_slides`, ``slide_probe_mm``): polished again
-   from that far along the CT's long axis both ways, a slid pose scoring >= 2 % better
-   replaces it (the search can stop in the basin next to the right one along a shaft).
-
-6. **Choice and confidence**: the best score wins; scores within a tie
-   (:func:`~comreg_core.registration.search.scoring.tied`, 0.1 %) go to the first in generation order.
-   Two poses are *distinct* when rotated apart by more than ``distinct_deg`` or placing the US
-   centroid more than ``distinct_mm`` apart. ``confidence(a over b) = max(score_b - score_a,
-   0) / max(score_b, score_floor_mm)`` in [0, 1] (``score_floor_mm``, 0.05 mm: differences
-   between near-perfect fits are noise, not evidence). Poses over which the best has a
-   confidence below ``min_confidence`` are *close* to it (they get polished). The *runner-up* is
-   the best-scoring pose distinct from the chosen one (converged duplicates never count);
-   ``score_gap_mm = score(runner-up) - score(chosen)``; ``confidence`` = that of the chosen
-   pose over the runner-up (1 without a runner-up); ``ambiguous = confidence <
-   min_confidence``: another, clearly different pose explains the US points (nearly) as well,
-   e.g. a sweep of a featureless stretch of shaft. With the polish, only the polished poses
-   can be chosen (the others' scores are not exact, and they were not tied anyway); with
-   several, the choice is made on their quick-polish scores and the chosen one is then polished
-   in full (its final score is the one reported).
-
-7. **Second round**: an ambiguous result may mean only that no start
-   landed in the right basin (from poses the network was not trained for, its bases can be
-   20-30 deg off and the grid's 45 deg spacing too coarse). Then steps 1-3 run again on the
-   grid interleaved with the first (rotations and slides shifted by half a step: ``+rot22.5``,
-   ``+slide4``, ...; the bases themselves are not repeated), and steps 5-6 choose among the
-   hypotheses of both rounds (poses polished in the first round are not polished again).
-   ``starts_tried`` counts both rounds. Costs about one more search, only for ambiguous
-   results.
-
-8. **A prior** (``prior``: an initial pose with tolerances, landmark pairs;
-   :mod:`comreg_core.registration.search.priors`): the starts are built around it instead
-   (:func:`round_starts`), the screening keeps the poses within it first, refined poses outside
-   it are also pulled back onto its edge (``+clamped``), and only poses within it are polished,
-   chosen or the runner-up.
-
-Use it standalone (no network needed)::
+Standalone (no network needed)::
 
     target = CTSurface("fibula.stl").cloud(20_000)
     result = search_hypotheses(us_points, T_start, target)   # mm in, mm out
     result.T_ct_us, result.chosen, result.confidence, result.ambiguous
 
-:class:`comreg_core.register.Registrar` runs it from the ``pca`` base (or the prior's) with or
-without a network; the network's poses then compete as further starts
-(:mod:`comreg_core.registration.search.network_starts`). ``hypotheses=False`` (``comreg register
---no-hypotheses``) turns it off with a network: the paper's plain pipeline exactly.
+:class:`comreg_core.register.Registrar` runs it from the ``pca`` base (or the prior's); with a
+network, the network's poses then compete as further starts
+(:mod:`comreg_core.registration.search.network_starts`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -321,6 +247,36 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
         :class:`HypothesisResult` (all mm).
     """
     cfg = config or HypothesisConfig()
+    pts, completion, subset_mm, origins = _search_inputs(us_points, completion, beam_origins,
+                                                         cfg)
+    centroid = pts.mean(axis=0)  # the US centroid, placed by each pose
+    patch = is_patch(pts, target, cfg)
+    if patch:  # a short sweep needs a wider lead to be trusted
+        cfg = replace(cfg, min_confidence=max(cfg.min_confidence, cfg.patch_min_confidence))
+    T_network = check_rigid(T_start)
+    pool = _Pool()
+    within = None if prior is None else (lambda T: prior.allows(T, centroid))
+    for offset in (0.0, 0.5):  # the second round only for an ambiguous result (step 7)
+        grid = round_starts(pts, T_network, target, completion, cfg, T_coarse=T_coarse,
+                            grid_offset=offset, start_name=start_name, prior=prior)
+        pool.tried += len(grid)
+        pool.add(*refine_starts(subset_mm, grid, target, cfg, keep_first=offset == 0.0,
+                                origins=origins, within=within), prior, centroid)
+        pool.scores = np.concatenate([pool.scores, score_poses(
+            pool.poses[len(pool.scores):], subset_mm, target, cfg, origins=origins)])
+        best, runner = choose_and_polish(subset_mm, centroid, pool.poses, pool.scores,
+                                         pool.polishes, target, cfg, origins=origins,
+                                         within=within)
+        confidence = 1.0 if runner is None else float(
+            confidence_over(pool.scores[best], pool.scores[runner], cfg))
+        if confidence >= cfg.min_confidence:
+            break
+    return pool.result(best, runner, confidence, cfg, centroid, target, space, patch)
+
+
+def _search_inputs(us_points, completion, beam_origins, cfg: HypothesisConfig):
+    """The search's inputs checked: ``(points (N, 3), completion (M, 3) or None, the ICP and
+    score subset (n, 3), its beam origins (n, 3) or None)``, all mm."""
     pts = as_points(us_points, "US points")
     if len(pts) < 6:  # 6 point-to-surface constraints for the 6 degrees of freedom
         raise InvalidGeometryError(f"The US cloud has {len(pts)} points; the hypotheses need at "
@@ -330,7 +286,6 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
         if len(completion) < 4:
             completion = None
     keep = us_subset_indices(len(pts), cfg.icp_points)
-    subset_mm = pts[keep]  # n 3
     origins = None
     if beam_origins is not None:
         origins = as_points(beam_origins, "beam origins")
@@ -338,58 +293,56 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
             raise InvalidGeometryError(f"{len(origins)} beam origins for {len(pts)} US points.",
                                        "Pass one beam origin per US point (or none).")
         origins = origins[keep]
-    centroid = pts.mean(axis=0)  # the US centroid, placed by each pose
-    patch = is_patch(pts, target, cfg)
-    if patch:  # a short sweep needs a wider lead to be trusted
-        cfg = replace(cfg, min_confidence=max(cfg.min_confidence, cfg.patch_min_confidence))
-    T_network = check_rigid(T_start)
-    names: list[str] = []
-    starts: list[np.ndarray] = []
-    poses = np.zeros((0, 4, 4))
-    scores, rmse = np.zeros(0), np.zeros(0)
-    polishes: list[dict[str, Any] | None] = []
-    tried = 0
-    within = None if prior is None else (lambda T: prior.allows(T, centroid))
-    for offset in (0.0, 0.5):  # the second round only for an ambiguous result (step 7)
-        grid = round_starts(pts, T_network, target, completion, cfg, T_coarse=T_coarse,
-                            grid_offset=offset, start_name=start_name, prior=prior)
-        tried += len(grid)
-        new_names, new_starts, new_poses, new_rmse = refine_starts(
-            subset_mm, grid, target, cfg, keep_first=offset == 0.0, origins=origins,
-            within=within)
-        if within is not None:  # the refined poses outside the prior, pulled back into it
-            out = np.flatnonzero(~within(new_poses))
-            new_names += [new_names[i] + "+clamped" for i in out]
-            new_starts += [new_starts[i] for i in out]
-            new_poses = np.concatenate([new_poses, prior.clamp(new_poses[out], centroid)])
-            new_rmse = np.concatenate([new_rmse, np.full(len(out), np.nan)])
-        names += new_names
-        starts += new_starts
-        poses = np.concatenate([poses, new_poses])
-        rmse = np.concatenate([rmse, new_rmse])
-        scores = np.concatenate([scores, score_poses(new_poses, subset_mm, target, cfg,
-                                                     origins=origins)])
-        polishes += [None] * len(new_names)
-        best, runner = choose_and_polish(subset_mm, centroid, poses, scores, polishes,
-                                         target, cfg, origins=origins, within=within)
-        confidence = 1.0 if runner is None else float(
-            confidence_over(scores[best], scores[runner], cfg))
-        if confidence >= cfg.min_confidence:
-            break
-    gap = None if runner is None else float(scores[runner] - scores[best])
-    hypotheses = tuple(Hypothesis(n, starts[i], poses[i], float(scores[i]),
-                                  float(rmse[i]) if math.isfinite(rmse[i]) else float("nan"),
-                                  polishes[i])
-                       for i, n in enumerate(names))
-    ambiguous = confidence < cfg.min_confidence
-    advice = None
-    if ambiguous and runner is not None:
-        advice = ambiguity_advice(poses[best], poses[runner], centroid, target, space=space)
-    return HypothesisResult(T_ct_us=poses[best], chosen=names[best],
-                            runner_up=None if runner is None else names[runner],
-                            score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,
-                            hypotheses=hypotheses, starts_tried=tried, advice=advice,
-                            patch=patch)
+    return pts, completion, pts[keep], origins
+
+
+@dataclass
+class _Pool:
+    """The refined hypotheses of the search's rounds so far: names, starts, ``(K, 4, 4)``
+    poses, ``(K,)`` scores and ICP residuals (mm), polish records; starts tried."""
+
+    names: list[str] = field(default_factory=list)
+    starts: list[np.ndarray] = field(default_factory=list)
+    poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rmse: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    polishes: list[dict[str, Any] | None] = field(default_factory=list)
+    tried: int = 0
+
+    def add(self, names, starts, poses, rmse, prior: Prior | None, centroid) -> None:
+        """One round's refined poses; with a ``prior``, those outside it also pulled back onto
+        its edge (``+clamped``; no ICP residual)."""
+        if prior is not None:
+            out = np.flatnonzero(~prior.allows(poses, centroid))
+            names = names + [names[i] + "+clamped" for i in out]
+            starts = starts + [starts[i] for i in out]
+            poses = np.concatenate([poses, prior.clamp(poses[out], centroid)])
+            rmse = np.concatenate([rmse, np.full(len(out), np.nan)])
+        self.names += names
+        self.starts += starts
+        self.poses = np.concatenate([self.poses, poses])
+        self.rmse = np.concatenate([self.rmse, rmse])
+        self.polishes += [None] * len(names)
+
+    def result(self, best: int, runner: int | None, confidence: float,
+               cfg: HypothesisConfig, centroid, target: SurfaceCloud, space: str,
+               patch: bool) -> HypothesisResult:
+        """The :class:`HypothesisResult` choosing ``best`` over ``runner``."""
+        gap = None if runner is None else float(self.scores[runner] - self.scores[best])
+        hypotheses = tuple(
+            Hypothesis(n, self.starts[i], self.poses[i], float(self.scores[i]),
+                       float(self.rmse[i]) if math.isfinite(self.rmse[i]) else float("nan"),
+                       self.polishes[i]) for i, n in enumerate(self.names))
+        ambiguous = confidence < cfg.min_confidence
+        advice = None
+        if ambiguous and runner is not None:
+            advice = ambiguity_advice(self.poses[best], self.poses[runner], centroid, target,
+                                      space=space)
+        return HypothesisResult(T_ct_us=self.poses[best], chosen=self.names[best],
+                                runner_up=None if runner is None else self.names[runner],
+                                score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,
+                                hypotheses=hypotheses, starts_tried=self.tried, advice=advice,
+                                patch=patch)
 
 
 def round_starts(pts: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
