@@ -1,21 +1,8 @@
 """ComReg: the 3D Slicer scripted module (Module, ParameterNode, Widget, Logic, Test).
 
-Registers intraoperative ultrasound (US) bone points to the patient's CT bone with ComReg
-(per-patient pretraining on simulated sweeps, then one forward pass).
-
-Using it in 3D Slicer
----------------------
-1. Install ComReg's library into Slicer's Python (once). Slicer ships its own VTK and numpy, so
-   install ComReg without its pinned dependencies and add the pure-Python/torch ones, e.g. in
-   Slicer's Python console::
-
-       slicer.util.pip_install("--no-deps -e /path/to/comreg")
-       slicer.util.pip_install("scipy pynrrd trimesh embreex pykdtree numba fpsample pyyaml typer pyigtl torch")
-       slicer.util.pip_install("open3d")   # only for the RANSAC baseline
-
-2. Add the module folder ``/path/to/comreg/comreg_plugin`` in Edit > Application Settings >
-   Modules > Additional module paths, and restart. The module appears under "Registration";
-   its panel is ``Resources/UI/ComReg.ui``, its icon ``Resources/Icons/ComReg.png``.
+Registers intraoperative ultrasound (US) bone points to the patient's CT bone with ComReg (a
+pose search, optionally with a network pretrained on sweeps simulated from this CT). Installing
+it into 3D Slicer: docs/guide.md ("3D Slicer module").
 
 Slicer imports this file as the top-level module ``ComReg`` with only ``comreg_plugin/`` on
 ``sys.path``; the block below also puts the repository root on ``sys.path`` when ``comreg_core``
@@ -350,15 +337,10 @@ class ComRegTest(ScriptedLoadableModuleTest):
                 self.tearDown()
 
     def test_ComRegEndToEnd(self):
-        from pathlib import Path
-
         import numpy as np
 
-        from comreg_core.io import load_transform
-        from comreg_core.transforms import T_RAS_LPS
         from comreg_plugin import testing
-        from comreg_plugin.scene_inputs import trackedSweepFromBrowser
-        from comreg_plugin.scene_io import arrayFromModelPoints, transformToParentRAS
+        from comreg_plugin.scene_io import arrayFromModelPoints
 
         self.delayDisplay("Building the test data (sample CT, simulated sweep, known transform)")
         case = testing.buildSyntheticCase(self.workDir)
@@ -373,14 +355,7 @@ class ComRegTest(ScriptedLoadableModuleTest):
         self.assertLess(np.abs(vertices - expected).max(), 1e-6)
 
         self.delayDisplay("Tracked sweep as a Sequence browser -> bone points")
-        browser = logic.addSweepSequence(testing.SAMPLE_SWEEP)
-        self.assertTrue(browser.IsA("vtkMRMLSequenceBrowserNode"))
-        fromSequence, _ = logic.usPointsFromSequence(browser, name="US points (Sequence)")
-        fromFiles, _ = logic.loadTrackedSweep(testing.SAMPLE_SWEEP, name="US points (files)")
-        a, b = arrayFromModelPoints(fromSequence), arrayFromModelPoints(fromFiles)
-        self.assertEqual(a.shape, b.shape)
-        self.assertGreater(len(a), 500)
-        self.assertLess(np.abs(a - b).max(), 1e-6)
+        browser = testing.checkSweepInputs(self, logic)
 
         self.delayDisplay("US points -> model")
         usNode = logic.loadUSPoints(case.usPointsPath)
@@ -399,27 +374,10 @@ class ComRegTest(ScriptedLoadableModuleTest):
                           f"{errors['mean_point_mm']:.3f} mm)")
 
         self.delayDisplay("Transform files (.tfm, .h5)")
-        T_ras = transformToParentRAS(summary.transformNode)
-        for ext in (".tfm", ".h5"):
-            path = logic.saveTransform(summary.transformNode, Path(self.workDir) / f"T{ext}")
-            readBack = testing.readTransformWithSlicer(path)
-            self.assertLess(np.abs(readBack - T_ras).max(), 1e-6)
-            self.assertLess(np.abs(load_transform(path) - T_RAS_LPS @ T_ras @ T_RAS_LPS).max(),
-                            1e-6)
+        testing.checkTransformFiles(self, logic, summary.transformNode, self.workDir)
 
         self.delayDisplay("Scene save and reload")
-        scenePath = logic.saveScene(Path(self.workDir) / "scene" / "ComRegTest.mrml")
-        reloaded = ComRegLogic(slicer.vtkMRMLScene())
-        reloaded.loadScene(scenePath)
-        # (Slicer's .seq.mha reader renames the pose sequence it reloads: compared through the
-        # sweep it gives back)
-        testing.checkScenesMatch(logic.scene, reloaded.scene,
-                                 ignoreClasses=("vtkMRMLSequenceNode",))
-        sweepBack = trackedSweepFromBrowser(reloaded.getParameterNode().sweep)
-        self.assertEqual(sweepBack.n_frames, browser.GetMasterSequenceNode().GetNumberOfDataNodes())
-        errors2 = testing.checkRegistrationAccuracy(
-            reloaded.getParameterNode().outputTransform, case)
-        self.assertAlmostEqual(errors2["translation_mm"], errors["translation_mm"], places=5)
+        testing.checkSceneReload(self, logic, browser, case, errors, self.workDir, ComRegLogic)
         self.delayDisplay("Test passed")
 
     def test_ComRegBadInputs(self):

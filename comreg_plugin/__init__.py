@@ -8,6 +8,11 @@
 - ``logic.py``: ``ComRegLogic`` (no GUI, batch-capable); use it headless with
   ``from comreg_plugin.logic import ComRegLogic``.
 - ``registration.py``: the registration methods the Logic runs and ``RegistrationSummary``.
+- ``bone_models.py``: the CT bone models and US points as model nodes, the ``ComReg.*``
+  attribute prefix.
+- ``result_nodes.py``: a registration's result in the scene (output transform, completed
+  bone, its record).
+- ``live.py``: the live mode (an OpenIGTLink connector's stream registered as it grows).
 - ``scene_inputs.py``: inputs from the scene: a Sequence browser sweep -> ``TrackedSweep`` (and
   back), points of a model or markups node, a segmentation node -> ``Segmentation``.
 - ``pretraining_job.py``: ``comreg pretrain`` in a background process (``PretrainingJob``).

@@ -38,6 +38,7 @@ from comreg_core.live.session import LiveSession
 from comreg_core.live.updates import LiveUpdate
 from comreg_core.live.stream import Frame, pixel_pose
 from comreg_core.transforms import T_RAS_LPS
+from comreg_plugin.bone_models import ATTRIBUTE_PREFIX
 from comreg_plugin.registration import TRANSFORM_NODE_NAME
 from comreg_plugin.scene_inputs import priorFromNodes
 from comreg_plugin.scene_io import (arrayFromVtkMatrix, requireNode, uniqueName,
@@ -50,8 +51,6 @@ log = logging.getLogger(__name__)
 
 #: How often the module's timer ticks (ms): applies a finished update, starts the next.
 TICK_MS = 50
-#: Node attribute prefix (as the Logic's).
-ATTRIBUTE_PREFIX = "ComReg."
 
 
 class LiveRegistration:

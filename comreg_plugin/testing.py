@@ -178,3 +178,52 @@ def readTransformWithSlicer(path) -> np.ndarray:
     if not storage.ReadData(node):
         raise AssertionError(f"Slicer could not read the transform file '{path}'")
     return transformToParentRAS(node)
+
+
+def checkSweepInputs(test, logic):
+    """The bundled sweep as a Sequence browser and as files give the same bone points (RAS, to
+    1e-6 mm; more than 500); returns the browser node. ``test``: a unittest.TestCase."""
+    browser = logic.addSweepSequence(SAMPLE_SWEEP)
+    test.assertTrue(browser.IsA("vtkMRMLSequenceBrowserNode"))
+    fromSequence, _ = logic.usPointsFromSequence(browser, name="US points (Sequence)")
+    fromFiles, _ = logic.loadTrackedSweep(SAMPLE_SWEEP, name="US points (files)")
+    from comreg_plugin.scene_io import arrayFromModelPoints
+
+    a, b = arrayFromModelPoints(fromSequence), arrayFromModelPoints(fromFiles)
+    test.assertEqual(a.shape, b.shape)
+    test.assertGreater(len(a), 500)
+    test.assertLess(np.abs(a - b).max(), 1e-6)
+    return browser
+
+
+def checkTransformFiles(test, logic, transformNode, workDir) -> None:
+    """The node saved as ``.tfm`` and ``.h5`` reads back (by Slicer, RAS, and by ComReg, LPS)
+    as its to-parent matrix, to 1e-6."""
+    from comreg_core.io import load_transform
+    from comreg_plugin.scene_io import transformToParentRAS
+
+    T_ras = transformToParentRAS(transformNode)
+    for ext in (".tfm", ".h5"):
+        path = logic.saveTransform(transformNode, Path(workDir) / f"T{ext}")
+        test.assertLess(np.abs(readTransformWithSlicer(path) - T_ras).max(), 1e-6)
+        test.assertLess(np.abs(load_transform(path) - T_RAS_LPS @ T_ras @ T_RAS_LPS).max(),
+                        1e-6)
+
+
+def checkSceneReload(test, logic, browser, case, errors: dict, workDir, logicClass) -> None:
+    """The scene saved and reloaded into a new ``logicClass`` holds the same nodes, the same
+    sweep (frame count) and an output transform with the same error (``errors``: the
+    original's :func:`checkRegistrationAccuracy`)."""
+    from comreg_plugin.scene_inputs import trackedSweepFromBrowser
+    from comreg_plugin.slicer_compat import slicer
+
+    scenePath = logic.saveScene(Path(workDir) / "scene" / "ComRegTest.mrml")
+    reloaded = logicClass(slicer.vtkMRMLScene())
+    reloaded.loadScene(scenePath)
+    # (Slicer's .seq.mha reader renames the pose sequence it reloads: compared through the
+    # sweep it gives back)
+    checkScenesMatch(logic.scene, reloaded.scene, ignoreClasses=("vtkMRMLSequenceNode",))
+    sweepBack = trackedSweepFromBrowser(reloaded.getParameterNode().sweep)
+    test.assertEqual(sweepBack.n_frames, browser.GetMasterSequenceNode().GetNumberOfDataNodes())
+    errorsBack = checkRegistrationAccuracy(reloaded.getParameterNode().outputTransform, case)
+    test.assertAlmostEqual(errorsBack["translation_mm"], errors["translation_mm"], places=5)

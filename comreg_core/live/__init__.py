@@ -9,7 +9,8 @@ sweep served as PLUS Server would (``comreg replay``). docs/live.md describes bo
 - :mod:`~comreg_core.live.background`: the full search in a second process, so that warm
   updates go on while it runs;
 - :mod:`~comreg_core.live.updates`: an update's record and ``updates.csv``;
-- :mod:`~comreg_core.live.igtl`: the pyigtl client and server, and the replay;
+- :mod:`~comreg_core.live.igtl`: reading OpenIGTLink messages and the live client (pyigtl);
+- :mod:`~comreg_core.live.replay`: ``comreg replay``'s server;
 - :mod:`~comreg_core.live.run`: the receiver thread, the update loop and the output folder.
 
 It sits at the top of comreg_core beside the CLI and the demo: it registers
