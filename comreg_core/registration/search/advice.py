@@ -103,3 +103,21 @@ def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:
     limb = {"superior": "proximal", "inferior": "distal"}
     return f"scan towards the {limb.get(name, name)} end" + (
         f" ({name})" if name in limb else "")
+
+
+def choice_evidence(poses: np.ndarray, scores: np.ndarray, best: int, runner: int | None,
+                    config, centroid: np.ndarray, target: SurfaceCloud, space: str = "LPS"
+                    ) -> tuple[float, bool, dict[str, Any] | None]:
+    """``(confidence, ambiguous, advice)`` of choosing pose ``best`` over the ``runner`` up
+    (indices into ``(B, 4, 4)`` poses and ``(B,)`` scores, mm; None: no distinct pose):
+    :func:`~comreg_core.registration.search.scoring.confidence_over`, below the config's
+    ``min_confidence``, and :func:`ambiguity_advice` when ambiguous."""
+    from comreg_core.registration.search.scoring import confidence_over
+
+    confidence = 1.0 if runner is None else float(
+        confidence_over(scores[best], scores[runner], config))
+    ambiguous = confidence < config.min_confidence
+    advice = None
+    if ambiguous and runner is not None:
+        advice = ambiguity_advice(poses[best], poses[runner], centroid, target, space=space)
+    return confidence, ambiguous, advice

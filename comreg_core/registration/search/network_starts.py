@@ -15,13 +15,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from comreg_core.registration.search.advice import ambiguity_advice
+from comreg_core.registration.search.advice import choice_evidence
 from comreg_core.registration.search.config import HypothesisConfig
 from comreg_core.registration.geometry.icp import apply_poses, coarse_to_fine_icp
 from comreg_core.registration.search.polish import polish_pose
 from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult, choose,
-                                                     confidence_over, same_pose, score_poses, tied)
+                                                     same_pose, score_poses, tied)
 from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
 
@@ -90,12 +90,8 @@ def _rechosen(result: HypothesisResult, chosen: int, pts: np.ndarray, centroid: 
         others = others[prior.allows(poses[others], centroid)]
     distinct = others[~same_pose(poses, placed, chosen, others, config)]
     runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
-    confidence = 1.0 if runner is None else float(
-        confidence_over(scores[chosen], scores[runner], config))
-    ambiguous = confidence < config.min_confidence
-    advice = None
-    if ambiguous and runner is not None:
-        advice = ambiguity_advice(poses[chosen], poses[runner], centroid, target, space=space)
+    confidence, ambiguous, advice = choice_evidence(poses, scores, chosen, runner, config,
+                                                    centroid, target, space)
     return replace(result, T_ct_us=poses[chosen], chosen=hyps[chosen].name,
                    runner_up=None if runner is None else hyps[runner].name,
                    score_gap_mm=None if runner is None else float(scores[runner]

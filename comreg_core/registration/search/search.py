@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration.search.advice import ambiguity_advice
+from comreg_core.registration.search.advice import choice_evidence
 from comreg_core.registration.search.config import HypothesisConfig
 from comreg_core.registration.geometry.icp import coarse_to_fine_icp
 from comreg_core.registration.search.polish import choose_and_polish
@@ -333,11 +333,8 @@ class _Pool:
             Hypothesis(n, self.starts[i], self.poses[i], float(self.scores[i]),
                        float(self.rmse[i]) if math.isfinite(self.rmse[i]) else float("nan"),
                        self.polishes[i]) for i, n in enumerate(self.names))
-        ambiguous = confidence < cfg.min_confidence
-        advice = None
-        if ambiguous and runner is not None:
-            advice = ambiguity_advice(self.poses[best], self.poses[runner], centroid, target,
-                                      space=space)
+        confidence, ambiguous, advice = choice_evidence(self.poses, self.scores, best, runner,
+                                                        cfg, centroid, target, space)
         return HypothesisResult(T_ct_us=self.poses[best], chosen=self.names[best],
                                 runner_up=None if runner is None else self.names[runner],
                                 score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,

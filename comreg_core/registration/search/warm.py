@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 
 from comreg_core.errors import ComRegError
-from comreg_core.registration.search.advice import ambiguity_advice
+from comreg_core.registration.search.advice import choice_evidence
 from comreg_core.registration.search.config import HypothesisConfig
 from comreg_core.registration.geometry.icp import apply_poses, point_to_plane_icp, strided
 from comreg_core.registration.search.polish import choose_and_polish
 from comreg_core.registration.search.priors import Prior
-from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult, confidence_over,
+from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult,
                                                      same_pose, score_poses)
 from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
@@ -95,12 +95,8 @@ def warm_search(us_points: np.ndarray, previous: HypothesisResult, target: Surfa
     best, runner = choose_and_polish(subset_mm, centroid, poses, scores, polishes, target, cfg,
                                      origins=origins, within=within,
                                      slide_probe=False)  # the full searches probed
-    confidence = 1.0 if runner is None else float(
-        confidence_over(scores[best], scores[runner], cfg))
-    ambiguous = confidence < cfg.min_confidence
-    advice = None
-    if ambiguous and runner is not None:
-        advice = ambiguity_advice(poses[best], poses[runner], centroid, target, space=space)
+    confidence, ambiguous, advice = choice_evidence(poses, scores, best, runner, cfg, centroid,
+                                                    target, space)
     hypotheses = tuple(Hypothesis(n, starts[i], poses[i], float(scores[i]),
                                   float(fit.rmse_mm[i]), polishes[i])
                        for i, n in enumerate(names))
