@@ -121,7 +121,7 @@ class CasePlan:
                     "--max-minutes", f"{self.pretrain_minutes:g}", "--preset", self.preset]
         if stage == "extract_us":
             return ["extract-us", str(case.us), "--out", str(self.us_points),
-                    *(["--calibration", str(case.calibration)] if case.calibration else [])]
+                    *(["--probe-calibration", str(case.calibration)] if case.calibration else [])]
         if stage == "register":
             return self._register_command()
         if stage == "report":
@@ -137,7 +137,7 @@ class CasePlan:
         if case.us_is_tracked_sweep:  # the report then shows its frames with the CT contour
             arguments += ["--sweep", str(case.us)]
             if case.calibration is not None:
-                arguments += ["--calibration", str(case.calibration)]
+                arguments += ["--probe-calibration", str(case.calibration)]
         if case.init is not None:
             arguments += ["--init", str(case.init)]
         if case.init_tolerance is not None:

@@ -25,7 +25,7 @@ LIVE_IMAGE_DEVICE = typer.Option("Image", "--image-device", rich_help_panel=STRE
                                  help="The IMAGE device of the B-mode frames.")
 LIVE_TRANSFORM_DEVICE = typer.Option(
     None, "--transform-device", rich_help_panel=STREAM, help="The TRANSFORM device of their "
-    "poses (default ImageToReference; ProbeToReference with --calibration).")
+    "poses (default ImageToReference; ProbeToReference with --probe-calibration).")
 LIVE_SEND_DEVICE = typer.Option("ReferenceToCT", "--send-device", rich_help_panel=STREAM,
                                 help="The TRANSFORM device the registration is sent back as.")
 LIVE_UNTIL_END = typer.Option(False, "--until-end", rich_help_panel=STREAM, help="Stop when the "
@@ -38,9 +38,10 @@ LIVE_CONNECT_TIMEOUT = typer.Option(
     "--until-end, a closed stream ends it).")
 LIVE_CT = typer.Option(..., "--ct", rich_help_panel=INPUTS, help="The CT bone mesh (mm).")
 LIVE_CALIBRATION = typer.Option(
-    None, "--calibration", rich_help_panel=INPUTS, help="The probe calibration (as 'comreg "
-    "extract-us' takes it: a PLUS device-set XML with ImageToProbe, or calibration.json) when "
-    "the poses streamed are the probe's (default device then ProbeToReference).")
+    None, "--probe-calibration", "--calibration", rich_help_panel=INPUTS,
+    help="The probe calibration (as 'comreg extract-us' takes it: a PLUS device-set XML with "
+    "ImageToProbe, or calibration.json) when the poses streamed are the probe's (default device "
+    "then ProbeToReference). --calibration: its former name.")
 LIVE_MODEL = typer.Option(None, "--model", rich_help_panel=NETWORK, help="Run folder written by "
                           "'comreg pretrain': the network's pose first, then the search around "
                           "it (default: the search alone).")
@@ -224,10 +225,11 @@ def _finish(session, out: Path, model, ct_mesh, device: Device, verdict_calibrat
 REPLAY_SWEEP = typer.Argument(..., help="A recorded tracked sweep: PLUS sequence (.igs.mha, "
                               ".seq.mha, .igs.nrrd, .seq.nrrd), a frame folder (frames + "
                               "tracking.csv + calibration.json) or a 3D Slicer volume sequence.")
-REPLAY_CALIBRATION = typer.Option(None, "--calibration", rich_help_panel=INPUTS, help="Its probe "
-                                  "calibration (as 'comreg extract-us' takes it; a frame "
-                                  "folder's own by default): also gives the ProbeToReference "
-                                  "poses.")
+REPLAY_CALIBRATION = typer.Option(None, "--probe-calibration", "--calibration",
+                                  rich_help_panel=INPUTS, help="Its probe calibration (as "
+                                  "'comreg extract-us' takes it; a frame folder's own by "
+                                  "default): also gives the ProbeToReference poses. "
+                                  "--calibration: its former name.")
 REPLAY_FIRST_FRAME = typer.Option(0, "--first-frame", min=0, rich_help_panel=INPUTS,
                                   help="Begin at this frame (0 = the first).")
 REPLAY_PORT = typer.Option(18944, "--port", min=0, max=65535, rich_help_panel=STREAM,

@@ -28,8 +28,9 @@ REGISTER_CT = typer.Option(None, "--ct", rich_help_panel=INPUTS, help="The CT bo
 REGISTER_SWEEP = typer.Option(None, "--sweep", rich_help_panel=INPUTS, help="The tracked sweep "
                               "the points came from (one US points file only): the report shows "
                               "its frames with the registered CT contour.")
-REGISTER_CALIBRATION = typer.Option(None, "--calibration", rich_help_panel=INPUTS,
-                                    help="Its calibration.")
+REGISTER_CALIBRATION = typer.Option(None, "--probe-calibration", "--calibration",
+                                    rich_help_panel=INPUTS, help="The sweep's probe calibration "
+                                    "(--calibration: its former name).")
 REGISTER_MODEL = typer.Option(None, "--model", rich_help_panel=NETWORK, help="Run folder written "
                               "by 'comreg pretrain': the network's pose first, then the search "
                               "around it.")
@@ -106,8 +107,9 @@ REPORT_TRANSFORM = typer.Option(
     "the registration's.")
 REPORT_SWEEP = typer.Option(None, "--sweep", rich_help_panel=INPUTS, help="The points' tracked "
                             "sweep (default: register's): frames with the CT contour.")
-REPORT_CALIBRATION = typer.Option(None, "--calibration", rich_help_panel=INPUTS,
-                                  help="Its calibration.")
+REPORT_CALIBRATION = typer.Option(None, "--probe-calibration", "--calibration",
+                                  rich_help_panel=INPUTS, help="The sweep's probe calibration "
+                                  "(--calibration: its former name).")
 REPORT_EMBED_IMAGES = typer.Option(False, "--embed-images", rich_help_panel=OUTPUT,
                                    help="One self-contained HTML.")
 

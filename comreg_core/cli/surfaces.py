@@ -99,8 +99,9 @@ US_OUT = typer.Option(..., "--out", "-o", rich_help_panel=OUTPUT, help="Output p
                       "(.ply, .pcd, .xyz, .npy, ...), bone surface points in the tracking "
                       "reference frame.")
 US_CALIBRATION = typer.Option(
-    None, "--calibration", rich_help_panel=INPUTS, help="Image-to-probe calibration: a PLUS "
-    "device-set XML (ImageToProbe) or calibration.json for a frame folder.")
+    None, "--probe-calibration", "--calibration", rich_help_panel=INPUTS,
+    help="Image-to-probe calibration: a PLUS device-set XML (ImageToProbe) or calibration.json "
+    "for a frame folder. --calibration: its former name.")
 US_MASKS = typer.Option(
     None, "--masks", rich_help_panel=INPUTS, help="Bone label masks instead of detecting the "
     "bone in the B-mode frames: a folder of mask images named like the frames, a mask sequence "
@@ -144,7 +145,7 @@ def extract_us(
     if is_volume_file(sweep):
         typer.echo("wrote " + extract_volume_to_file(
             sweep, out, beam_direction=beam_direction, config=config,
-            frame_options={"--calibration": calibration, "--masks": masks,
+            frame_options={"--probe-calibration": calibration, "--masks": masks,
                            "--compound": compound}).summary())
         return
     tracked = _extract_frames(sweep, calibration, masks, config, out)

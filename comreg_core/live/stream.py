@@ -312,7 +312,7 @@ def coalesce(frames: list[Frame], limit: int) -> list[Frame]:
 
 def probe_calibration(path) -> np.ndarray:
     """The probe calibration ``T_probe_pixel`` ``(4, 4)`` (pixel index -> probe mm) in a file
-    ``comreg extract-us --calibration`` takes: a PLUS device-set XML (its ``ImageToProbe``) or
+    ``comreg extract-us --probe-calibration`` takes: a PLUS device-set XML (its ``ImageToProbe``) or
     a frame folder's ``calibration.json`` (``image_to_probe``, ``pixel_spacing_mm``; pixel
     centres at ``c + 0.5``, as :func:`~comreg_core.io.frame_folders.read_frame_folder_tracking`
     reads it)."""
@@ -367,4 +367,4 @@ def recorded_probe_poses(sweep: TrackedSweep, calibration=None
             T = np.where(probe.valid[:, None, None], probe.T_ref_image, np.nan)
             return T, f"the recording's ProbeTo{probe.reference} transforms"
     return None, ("the recording gives no probe pose and there is no probe calibration to "
-                  "derive it from (--calibration)")
+                  "derive it from (--probe-calibration)")

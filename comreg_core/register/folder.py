@@ -104,7 +104,7 @@ def register_to_directory(run_dir: str | Path | None,
         allowed = prior_allows(prior.in_space(registrar.space), result)
     verdict, evidence = registration_verdict(result, registrar, calibration_record, allowed)
     payload = {**result.to_json(), **verdict.to_json(), **evidence.to_json(),
-               "calibration": _calibration_summary(calibration_record),
+               "verdict_calibration": _calibration_summary(calibration_record),
                "space": registrar.space,
                "beam_origins_used": origins is not None,
                "ct_fingerprint": registrar.fingerprint,
@@ -127,9 +127,9 @@ def _check_request(run_dir, ct_mesh, paths: list[Path], one_sweep: tuple) -> Non
                           "Give the CT bone mesh (--ct CT_MESH), and a run (--model RUN_DIR) "
                           "to use the network too.")
     if len(paths) > 1 and any(x is not None for x in one_sweep):
-        raise ComRegError(f"--sweep and --calibration describe one sweep's points, but "
+        raise ComRegError(f"--sweep and --probe-calibration describe one sweep's points, but "
                           f"{len(paths)} US points files were given.",
-                          "Drop --sweep/--calibration, or register one US points file.")
+                          "Drop --sweep/--probe-calibration, or register one US points file.")
 
 
 def _inputs_setting(run_dir, paths: list[Path], device: str, seed: int, registrar: Registrar,

@@ -81,7 +81,8 @@ class Evidence:
     def from_json(cls, record: dict[str, Any]) -> Evidence:
         """The evidence a ``result.json`` holds (what ``comreg register`` judged with)."""
         hypotheses = record.get("hypotheses") or {}
-        calibration = record.get("calibration") or {}
+        # "calibration": the key's name before 2026-12-05 (still read)
+        calibration = record.get("verdict_calibration") or record.get("calibration") or {}
         return cls(confidence=hypotheses.get("confidence"),
                    ambiguous=bool(hypotheses.get("ambiguous")),
                    competitor=record.get("competitor"), extent_share=record.get("extent_share"),

@@ -87,7 +87,7 @@ def extract_us_to_file(sweep: str | Path | TrackedSweep, out: str | Path, *,
                        calibration: str | Path | None = None, masks: str | Path | None = None,
                        config: str | Path | USExtractionConfig | None = None,
                        progress: Progress | None = None) -> USExtractionResult:
-    """``comreg extract-us SWEEP --out POINTS [--calibration FILE] [--masks DIR] [--config FILE]``:
+    """``comreg extract-us SWEEP --out POINTS [--probe-calibration FILE] [--masks DIR] [--config FILE]``:
     read the sweep, extract and denoise its bone surface, write the points (``.ply``, ``.pcd``,
     ``.xyz``, ``.npy``, ... in the sweep's reference frame, tagged LPS) atomically; a ``.ply``
     also keeps each point's beam origin (:func:`~comreg_core.surfaces.us_points.beam_origins`),

@@ -51,12 +51,12 @@ def test_the_commands_of_each_stage(folder):
                                         str(case / "run"), "--max-minutes", "20", "--preset",
                                         "cpu"]
     assert full.command("extract_us") == ["extract-us", str(folder / "sweep frames"), "--out",
-                                          str(case / "us_points.ply"), "--calibration",
+                                          str(case / "us_points.ply"), "--probe-calibration",
                                           str(folder / "cal.json")]
     assert full.command("register") == [
         "register", str(case / "us_points.ply"), "--out", str(case / "registration"), "--ct",
         str(case / "ct_bone.stl"), "--model", str(case / "run"), "--sweep",
-        str(folder / "sweep frames"), "--calibration", str(folder / "cal.json"), "--init",
+        str(folder / "sweep frames"), "--probe-calibration", str(folder / "cal.json"), "--init",
         str(folder / "init.tfm"), "--init-tolerance", "20,10", "--landmarks",
         str(folder / "ct.mrk.json"), str(folder / "us.mrk.json")]
     assert full.command("report") == ["report", str(case / "registration")]

@@ -51,7 +51,7 @@ def test_register_reports_p_correct_from_the_calibration_given(short_sweep):
     expected = Calibration.load(path).p_correct(competitor["margin"], saved["extent_share"])
     assert saved["p_correct"] == pytest.approx(expected, abs=1e-12)
     assert saved["verdict_figures"]["p_correct"] == pytest.approx(expected, abs=1e-12)
-    assert saved["calibration"]["sweeps"] == 60
+    assert saved["verdict_calibration"]["sweeps"] == 60
     assert (saved["verdict"] == "ok") == (expected >= 0.95 and not saved["verdict_reasons"])
     if competitor["name"] is not None:  # a clinically different pose: beyond 4 mm or 5 deg
         assert competitor["distance_mm"] > 4.0 or competitor["rotation_deg"] > 5.0

@@ -167,4 +167,4 @@ def test_a_plus_sequence_without_a_calibration_file(tmp_path):
     said = [line for line in result.stderr.splitlines() if line.startswith("replay:")]
     assert said == ["replay: sending ImageToReference only, no ProbeToReference: the recording "
                     "gives no probe pose and there is no probe calibration to derive it from "
-                    "(--calibration)"]
+                    "(--probe-calibration)"]
