@@ -1,9 +1,10 @@
 """The ComReg network in pure PyTorch (CPU and CUDA, no compiled extensions).
 
 Modules: :mod:`.ops` (FPS, kNN, gather, Chamfer, quaternions), :mod:`.adapointr` (completion
-``f``), :mod:`.pose_head` (registration ``g``), :mod:`.diff_icp` (differentiable ICP),
-:mod:`.comreg` (the whole network), :mod:`.losses`, :mod:`.config` (``ModelConfig``, presets
-``paper`` and ``cpu``), :mod:`comreg_core.normalization` (the CT-based normalised coordinates).
+``f``; its attention blocks in :mod:`.transformer`), :mod:`.pose_head` (registration ``g``),
+:mod:`.diff_icp` (differentiable ICP), :mod:`.comreg` (the whole network), :mod:`.losses`,
+:mod:`.config` (``ModelConfig``, presets ``paper`` and ``cpu``),
+:mod:`comreg_core.normalization` (the CT-based normalised coordinates).
 """
 
 from comreg_core.model.adapointr import AdaPoinTr, CompletionOutput

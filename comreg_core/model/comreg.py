@@ -31,8 +31,8 @@ class TargetEncoding(NamedTuple):
     """The target (CT) half of the network.
 
     Attributes:
-        tokens: ``(Bt, T, C)`` pose-head tokens (H, or V in the "encoded" ablation).
-        positions: ``(Bt, T, 3)`` their positions (query centres, or proxies).
+        tokens: ``(Bt, Q, D)`` pose-head tokens: the decoded query features H.
+        positions: ``(Bt, Q, 3)`` their positions, the query centres.
         icp_points: ``(Bt, N_c, 3)`` the ICP subset of the target cloud.
     """
 
@@ -76,9 +76,7 @@ class ComRegNet(nn.Module):
         super().__init__()
         self.config = config
         self.completion = AdaPoinTr(config.completion)
-        c = config.completion
-        feature_dim = c.decoder_dim if config.pose.features == "decoded" else c.encoder_dim
-        self.pose_head = build_pose_head(feature_dim, config.pose)
+        self.pose_head = build_pose_head(config.completion.decoder_dim, config.pose)
 
     def _start(self) -> int | None:
         return None if self.training else 0
@@ -91,16 +89,11 @@ class ComRegNet(nn.Module):
                 f"The {name} cloud has {points.shape[1]} points; the network needs at least "
                 f"{need}.", "Use a denser bone surface (more points) or a smaller model preset.")
 
-    def _tokens(self, out: CompletionOutput) -> tuple[Tensor, Tensor]:
-        if self.config.pose.features == "decoded":
-            return out.decoded, out.centres
-        return out.encoded, out.proxies
-
     def _coarse(self, completion: CompletionOutput, encoding: TargetEncoding) -> PoseOutput:
         """The pose head on a completion against the encoded target (quaternion taken from the
         transform's rotation, for both heads)."""
-        tokens, positions = self._tokens(completion)
-        pose = self.pose_head(tokens, positions, encoding.tokens, encoding.positions)
+        pose = self.pose_head(completion.decoded, completion.centres, encoding.tokens,
+                              encoding.positions)
         return pose._replace(quaternion=matrix_to_quaternion(pose.transform[:, :3, :3].detach()))
 
     def coarse_pose(self, source: Tensor, target: TargetEncoding
@@ -130,9 +123,9 @@ class ComRegNet(nn.Module):
         """
         self._check_cloud(target, "target")
         net_in = subsample(target, self.config.completion.input_points, self._start())
-        tokens, positions = self._tokens(self.completion(net_in, rebuild=False))
+        encoded = self.completion(net_in, rebuild=False)
         icp_points = subsample(target, self.config.icp.num_points, self._start())
-        return TargetEncoding(tokens, positions, icp_points)
+        return TargetEncoding(encoded.decoded, encoded.centres, icp_points)
 
     def forward(self, source: Tensor, target: Tensor | TargetEncoding,
                 refine_only: Callable[[Tensor], Tensor] | None = None) -> ComRegOutput:
@@ -172,11 +165,10 @@ class ComRegNet(nn.Module):
                 tgt_part = CompletionOutput(*(None if x is None else x[B:] for x in both))
                 dense = self.completion.rebuild_head(src_part.decoded, src_part.centres)
                 completion = src_part._replace(dense=dense)
-                tokens, positions = self._tokens(tgt_part)
             else:
                 completion = self.completion(src_in)
-                tokens, positions = self._tokens(self.completion(tgt_in, rebuild=False))
-            encoding = TargetEncoding(tokens, positions,
+                tgt_part = self.completion(tgt_in, rebuild=False)
+            encoding = TargetEncoding(tgt_part.decoded, tgt_part.centres,
                                       subsample(target, cfg.icp.num_points, start))
             pose = self._coarse(completion, encoding)
         icp_source = subsample(source, cfg.icp.num_points, start)  # B N_c 3

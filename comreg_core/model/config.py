@@ -105,11 +105,9 @@ class CompletionConfig:
 
 @dataclass(frozen=True)
 class PoseHeadConfig:
-    """Registration module ``g``: per-query features of both clouds -> coarse pose.
+    """Registration module ``g``: the decoded query features ``H`` of both clouds -> coarse pose.
 
     Attributes:
-        features: ``"decoded"`` feeds ``H = M_D(Q, V)`` (the paper); ``"encoded"`` feeds ``V``
-            (the paper's "w/o completion" ablation).
         head: ``"mlp"`` (the paper): pooled tokens -> MLP -> quaternion + translation.
             ``"correspondence"``: every source token predicts where its query centre lies on
             the CT as a global rotation and translation applied to the centre plus a per-token
@@ -121,7 +119,6 @@ class PoseHeadConfig:
         norm_groups: GroupNorm groups in the MLP.
     """
 
-    features: Literal["decoded", "encoded"] = "decoded"
     head: Literal["mlp", "correspondence"] = "mlp"
 
     #: removed options (docs/results.md): what survived, or any value where the head ignored it
@@ -130,6 +127,7 @@ class PoseHeadConfig:
         "correspondence": lambda value, section: (value == "rotated"
                                                   or section.get("head", "mlp") == "mlp"),
         "moments": lambda value, section: value is True or section.get("head", "mlp") == "mlp",
+        "features": lambda value, section: value == "decoded",
     }
     token_dim: int = 512
     hidden_dim: int = 512

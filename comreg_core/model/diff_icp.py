@@ -12,6 +12,7 @@ source and target points.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -160,10 +161,38 @@ def differentiable_icp(source: Tensor, target: Tensor, init_transform: Tensor | 
     Returns:
         :class:`ICPResult`.
     """
+    init_transform = _checked_start(source, target, init_transform, iterations, sigma,
+                                    source_weights)
+    B = source.shape[0]
+    R0, t0 = init_transform[:, :3, :3], init_transform[:, :3, 3]
+    coarse = source @ R0.transpose(1, 2) + t0.unsqueeze(1)  # B N 3, s^c
+    match = _matcher(target, B, sigma, neighbors)
+    aligned = coarse  # B N 3
+    transforms, rmses = [], []
+    converged = torch.zeros(B, dtype=torch.bool, device=source.device)
+    prev_rmse = None
+    for _ in range(iterations):
+        corr = match(aligned)  # B N 3
+        R, t = weighted_procrustes(coarse, corr, source_weights)  # B 3 3, B 3
+        aligned = coarse @ R.transpose(1, 2) + t.unsqueeze(1)  # B N 3
+        rmse = _rmse(aligned, corr, source_weights)  # B
+        rmses.append(rmse)
+        transforms.append(make_transform(R, t) @ init_transform)
+        if rel_tol is not None and prev_rmse is not None:
+            converged = _settled(prev_rmse, rmse, rel_tol)
+            if bool(converged.all()):
+                break
+        prev_rmse = rmse.detach()
+    return _result(source, init_transform, aligned, transforms, rmses, converged)
+
+
+def _checked_start(source: Tensor, target: Tensor, init_transform: Tensor | None,
+                   iterations: int, sigma: float, source_weights: Tensor | None) -> Tensor:
+    """The arguments of :func:`differentiable_icp` checked; its start ``(B, 4, 4)`` (identity
+    for None)."""
     check_points(source, "source")
     check_points(target, "target")
     B, N, _ = source.shape
-    M = target.shape[1]
     if target.shape[0] not in (1, B):
         raise ValueError(f"target batch {target.shape[0]} must be 1 or the source batch {B}")
     if sigma <= 0:
@@ -180,54 +209,48 @@ def differentiable_icp(source: Tensor, target: Tensor, init_transform: Tensor | 
     if source_weights is not None and source_weights.shape != (B, N):
         raise ValueError(f"source_weights must have shape {(B, N)}, got "
                          f"{tuple(source_weights.shape)}")
-    k = M if neighbors is None else min(neighbors, M)
-    dense = neighbors is None
+    return init_transform
 
-    R0, t0 = init_transform[:, :3, :3], init_transform[:, :3, 3]
-    coarse = source @ R0.transpose(1, 2) + t0.unsqueeze(1)  # B N 3, s^c
-    index = None if dense else KNNIndex(target)
 
-    aligned = coarse  # B N 3
-    R = torch.eye(3, dtype=source.dtype, device=source.device).expand(B, 3, 3)  # B 3 3
-    t = source.new_zeros(B, 3)  # B 3
-    transforms, rmses = [], []
-    converged = torch.zeros(B, dtype=torch.bool, device=source.device)
-    prev_rmse = None
-    for _ in range(iterations):
-        if dense:
-            d2 = (aligned.unsqueeze(2) - target.unsqueeze(1)).square().sum(-1)  # B N M
+def _matcher(target: Tensor, batch: int, sigma: float,
+             neighbors: int | None) -> Callable[[Tensor], Tensor]:
+    """``points (B, N, 3) -> soft correspondences (B, N, 3)`` in ``target`` ``(B | 1, M, 3)``:
+    over the ``neighbors`` nearest targets (KD-tree, built once), or over all M (None)."""
+    if neighbors is None:
+        def over_all(points: Tensor) -> Tensor:
+            d2 = (points.unsqueeze(2) - target.unsqueeze(1)).square().sum(-1)  # B N M
             w = torch.softmax(d2 * (-0.5 / (sigma * sigma)), dim=-1)  # B N M
-            corr = w @ target.expand(B, -1, -1)  # B N 3
-        else:
-            idx = index.query(aligned, k).to(source.device)  # B N k
-            nb = gather_points(target, idx)  # B N k 3
-            corr = soft_correspondences(aligned, nb, sigma)  # B N 3
-        point_w = source_weights
-        R, t = weighted_procrustes(coarse, corr, point_w)  # B 3 3, B 3
-        aligned = coarse @ R.transpose(1, 2) + t.unsqueeze(1)  # B N 3
-        sq = (aligned - corr).square().sum(-1)  # B N
-        if point_w is None:
-            rmse = sq.mean(1).clamp_min(0).sqrt()
-        else:
-            rmse = ((sq * point_w).sum(1) / point_w.sum(1)).clamp_min(0).sqrt()  # B
-        rmses.append(rmse)
-        transforms.append(make_transform(R, t) @ init_transform)
-        if rel_tol is not None and prev_rmse is not None:
-            with torch.no_grad():
-                change = (prev_rmse - rmse).abs() / prev_rmse.clamp_min(1e-12)
-                converged = change < rel_tol
-            if bool(converged.all()):
-                break
-        prev_rmse = rmse.detach()
+            return w @ target.expand(batch, -1, -1)  # B N 3
+        return over_all
+    k = min(neighbors, target.shape[1])
+    index = KNNIndex(target)
 
+    def over_nearest(points: Tensor) -> Tensor:
+        idx = index.query(points, k).to(points.device)  # B N k
+        return soft_correspondences(points, gather_points(target, idx), sigma)  # B N 3
+    return over_nearest
+
+
+def _rmse(aligned: Tensor, corr: Tensor, weights: Tensor | None) -> Tensor:
+    """``(B,)`` (weighted) RMS distance of ``aligned`` to ``corr``, both ``(B, N, 3)``."""
+    sq = (aligned - corr).square().sum(-1)  # B N
+    if weights is None:
+        return sq.mean(1).clamp_min(0).sqrt()
+    return ((sq * weights).sum(1) / weights.sum(1)).clamp_min(0).sqrt()
+
+
+def _settled(prev_rmse: Tensor, rmse: Tensor, rel_tol: float) -> Tensor:
+    """``(B,)`` bool: the relative rmse change of each cloud is below ``rel_tol``."""
+    with torch.no_grad():
+        return (prev_rmse - rmse).abs() / prev_rmse.clamp_min(1e-12) < rel_tol
+
+
+def _result(source: Tensor, init_transform: Tensor, aligned: Tensor, transforms: list[Tensor],
+            rmses: list[Tensor], converged: Tensor) -> ICPResult:
+    """The :class:`ICPResult` of the iterations run (none: the start, rmse NaN)."""
     if transforms:
-        final = transforms[-1]
-        history = torch.stack(transforms, dim=1)  # B K 4 4
-        rmse_history = torch.stack(rmses, dim=1)  # B K
-        rmse = rmses[-1]
-    else:
-        final = init_transform
-        history = init_transform.new_zeros(B, 0, 4, 4)
-        rmse_history = source.new_zeros(B, 0)
-        rmse = source.new_full((B,), float("nan"))
-    return ICPResult(final, aligned, rmse, history, rmse_history, converged)
+        return ICPResult(transforms[-1], aligned, rmses[-1], torch.stack(transforms, dim=1),
+                         torch.stack(rmses, dim=1), converged)
+    B = source.shape[0]
+    return ICPResult(init_transform, aligned, source.new_full((B,), float("nan")),
+                     init_transform.new_zeros(B, 0, 4, 4), source.new_zeros(B, 0), converged)

@@ -1,10 +1,9 @@
 """Registration module ``g``: ``MLP(pool(H(S^t)) (+) pool(H(T))) -> coarse inverse transform``.
 
 Pooling. ``H`` is a set of per-query features whose order is set by AdaPoinTr's query ranking (and
-whose count may differ between clouds, or be the proxy count when ``V`` is fed instead), so the
-head pools it to a fixed size with a symmetric function, PointNet style: every token's feature is
-concatenated with its 3-D position (query centre for ``H``, proxy position for ``V``), passed
-through one shared Linear + GELU layer, then max- and mean-pooled. Reasons:
+whose count may differ between clouds), so the head pools it to a fixed size with a symmetric
+function, PointNet style: every token's feature is concatenated with its 3-D position (its query
+centre), passed through one shared Linear + GELU layer, then max- and mean-pooled. Reasons:
 
 * permutation invariant and independent of the number of tokens (flattening would tie MLP weights
   to arbitrary ranking slots and fix the query count);
@@ -125,7 +124,7 @@ class PoseHead(nn.Module):
     """Coarse source -> target pose from two token sets.
 
     Args:
-        feature_dim: width of the tokens (decoder width for H, encoder width for V).
+        feature_dim: width of the tokens H (the decoder's width).
         config: :class:`PoseHeadConfig`.
     """
 

@@ -13,7 +13,8 @@ from comreg_core.training.config import (PRESETS, DataConfig, PretrainConfig,
                                          pretrain_preset)
 from comreg_core.training.data import (SampleStream, TrainingCT, make_sample, sample_loader,
                                        validation_rng, validation_samples)
-from comreg_core.training.trainer import LOG_COLUMNS, TrainResult, pretrain, resolve_device
+from comreg_core.training.bookkeeping import LOG_COLUMNS
+from comreg_core.training.trainer import TrainResult, pretrain, resolve_device
 
 __all__ = [
     "CheckpointError", "ct_fingerprint", "export_model", "load_checkpoint", "mesh_fingerprint", "run_ct_mesh",

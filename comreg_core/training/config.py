@@ -16,9 +16,8 @@ Presets (:func:`pretrain_preset`):
   so that the epoch log shows progress within a 30-minute budget; outside training the ICP's
   pose is refined on the CT mesh (``model.icp.mesh_refine``). Everything else as ``paper``.
 
-Ablations reachable from the config (paper, Table 3): ``model.pose.features: encoded`` (V instead
-of H), ``model.loss.lambda_fine: 0``, ``simulation.mode: uniform`` (uniform surface sampling
-instead of simulated sweeps).
+Ablations reachable from the config (paper, Table 3): ``model.loss.lambda_fine: 0``,
+``simulation.mode: uniform`` (uniform surface sampling instead of simulated sweeps).
 """
 
 from __future__ import annotations
@@ -86,12 +85,10 @@ class TrainingConfig:
         max_minutes: time budget of one invocation of ``pretrain`` (0 = none); the run stops
             after the step that crosses it and writes a checkpoint.
         device: ``"auto"`` (CUDA if available), ``"cpu"`` or ``"cuda"``.
-        world_size: processes training together (1, or torchrun's ``WORLD_SIZE``). Recorded,
-            not chosen: every start of ``pretrain`` sets it from how it was launched (a value
-            in a ``--config`` file is replaced), so ``config.yaml`` says how the run was made.
-            ``batch_size`` is the global batch of a step, split evenly over the processes, and
-            the learning rates are those of the global batch (see
-            :mod:`comreg_core.training.distributed`).
+
+    Under torchrun, ``batch_size`` is the global batch of a step, split evenly over the
+    processes, and the learning rates are those of the global batch
+    (:mod:`comreg_core.training.distributed`).
     """
 
     epochs: int = 500
@@ -109,11 +106,12 @@ class TrainingConfig:
     checkpoint_epochs: int = 1
     max_minutes: float = 0.0
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    world_size: int = 1
 
-    #: removed option (docs/results.md): no clipping survived
+    #: removed options (docs/results.md): no clipping survived; the number of processes is
+    #: torchrun's (checkpoints and the epoch log record it), whatever the file says
     RETIRED_KEYS: ClassVar[dict[str, RetiredCheck]] = {
         "grad_clip": lambda value, section: value == 0,
+        "world_size": lambda value, section: True,
     }
 
     def __post_init__(self) -> None:
@@ -134,7 +132,6 @@ class TrainingConfig:
         require(self.checkpoint_minutes > 0, "training.checkpoint_minutes", "must be positive")
         require(self.checkpoint_epochs >= 1, "training.checkpoint_epochs", "must be at least 1")
         require(self.max_minutes >= 0, "training.max_minutes", "must be 0 (none) or more")
-        require(self.world_size >= 1, "training.world_size", "must be at least 1")
 
 
 @dataclass(frozen=True)

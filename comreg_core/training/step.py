@@ -3,15 +3,17 @@
 :func:`train_step` seeds torch's generator for the step (:func:`~comreg_core.training.data.
 step_torch_seed`), runs the network on this process's part of the global batch, averages the
 loss terms over the processes (:meth:`~comreg_core.training.distributed.World.mean`), and
-back-propagates the loss weighted as for the global batch.
+back-propagates the loss weighted as for the global batch. :func:`build_optimizers` makes the
+optimisers it steps and their learning-rate schedules.
 """
 
 from __future__ import annotations
 
 import torch
 
+from comreg_core.model.comreg import ComRegNet
 from comreg_core.model.losses import balance_weight, in_fine_gate, output_loss
-from comreg_core.training.config import PretrainConfig
+from comreg_core.training.config import PretrainConfig, TrainingConfig
 from comreg_core.training.data import step_torch_seed
 from comreg_core.training.distributed import World
 
@@ -19,6 +21,27 @@ from comreg_core.training.distributed import World
 #: :class:`~comreg_core.model.losses.LossTerms` it is made of.
 LOSS_TERMS = ("total", "completion", "sparse", "dense", "registration", "reg_coarse",
               "reg_fine", "correspondence")
+
+
+def build_optimizers(model: ComRegNet, training: TrainingConfig) -> tuple[list, list]:
+    """AdamW on the completion backbone, Adam on the registration head, each with a LambdaLR
+    stepped after every training step: a linear warm-up over ``warmup_steps`` steps, then the
+    learning rate multiplied by ``lr_decay`` every ``lr_decay_epochs`` epochs."""
+    backbone = list(model.completion.parameters())
+    head = list(model.pose_head.parameters())
+    assert len(backbone) + len(head) == len(list(model.parameters())), "unassigned parameters"
+    opt_b = torch.optim.AdamW(backbone, lr=training.lr_backbone,
+                              weight_decay=training.weight_decay_backbone)
+    opt_h = torch.optim.Adam(head, lr=training.lr_head)
+    decay, warmup = training.lr_decay, training.warmup_steps
+    every = training.lr_decay_epochs * (training.samples_per_epoch // training.batch_size)
+
+    def factor(step: int) -> float:
+        warm = min(1.0, (step + 1) / warmup) if warmup else 1.0
+        return warm * decay ** (step // every)
+
+    scheds = [torch.optim.lr_scheduler.LambdaLR(o, factor) for o in (opt_b, opt_h)]
+    return [opt_b, opt_h], scheds
 
 
 def train_step(model: torch.nn.Module, batch: dict[str, torch.Tensor], ct_points_n: torch.Tensor,

@@ -50,11 +50,12 @@ def _initial_errors(samples: list[Sample], norm: Normalization) -> np.ndarray:
 def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
              norm: Normalization, batch_size: int = 8, loss=None,
              surface: CTSurface | None = None) -> dict[str, float]:
-    """Register the validation samples; the ``val_*`` figures of :data:`LOG_COLUMNS`
-    (``val_loss`` / ``val_completion``: the training objective and its completion term, means
-    over the samples, in eval mode; ``val_completion_CD_mm_median``: the evaluation's completion
-    CD (:func:`~comreg_core.registration.geometry.metrics.completion_metrics`) against ``surface``, the CT,
-    when given)."""
+    """Register the validation samples; the ``val_*`` figures of
+    :data:`~comreg_core.training.bookkeeping.LOG_COLUMNS` (``val_loss`` / ``val_completion``: the
+    training objective and its completion term, means over the samples, in eval mode;
+    ``val_completion_CD_mm_median``: the evaluation's completion CD
+    (:func:`~comreg_core.registration.geometry.metrics.completion_metrics`) against ``surface``,
+    the CT, when given)."""
     was_training = model.training
     model.eval()
     fine, coarse, completion_cd = [], [], []
@@ -83,12 +84,7 @@ def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
     finally:
         model.train(was_training)
     if model.config.icp.mesh_refine:  # as outside training: the ICP's pose refined on the mesh
-        if surface is None:
-            raise ValueError("icp.mesh_refine needs the CT surface")
-        match = surface.matcher()
-        fine = [norm.transform_to_model(refine_on_mesh(
-            norm.points_to_mm(s.source), norm.transform_to_mm(orthonormalize(T)), match)[0])
-            for T, s in zip(fine, samples)]
+        fine = _refined_on_mesh(fine, samples, norm, surface)
     fe = np.array([_pose_errors(T, s, norm) for T, s in zip(fine, samples)])
     ce = np.array([_pose_errors(T, s, norm) for T, s in zip(coarse, samples)])
     initial = _initial_errors(samples, norm)
@@ -108,6 +104,17 @@ def validate(model: ComRegNet, ct_points_n: torch.Tensor, samples: list[Sample],
                                         else float("nan")),
         "val_s": time.perf_counter() - start,
     }
+
+
+def _refined_on_mesh(poses: list[np.ndarray], samples: list[Sample], norm: Normalization,
+                     surface: CTSurface | None) -> list[np.ndarray]:
+    """The ``(4, 4)`` normalised poses refined on the CT mesh (``model.icp.mesh_refine``)."""
+    if surface is None:
+        raise ValueError("icp.mesh_refine needs the CT surface")
+    match = surface.matcher()
+    return [norm.transform_to_model(refine_on_mesh(
+        norm.points_to_mm(s.source), norm.transform_to_mm(orthonormalize(T)), match)[0])
+        for T, s in zip(poses, samples)]
 
 
 def identity_errors(samples: list[Sample], norm: Normalization) -> dict[str, float]:

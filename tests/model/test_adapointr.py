@@ -5,13 +5,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from comreg_core.model.adapointr import (
-    AdaPoinTr,
-    EdgeConv,
-    FoldingHead,
-    GraphAttention,
-    GroupNormLast,
-)
+from comreg_core.model.adapointr import AdaPoinTr, EdgeConv, FoldingHead, GroupNormLast
+from comreg_core.model.transformer import GraphAttention
 from comreg_core.model.config import CompletionConfig
 from comreg_core.model.ops import gather_points, knn
 from tests.helpers import assert_close

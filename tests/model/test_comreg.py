@@ -98,28 +98,6 @@ def test_cached_target_and_shared_target_batch_agree(cpu_batch):
     assert_close(paired.completion.dense, direct.completion.dense, atol=1e-5)
 
 
-def test_encoded_feature_switch_feeds_v_to_the_pose_head(cpu_batch):
-    torch.manual_seed(3)
-    cfg = model_preset("cpu", {"completion": {"decoder_dim": 96},
-                               "pose": {"features": "encoded"}})
-    net = ComRegNet(cfg).eval()
-    assert net.pose_head.token.in_features == cfg.completion.encoder_dim + 3
-    seen = {}
-
-    def hook(module, args, output):
-        seen["args"] = args
-
-    net.pose_head.register_forward_hook(hook)
-    source, target, _, _ = cpu_batch
-    with torch.no_grad():
-        out = net(source[:1], target)
-        encoding = net.encode_target(target)
-    assert torch.equal(seen["args"][0], out.completion.encoded)
-    assert torch.equal(seen["args"][1], out.completion.proxies)
-    assert_close(encoding.tokens, seen["args"][2], atol=1e-5)  # f ran on [S, T] together
-    assert encoding.positions.shape == (1, cfg.completion.center_num[1], 3)
-
-
 def test_input_errors():
     net = ComRegNet(model_preset("cpu")).eval()
     with pytest.raises(InvalidGeometryError, match="needs at least"):

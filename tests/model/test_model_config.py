@@ -21,7 +21,7 @@ def test_paper_preset_holds_the_paper_numbers():
     assert (c.input_points, c.dense_points) == (20000, 20000)
     assert (c.encoder_dim, c.encoder_depth, c.decoder_dim, c.decoder_depth) == (384, 6, 384, 8)
     assert (c.num_heads, c.graph_k, c.center_num, c.global_feature_dim) == (6, 8, (512, 256), 1024)
-    assert (cfg.pose.hidden_dim, cfg.pose.num_blocks, cfg.pose.features) == (512, 5, "decoded")
+    assert (cfg.pose.hidden_dim, cfg.pose.num_blocks, cfg.pose.head) == (512, 5, "mlp")
     assert (cfg.icp.iterations, cfg.icp.num_points, cfg.icp.sigma) == (25, 4096, 5e-3)
     assert not cfg.icp.mesh_refine  # the paper's pipeline ends with its differentiable ICP
     assert (cfg.loss.lambda_coarse, cfg.loss.lambda_fine, cfg.loss.rho) == (1.0, 0.5, 0.1)
@@ -40,8 +40,8 @@ def test_cpu_preset_is_smaller_and_keeps_the_method_constants():
 
 
 def test_overrides_yaml_round_trip_and_errors(tmp_path):
-    cfg = model_preset("cpu", {"icp": {"sigma": 0.01}, "pose": {"features": "encoded"}})
-    assert cfg.icp.sigma == 0.01 and cfg.pose.features == "encoded"
+    cfg = model_preset("cpu", {"icp": {"sigma": 0.01}, "pose": {"head": "mlp"}})
+    assert cfg.icp.sigma == 0.01 and cfg.pose.head == "mlp"
     path = write_config(cfg, tmp_path / "model.yaml")
     assert load_config(ModelConfig, path) == cfg
     with pytest.raises(ConfigError, match="Unknown model preset"):
@@ -53,7 +53,7 @@ def test_overrides_yaml_round_trip_and_errors(tmp_path):
     with pytest.raises(ConfigError, match="Unknown config key"):
         model_preset("paper", {"icp": {"simga": 1.0}})
     with pytest.raises(ConfigError):
-        model_preset("paper", {"pose": {"features": "raw"}})
+        model_preset("paper", {"pose": {"head": "raw"}})
 
 
 def test_normalization_round_trips_points_and_transforms():
@@ -82,13 +82,15 @@ def test_removed_options_in_old_configs_load_when_they_hold_what_survived():
     from pathlib import Path
 
     old_cpu = {"input_frame": "ct", "pose": {"head": "correspondence", "correspondence": "rotated",
-                                             "moments": True, "rotation": "quaternion"},
+                                             "moments": True, "rotation": "quaternion",
+                                             "features": "decoded"},
                "loss": {"lambda_global": 1.0}, "icp": {"mode": "soft", "trim_fraction": 0.0}}
     assert model_preset("cpu", old_cpu) == model_preset("cpu")
     old_paper = {"pose": {"correspondence": "regress", "moments": False}, "loss": {
         "lambda_global": 0.0}}
     assert model_preset("paper", old_paper) == model_preset("paper")
     for removed in ({"input_frame": "azimuth"}, {"pose": {"rotation": "6d"}},
+                    {"pose": {"features": "encoded"}},
                     {"pose": {"head": "correspondence", "correspondence": "match"}},
                     {"icp": {"mode": "hard"}}, {"loss": {"lambda_global": 0.5}}):
         with pytest.raises(ConfigError, match="has been removed"):
@@ -100,5 +102,5 @@ def test_removed_options_in_old_configs_load_when_they_hold_what_survived():
 
     sample = Path(__file__).parents[2] / "resources" / "sample" / "fibula_cpu.pt"
     state = load_checkpoint(sample)
-    assert "mode: soft" in state["config_yaml"]
+    assert "mode: soft" in state["config_yaml"] and "features: decoded" in state["config_yaml"]
     ComRegNet(config_from_yaml(state["config_yaml"]).model).load_state_dict(state["model"])

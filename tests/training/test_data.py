@@ -87,8 +87,7 @@ def test_ablation_switches(ct):
     assert uniform.source.shape == (256, 3)
     from comreg_core.training import pretrain_preset
 
-    cfg = pretrain_preset("cpu", {"model": {"pose": {"features": "encoded"},
-                                            "loss": {"lambda_fine": 0.0}},
+    cfg = pretrain_preset("cpu", {"model": {"loss": {"lambda_fine": 0.0}},
                                   "simulation": {"mode": "uniform"}, "data": {"pose": "full"}})
-    assert cfg.model.pose.features == "encoded" and cfg.model.loss.lambda_fine == 0.0
+    assert cfg.model.loss.lambda_fine == 0.0
     assert cfg.simulation.mode == "uniform" and cfg.data.pose == "full"

@@ -23,7 +23,6 @@ import yaml
 from typer.testing import CliRunner
 
 from comreg_core.cli import app
-from comreg_core.config import ConfigError
 from comreg_core.training import load_checkpoint, pretrain, pretrain_preset
 from comreg_core.training.data import SampleStream, TrainingCT
 from comreg_core.training.distributed import DistributedError, World
@@ -36,8 +35,8 @@ FIXED_FPS_CLI = "tests.training.fixed_fps_cli"
 
 #: The tiny network, 2 steps of global batch 4 per epoch, samples made inline (no data workers),
 #: the paper's learning rate (at 1e-3 Adam's sign-like first steps amplify float rounding into
-#: percent-level loss differences within a few steps, which would hide what is compared), and a
-#: world size of 3 that every launch must replace by its own in config.yaml.
+#: percent-level loss differences within a few steps, which would hide what is compared), and
+#: the retired ``training.world_size`` of old configs (3), which no launch may take for its own.
 DDP_TINY = {**TINY, "data": {**TINY["data"], "workers": 0},
             "training": {**TINY["training"], "samples_per_epoch": 8, "validation_sweeps": 2,
                          "lr_backbone": 1e-4, "lr_head": 1e-4, "world_size": 3}}
@@ -111,8 +110,8 @@ def test_world_from_torchrun_environment():
     assert torch.equal(World().mean(values), values.detach())
     assert World().main_decides(True, torch.device("cpu")) is True
     assert World(1, 2, 1, True).device(torch.device("cpu")) == torch.device("cpu")
-    with pytest.raises(ConfigError):
-        pretrain_preset("cpu", {"training": {"world_size": 0}})
+    # the retired training.world_size: any value of an old config is dropped (torchrun decides)
+    assert pretrain_preset("cpu", {"training": {"world_size": 0}}) == pretrain_preset("cpu")
 
 
 def test_processes_draw_disjoint_parts_of_the_same_global_batches():
@@ -182,9 +181,9 @@ def test_two_processes_match_one_with_the_same_global_batch(tmp_path, monkeypatc
     one = pretrain(FIBULA_STL, tmp_path / "one", preset="cpu", config=_config_file(tmp_path),
                    epochs=2, device="cpu")
     one_s = time.monotonic() - started
-    assert one.world_size == 1  # recorded as 1 although the --config file says 3:
-    assert yaml.safe_load((tmp_path / "one" / "config.yaml").read_text())["training"][
-        "world_size"] == 1
+    assert one.world_size == 1  # recorded as 1 although the --config file says 3; config.yaml
+    assert "world_size" not in yaml.safe_load(  # no longer holds it
+        (tmp_path / "one" / "config.yaml").read_text())["training"]
 
     two_rows, one_rows = _rows(run / "training_log.csv"), _rows(tmp_path / "one" /
                                                                 "training_log.csv")
@@ -202,8 +201,6 @@ def test_two_processes_match_one_with_the_same_global_batch(tmp_path, monkeypatc
         "checkpoint.pt", "config.yaml", "ct_fingerprint.json", "training_log.csv"]
     state = load_checkpoint(run)
     assert (state["epoch"], state["samples_seen"], state["world_size"]) == (2, 16, 2)
-    assert yaml.safe_load(state["config_yaml"])["training"]["world_size"] == 2
-    assert yaml.safe_load((run / "config.yaml").read_text())["training"]["world_size"] == 2
 
     from comreg_core.io import PointCloud, read_mesh, write_points
 
@@ -296,8 +293,7 @@ def test_a_killed_process_stops_the_job_and_the_run_resumes_exactly(tmp_path, tw
     assert (single.epochs, single.samples_seen, single.world_size) == (2, 16, 1)
     sizes = [r["world_size"] for r in _rows(tmp_path / "copy" / "training_log.csv")]
     assert sizes[0] == "2" and sizes[-1] == "1" and len(sizes) == 3
-    cfg = yaml.safe_load((tmp_path / "copy" / "config.yaml").read_text())
-    assert cfg["training"]["world_size"] == 1
+    assert load_checkpoint(tmp_path / "copy")["world_size"] == 1
 
 
 def test_torchrun_user_errors_are_one_line_and_exit_2(tmp_path):

@@ -15,9 +15,10 @@ from comreg_core.io.meshes import SurfaceMesh, write_mesh
 from comreg_core.model.comreg import ComRegNet
 from comreg_core.training import (LOG_COLUMNS, CheckpointError, load_checkpoint,
                                   mesh_fingerprint, pretrain, pretrain_preset)
-from comreg_core.training.config import config_from_yaml
+from comreg_core.training.config import config_from_yaml, config_to_yaml
 from comreg_core.training.checkpoint import network_warning
-from comreg_core.training.trainer import BudgetTooShortError, build_optimizers
+from comreg_core.training.step import build_optimizers
+from comreg_core.training.trainer import BudgetTooShortError
 from tests.helpers import FIBULA_STL
 from tests.training.tiny import TINY, TINY_EPOCHS, tiny_run
 
@@ -43,6 +44,20 @@ def test_paper_preset_is_the_papers_schedule():
         pretrain_preset("gpu")
     with pytest.raises(ConfigError):
         pretrain_preset("cpu", {"training": {"samples_per_epoch": 10, "batch_size": 4}})
+
+
+def test_an_old_run_config_with_retired_keys_loads():
+    """Configs of runs made before ``training.world_size`` and ``model.pose.features`` were
+    retired (config.yaml, a checkpoint's config_yaml) load as today's; the encoder-feature
+    pose head is refused."""
+    cfg = pretrain_preset("cpu", TINY)
+    old = yaml.safe_load(config_to_yaml(cfg))
+    old["training"]["world_size"] = 2
+    old["model"]["pose"]["features"] = "decoded"
+    assert config_from_yaml(yaml.safe_dump(old)) == cfg
+    old["model"]["pose"]["features"] = "encoded"
+    with pytest.raises(ConfigError, match="'model.pose.features' = 'encoded'.*removed"):
+        config_from_yaml(yaml.safe_dump(old))
 
 
 def test_optimizers_and_lr_schedule():
