@@ -24,7 +24,9 @@ LAYERS = (
     ("demo", "cli", "live", "batch"),
 )
 LAYER = {name: rank for rank, names in enumerate(LAYERS) for name in names}
-MAX_LINES = 500
+MAX_LINES = 400
+#: No function longer than this (lines, docstring included), compiled numba kernels aside.
+MAX_FUNCTION_LINES = 80
 #: The ``comreg`` command (``comreg_core/cli/``): short modules of short functions.
 CLI_MAX_LINES = 400
 CLI_MAX_FUNCTION_LINES = 60
@@ -85,10 +87,33 @@ def test_registration_needs_no_torch_and_no_network():
 
 
 @pytest.mark.parametrize("package", ["comreg_core", "comreg_plugin"])
-def test_no_module_over_500_lines(package):
+def test_no_module_over_400_lines(package):
     long = {str(p.relative_to(ROOT)): n for p in _modules(package)
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
     assert not long, f"split these by concern: {long}"
+
+
+def _compiled(node) -> bool:
+    """Whether a function is a numba kernel (``@njit`` or ``@numba.njit``, with arguments or
+    not): one loop over points, not a pipeline of steps."""
+    for decorator in node.decorator_list:
+        target = decorator.func if isinstance(decorator, ast.Call) else decorator
+        name = target.attr if isinstance(target, ast.Attribute) else getattr(target, "id", "")
+        if name in ("njit", "jit"):
+            return True
+    return False
+
+
+@pytest.mark.parametrize("package", ["comreg_core", "comreg_plugin"])
+def test_functions_read_as_named_steps(package):
+    long = {}
+    for path in _modules(package):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and \
+                    not _compiled(node) and \
+                    (n := node.end_lineno - node.lineno + 1) > MAX_FUNCTION_LINES:
+                long[f"{path.relative_to(ROOT)}:{node.lineno} {node.name}()"] = n
+    assert not long, f"split these into named steps (at most {MAX_FUNCTION_LINES} lines): {long}"
 
 
 def test_the_cli_is_short_modules_of_short_functions():
