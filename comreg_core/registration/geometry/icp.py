@@ -21,9 +21,9 @@ from typing import NamedTuple
 import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
-from comreg_core.registration.geometry.kernels import pose_steps
+from comreg_core.registration.geometry.kernels import pose_steps, transform_points
 from comreg_core.registration.geometry.surface import Matcher
-from comreg_core.transforms import as_points, rotate
+from comreg_core.transforms import as_points
 
 #: A polish (and the mesh refinement) stops once its RMS has not fallen by :data:`STALL_MM`
 #: for this many iterations (its gated pairs can make it jitter above the tolerance for good).
@@ -65,9 +65,13 @@ class ICPResult(NamedTuple):
 
 def apply_poses(poses: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``(n, 3)`` points (or ``(B, n, 3)``, one cloud per pose) moved by each of ``(B, 4, 4)``
-    poses: ``(B, n, 3)``."""
+    poses: ``(B, n, 3)``, in a fixed order of operations (the same bits on every CPU;
+    :func:`~comreg_core.registration.geometry.kernels.transform_points`)."""
     points = np.asarray(points, dtype=np.float64)
-    return np.ascontiguousarray(rotate(points, poses[:, :3, :3]) + poses[:, None, :3, 3])
+    cloud = points[None] if points.ndim == 2 else points
+    poses = np.asarray(poses, dtype=np.float64)
+    return transform_points(np.ascontiguousarray(poses[:, :3, :3]),
+                            np.ascontiguousarray(poses[:, :3, 3]), np.ascontiguousarray(cloud))
 
 
 def strided(points: np.ndarray, count: int) -> np.ndarray:

@@ -326,6 +326,22 @@ def pose_steps(moved, q, nrm, d, trim, T):
     return out
 
 
+@njit(cache=True)
+def transform_points(R, t, points):
+    """``(B, n, 3)``: ``points`` ``(1 or B, n, 3)`` moved by each of ``B`` rotations ``R``
+    ``(B, 3, 3)`` and translations ``t`` ``(B, 3)``, summed in the fixed order
+    ``((x R_j0 + y R_j1) + z R_j2) + t_j`` (the bits of ``transforms.rotate`` plus ``t``)."""
+    B, n = R.shape[0], points.shape[1]
+    out = np.empty((B, n, 3))
+    for b in range(B):
+        cloud = points[b] if points.shape[0] == B else points[0]
+        for i in range(n):
+            x, y, z = cloud[i, 0], cloud[i, 1], cloud[i, 2]
+            for j in range(3):
+                out[b, i, j] = ((x * R[b, j, 0] + y * R[b, j, 1]) + z * R[b, j, 2]) + t[b, j]
+    return out
+
+
 def compile_kernels() -> None:
     """Compile (or load from numba's cache) every kernel on a tiny problem: the set-up script
     calls it so that the first registration does not wait for the compiler."""
@@ -338,6 +354,7 @@ def compile_kernels() -> None:
     grid_scores(eye, points, points, np.zeros(3), 1.0, grid, points, normals, 0.2, 5.0)
     pose_steps(np.stack([points] * 2), np.stack([points] * 2), np.stack([normals] * 2),
                np.ones((2, 12)), 0.1, eye.copy())
+    transform_points(eye[:, :3, :3].copy(), eye[:, :3, 3].copy(), points[None])
     from comreg_core.registration.geometry.mesh_kernels import closest_on_candidates
 
     closest_on_candidates(points, np.zeros((12, 2), dtype=np.int64), points,
