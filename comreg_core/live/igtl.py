@@ -146,7 +146,8 @@ class LiveClient(pyigtl.OpenIGTLinkClient):
     connection (``on_event``) and reconnects after a refusal, a close or an error. ``idle()``
     is called between reads (about every 20 ms). Messages to send are queued (pyigtl's
     outgoing queue, 100 at most; the oldest go first when it overflows) and sent while
-    connected. ``reconnect=False``: the thread ends when the server closes the stream.
+    connected. ``reconnect=False``: the thread ends when the server closes the stream or the
+    connection breaks.
     ``connect_timeout_s``: when no first connection was made within this many seconds of
     :meth:`start`, the client gives up (``on_event("timeout", ...)``) and its thread ends; None:
     it tries for ever. Reconnecting after a first connection is not limited."""
@@ -227,10 +228,13 @@ class LiveClient(pyigtl.OpenIGTLinkClient):
                             + ("skipped" if exc.in_sync else "reconnecting"))
                 if not exc.in_sync:
                     self._drop()
-            except OSError as exc:
+            except OSError as exc:  # a reset or a broken pipe: the server went away too
                 self._event("lost", f"the connection to {where} was lost "
-                            f"({exc.strerror or exc}); reconnecting")
+                            f"({exc.strerror or exc})"
+                            + ("; reconnecting" if self.reconnect else ""))
                 self._drop()
+                if not self.reconnect:
+                    break
             except Exception:
                 log.exception("live client: unexpected error; reconnecting")
                 self._drop()

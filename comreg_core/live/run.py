@@ -169,7 +169,7 @@ class FrameReceiver:
             with self._lock:
                 self._gave_up = text
             return
-        if kind == "closed":
+        if kind == "closed" or (kind == "lost" and not self.client.reconnect):
             self._push(*self.assembler.expire(float("inf")))
             with self._lock:
                 self._ended = True

@@ -141,3 +141,32 @@ def test_the_connect_timeout_is_the_first_connections_only(port):
     finally:
         receiver.stop()
         listener.close()
+
+
+def test_without_reconnecting_a_broken_connection_ends_the_stream(port):
+    """``--until-end``'s client (no reconnect): a server that resets the connection (an RST,
+    as a crashed PLUS Server's host sends) ends the stream as a clean close does, with one line
+    and no attempt to reconnect."""
+    import struct
+
+    listener = _listen(port)
+    receiver = FrameReceiver("127.0.0.1", port, "Image", "ImageToReference", reconnect=False)
+    receiver.start()
+    try:
+        conn, _ = listener.accept()
+        listener.close()
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        conn.close()  # linger 0: a reset, not a close
+        ended, notes = False, []
+        end = time.monotonic() + 5.0
+        while not ended and time.monotonic() < end:
+            batch = receiver.take(0.05)
+            notes += batch.notes
+            ended = batch.ended
+    finally:
+        receiver.stop()
+    assert ended, notes
+    assert notes[0] == f"connected to 127.0.0.1:{port}"
+    assert len(notes) == 2 and "reconnecting" not in notes[1], notes
+    assert notes[1] in (f"127.0.0.1:{port} closed the connection",
+                        f"the connection to 127.0.0.1:{port} was lost (Connection reset by peer)")
