@@ -155,9 +155,10 @@ def test_without_reconnecting_a_broken_connection_ends_the_stream(port):
     try:
         conn, _ = listener.accept()
         listener.close()
+        notes, _, _ = _batches_until(receiver, f"connected to 127.0.0.1:{port}")
         conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-        conn.close()  # linger 0: a reset, not a close
-        ended, notes = False, []
+        conn.close()  # linger 0: a reset, not a close (once the client says it is connected)
+        ended = False
         end = time.monotonic() + 5.0
         while not ended and time.monotonic() < end:
             batch = receiver.take(0.05)
@@ -170,3 +171,11 @@ def test_without_reconnecting_a_broken_connection_ends_the_stream(port):
     assert len(notes) == 2 and "reconnecting" not in notes[1], notes
     assert notes[1] in (f"127.0.0.1:{port} closed the connection",
                         f"the connection to 127.0.0.1:{port} was lost (Connection reset by peer)")
+
+
+def _batches_until(receiver: FrameReceiver, note: str, timeout_s: float = 5.0):
+    """The receiver's notes until ``note`` came (or ``timeout_s``): ``(notes, gave_up, s)``."""
+    notes, start = [], time.monotonic()
+    while note not in notes and time.monotonic() - start < timeout_s:
+        notes += receiver.take(0.05).notes
+    return notes, "", time.monotonic() - start
