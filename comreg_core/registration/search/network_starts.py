@@ -21,7 +21,7 @@ from comreg_core.registration.geometry.icp import apply_poses, coarse_to_fine_ic
 from comreg_core.registration.search.polish import polish_pose
 from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult, choose,
-                                                     same_pose, score_poses, tied)
+                                                     runner_up, score_poses, tied)
 from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
 
@@ -88,8 +88,7 @@ def _rechosen(result: HypothesisResult, chosen: int, pts: np.ndarray, centroid: 
     others = np.array([i for i in range(len(hyps)) if i != chosen], dtype=np.int64)
     if prior is not None and len(others):
         others = others[prior.allows(poses[others], centroid)]
-    distinct = others[~same_pose(poses, placed, chosen, others, config)]
-    runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
+    runner = runner_up(poses, placed, scores, chosen, others, config)
     confidence, ambiguous, advice = choice_evidence(poses, scores, chosen, runner, config,
                                                     centroid, target, space)
     return replace(result, T_ct_us=poses[chosen], chosen=hyps[chosen].name,

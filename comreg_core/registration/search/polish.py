@@ -16,7 +16,7 @@ from comreg_core.registration.search.config import (POLISH_TOLERANCE_MM, QUICK_P
 from comreg_core.registration.geometry.icp import (POLISH_PATIENCE, apply_poses,
                                                    point_to_plane_icp, strided)
 from comreg_core.registration.geometry.metrics import rotation_error_deg
-from comreg_core.registration.search.scoring import (choose, polish_candidates, same_pose,
+from comreg_core.registration.search.scoring import (choose, polish_candidates, runner_up,
                                                      trimmed_mean)
 from comreg_core.registration.geometry.surface import (SurfaceCloud, ct_length_mm, facing_away,
                                                        spread_mm)
@@ -77,8 +77,7 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
             placed[best] = apply_transform(poses[best], centroid[None])[0]
     others = np.array([i for i in range(len(poses)) if i != best
                        and (allowed[i] or not allowed.any())], dtype=np.int64)
-    distinct = others[~same_pose(poses, placed, best, others, config)]
-    runner = int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
+    runner = runner_up(poses, placed, scores, best, others, config)
     return best, runner
 
 

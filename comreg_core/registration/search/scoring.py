@@ -85,6 +85,16 @@ def choose(scores: np.ndarray, eligible: np.ndarray, score_floor_mm: float = 0.0
     return int(candidates[np.flatnonzero(lead < SCORE_TIE_SHARE)[0]])
 
 
+def runner_up(poses: np.ndarray, placed: np.ndarray, scores: np.ndarray, best: int,
+              candidates: np.ndarray, config: HypothesisConfig) -> int | None:
+    """The best-scoring of ``candidates`` (indices, ``best`` excluded by the caller) that is a
+    different pose from ``best`` (:func:`same_pose`), or None. ``poses`` ``(B, 4, 4)``,
+    ``placed`` ``(B, 3)`` US centroids, ``scores`` ``(B,)`` mm."""
+    candidates = np.asarray(candidates, dtype=np.int64)
+    distinct = candidates[~same_pose(poses, placed, best, candidates, config)]
+    return int(distinct[np.argmin(scores[distinct])]) if len(distinct) else None
+
+
 def polish_candidates(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray,
                        config: HypothesisConfig) -> list[int]:
     """The poses worth polishing: the best-scoring one and the distinct poses tied with it

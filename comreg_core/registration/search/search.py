@@ -271,7 +271,7 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
             confidence_over(pool.scores[best], pool.scores[runner], cfg))
         if confidence >= cfg.min_confidence:
             break
-    return pool.result(best, runner, confidence, cfg, centroid, target, space, patch)
+    return pool.result(best, runner, cfg, centroid, target, space, patch)
 
 
 def _search_inputs(us_points, completion, beam_origins, cfg: HypothesisConfig):
@@ -324,7 +324,7 @@ class _Pool:
         self.rmse = np.concatenate([self.rmse, rmse])
         self.polishes += [None] * len(names)
 
-    def result(self, best: int, runner: int | None, confidence: float,
+    def result(self, best: int, runner: int | None,
                cfg: HypothesisConfig, centroid, target: SurfaceCloud, space: str,
                patch: bool) -> HypothesisResult:
         """The :class:`HypothesisResult` choosing ``best`` over ``runner``."""
