@@ -1,8 +1,8 @@
 """The one judge of a registration: from its evidence to the verdict, its reasons and figures.
 
 Every caller gets its verdict here: ``comreg register`` (:mod:`comreg_core.register.folder`),
-``comreg live`` (each update), the report (from ``result.json``), batch and the 3D Slicer
-module. :class:`Evidence` is what a registration says about itself: the pose search's
+``comreg live`` (each update), the report (from ``result.json``) and batch (through
+``comreg register``); the 3D Slicer module does not judge yet (issue 50). :class:`Evidence` is what a registration says about itself: the pose search's
 confidence and ambiguity, the clinically different competitor's margin, the sweep's extent
 along the CT, ``p_correct`` from a per-patient calibration, and the prior's record;
 :func:`judge` turns it, with the US points, the pose and the CT, into a
