@@ -19,5 +19,5 @@ fi
 .venv/bin/python -m pip install --quiet -e ".[test]"
 # Compile the pose search's kernels once (numba caches them beside the code: ~30 s here
 # instead of in the first registration).
-.venv/bin/python -c "from comreg_core.registration.geometry.kernels import compile_kernels; compile_kernels()"
+.venv/bin/python -c "from comreg_core.registration.geometry.kernels import compile_kernels; compile_kernels(); from comreg_core.registration.judgement.uncertainty_kernels import compile_uncertainty_kernels; compile_uncertainty_kernels()"
 .venv/bin/comreg --version

@@ -3,9 +3,10 @@
 Simulates short sweeps of the CT (the lengths the user expects; one face, transverse, as the
 partial-sweep benchmark's), adds a tracking drift and the real sweeps' point noise, moves each by one of the paper's
 random initial poses, registers it with the pose search alone (no network needed: the verdict
-judges the search's evidence, which is the same with a network), and fits
-:class:`~comreg_core.registration.judgement.calibration.Calibration` to how the margin and extent of each
-result map to its correctness (within 4 mm / 5 deg of the truth). See
+judges the pose and the search's competitor, the same with a network), judges it
+(:func:`~comreg_core.register.judge.judge`, uncalibrated) and fits
+:class:`~comreg_core.registration.judgement.calibration.Calibration` to how its ``p_raw`` maps
+to its correctness (within 4 mm / 5 deg of the truth). See
 :mod:`comreg_core.registration.judgement.calibration` for the definitions and ``docs/calibration.md``.
 """
 
@@ -19,8 +20,7 @@ import numpy as np
 
 from comreg_core import runs
 from comreg_core.progress import Progress
-from comreg_core.registration.judgement.calibration import (Calibration, fit_calibration,
-                                                            result_evidence)
+from comreg_core.registration.judgement.calibration import Calibration, fit_calibration
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,7 @@ def calibrate(ct_mesh, *, sweeps: int = 60, lengths_mm: tuple[float, float] = (3
     and fit the calibration (module docstring). Deterministic for a given seed."""
     from comreg_core.errors import ComRegError
     from comreg_core.register import Registrar
+    from comreg_core.register.judge import Evidence, judge
     from comreg_core.registration.geometry.metrics import registration_metrics
     from comreg_core.registration.geometry.surface import ct_length_mm
     from comreg_core.simulation import BoneModel, sample_initial_pose, simulate_sweep
@@ -94,7 +95,7 @@ def calibrate(ct_mesh, *, sweeps: int = 60, lengths_mm: tuple[float, float] = (3
     length = ct_length_mm(registrar.hypothesis_target(registrar.hypothesis_config.target_points))
     bone = BoneModel((surface.vertices, surface.faces))
     config = calibration_sweep_config(lengths_mm)
-    margins, extents, correct, rows = [], [], [], []
+    raw, correct, rows = [], [], []
     for i in range(sweeps):
         rng = np.random.default_rng([CALIBRATION_SEED_NAMESPACE, seed, i])
         sweep = simulate_sweep(bone, config, rng)
@@ -106,24 +107,24 @@ def calibrate(ct_mesh, *, sweeps: int = 60, lengths_mm: tuple[float, float] = (3
         result = registrar.register(moved, beam_origins=apply_transform(T_p, origins))
         errors = registration_metrics(result.T_ct_us, invert_rigid(T_p), moved, surface)
         ok = errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0
-        competitor, extent = result_evidence(result.hypotheses, moved, length)
-        margins.append(competitor["margin"])
-        extents.append(extent)
+        evidence = Evidence.of(result, moved, length)
+        figures = judge(moved, result.T_ct_us, surface, evidence).figures
+        p_raw = figures["p_raw"] if figures["p_raw"] is not None else 0.0
+        raw.append(p_raw)
         correct.append(ok)
-        rows.append({"margin": competitor["margin"], "extent_share": extent, "correct": ok,
+        rows.append({"p_raw": p_raw, "bound_mm": figures["bound_mm"], "correct": ok,
                      "RTE_mm": errors["RTE_mm"], "RRE_deg": errors["RRE_deg"]})
         if progress is not None:
             progress(i + 1, sweeps, f"calibration sweep {i + 1}/{sweeps}: "
-                                    f"{'correct' if ok else 'wrong'}, margin "
-                                    f"{competitor['margin']:.2f}")
+                                    f"{'correct' if ok else 'wrong'}, p_raw {p_raw:.2f}")
     settings: dict[str, Any] = {"lengths_mm": list(lengths_mm), "noise_mm": noise_mm,
                                 "drift_deg": drift_deg, "drift_mm": drift_mm,
                                 "seed": seed, "perturbation": "paper", "method": "search"}
-    calibration = fit_calibration(np.array(margins), np.array(extents), np.array(correct),
+    calibration = fit_calibration(np.array(raw), np.array(correct),
                                   ct_length_mm=length, settings={**settings, "trials": rows},
                                   ct_fingerprint=ct_fingerprint(surface.vertices, surface.faces))
-    log.info("Calibrated on %d simulated sweeps (%.0f %% correct): weights %s", sweeps,
-             100 * calibration.correct_share, calibration.weights)
+    log.info("Calibrated on %d simulated sweeps (%.0f %% correct): knots %s", sweeps,
+             100 * calibration.correct_share, calibration.knots)
     return calibration
 
 

@@ -103,6 +103,7 @@ def register_to_directory(run_dir: str | Path | None,
     if prior is not None:  # the competitor is looked for among the poses the prior allows
         allowed = prior_allows(prior.in_space(registrar.space), result)
     verdict, evidence = registration_verdict(result, registrar, calibration_record, allowed)
+    result.info["verdict"] = verdict
     payload = {**result.to_json(), **verdict.to_json(), **evidence.to_json(),
                "verdict_calibration": _calibration_summary(calibration_record),
                "space": registrar.space,
@@ -151,7 +152,7 @@ def _calibration_summary(calibration: Calibration | None) -> dict | None:
     if calibration is None:
         return None
     return {"sweeps": calibration.sweeps, "correct_share": calibration.correct_share,
-            "ok_probability": calibration.ok_probability}
+            "ok_probability": calibration.ok_probability, "knots": calibration.knots}
 
 
 def _log_outcome(result: RegistrationResult, registrar: Registrar, verdict, out: Path) -> None:
@@ -231,13 +232,29 @@ def summary_lines(result: RegistrationResult, out_dir, *, with_network: bool) ->
                         and not result.info.get("prior") else "")
                      + f", {gap}; confidence {h.confidence:.2f}"
                      + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
-        if h.advice:
+        if h.advice and result.info.get("verdict") is None:
             lines.append(h.advice["advice"])
     lines += prior_lines(result.info.get("prior"))
+    lines += verdict_lines(result.info.get("verdict"))
     records = result.info.get("us_inputs") or []
     for k, record in enumerate(records if len(records) > 1 else [], start=1):
         lines.append(f"  input {k}: {Path(record['path']).name}: {record['n_points']} points, "
                      f"median residual {record['residuals_mm']['median']:.2f} mm")
+    return lines
+
+
+def verdict_lines(verdict) -> list[str]:
+    """The verdict in the terminal: ``Verdict: OK, p_correct 0.99; within 1.2 mm (95 %);
+    weakest: ...``, its reasons and, when CHECK, where to scan next."""
+    if verdict is None:
+        return []
+    p = verdict.figures.get("p_correct")
+    line = verdict.headline + ("" if p is None else f", p_correct {p:.2f}")
+    if verdict.uncertainty is not None:
+        line += f"; {verdict.uncertainty['summary']}"
+    lines = [line] + [f"  {reason}" for reason in verdict.reasons]
+    if not verdict.ok and verdict.scan_next is not None:
+        lines.append(f"  {verdict.scan_next['words']}")
     return lines
 
 

@@ -69,9 +69,10 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
     tracked, T_us_ref = _sweep_for(result, sweep, sweep_calibration)
     evidence = Evidence.from_json(result)
     if transform is not None:  # another transform: judged by its fit alone
-        evidence = replace(evidence, p_correct=None, prior=None)
+        evidence = replace(evidence, competitor=None, prior=None)
     verdict = judge(us_points, T_ct_us, (ct.vertices, ct.faces), evidence)
     metrics = registration_metrics_table(result, verdict.figures, judged_file=transform)
+    metrics.update(uncertainty_rows(verdict))
     evaluation = _metrics_for(out_dir / runs.METRICS, T_ct_us)
     if evaluation is not None:
         metrics.update(evaluation)
@@ -87,7 +88,9 @@ def write_report_for_registration(out_dir: str | Path, *, ct_mesh: str | Path | 
                 "transform": str(transform or "result.json (the registration's)")},
         seed=result.get("seed"), device=result.get("device"), embed_images=embed_images,
         progress=progress, sweep=tracked,
-        T_ct_ref=None if tracked is None else T_ct_us @ T_us_ref)
+        T_ct_ref=None if tracked is None else T_ct_us @ T_us_ref,
+        scan_next=None if verdict.ok or verdict.scan_next is None
+        else np.asarray(verdict.scan_next["point_ct"]))
 
 
 def _input_rows(paths: list[Path], parts: list[np.ndarray], T_ct_us: np.ndarray, ct
@@ -168,6 +171,28 @@ def _percent(rate) -> float | None:
     return None if rate is None else 100.0 * float(rate)
 
 
+def uncertainty_rows(verdict) -> dict[str, Any]:
+    """The report's "How far off the pose can be" rows: the 95 % bound, the weakest slide and
+    rotation, ``p_correct`` and where to scan next (empty when the verdict has none)."""
+    u = verdict.uncertainty
+    if u is None:
+        return {}
+    rows: dict[str, Any] = {
+        "95 % bound of the error at the bone under the sweep": Quantity(u["bound_mm"], "mm"),
+        "Probability that the pose is within 4 mm / 5 deg":
+            Quantity(verdict.figures.get("p_correct")),
+        "Noise of the US points about the CT (robust)": Quantity(u["noise_mm"], "mm")}
+    for d in u["directions"]:
+        label = f"Weakest {'slide' if d['kind'] == 'slide' else 'rotation'} ({d['words']})"
+        rows[label] = ("unbounded: the data do not pin it" if d["unbounded"] else
+                       Quantity(d["bound_mm"], "mm") if d["kind"] == "slide"
+                       else Quantity(d["bound_deg"], "deg"))
+    if verdict.scan_next is not None:
+        rows["Where to scan next"] = (f"{verdict.scan_next['words']} The pose's bound would be "
+                                      f"about {verdict.scan_next['bound_mm']:.1f} mm.")
+    return {"How far off the pose can be": rows}
+
+
 def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], *,
                                judged_file=None) -> dict[str, Any]:
     """The report's metrics: groups of rows labelled in words, each value a
@@ -194,9 +219,6 @@ def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], 
                 "Trimmed mean distance of the kept pose": Quantity(hypotheses.get("score_mm"),
                                                                    "mm"),
                 "Next best pose is worse by": Quantity(hypotheses.get("score_gap_mm"), "mm")}
-        if result.get("p_correct") is not None:
-            pose["Estimated probability that the pose is within 4 mm / 5 deg"] = Quantity(
-                result["p_correct"])
         competitor = result.get("competitor") or {}
         if competitor.get("name"):
             where = ", ".join(f"{x:.0f}" for x in competitor["centroid_ct"])

@@ -70,7 +70,8 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
                  window_size: tuple[int, int] = (800, 800), embed_images: bool = False,
                  lateral_side: str = "left", style: Style = DEFAULT_STYLE,
                  progress: Progress | None = None, verdict=None, sweep=None,
-                 T_ct_ref: np.ndarray | None = None, n_frames: int = 4) -> Path:
+                 T_ct_ref: np.ndarray | None = None, n_frames: int = 4,
+                 scan_next: np.ndarray | None = None) -> Path:
     """Render the screenshots and write ``report.html`` into ``out_dir``; returns its path. On
     OpenGLUnavailableError or bad inputs (InvalidGeometryError, ...) nothing is written.
 
@@ -99,10 +100,11 @@ def write_report(out_dir: str | Path, *, ct_mesh: SurfaceMesh | str | Path,
             ``n_frames`` of its valid B-mode frames with the registered CT contour
             (:func:`~comreg_core.report.sections.frame_overlays`). With ``us_after`` it shows
             CT cuts with the registered points (:func:`~comreg_core.report.sections.ct_sections`).
+        scan_next: ``(3,)`` the CT point to scan next, drawn with the registered points.
     """
     out_dir = check_output_folder(out_dir, what="report folder")
     data = SceneData(ct_mesh if isinstance(ct_mesh, SurfaceMesh) else read_mesh(ct_mesh),
-                     us_before, us_after, completion)
+                     us_before, us_after, completion, scan_next=scan_next)
     scenes = list(scenes) if scenes is not None else data.available_scenes()
     views = list(views)
     backend = ensure_offscreen_rendering()  # fail before making any folder

@@ -50,6 +50,8 @@ class SceneData:
         completion_distance_mm: ``(M,)`` unsigned distance of each completion point to the CT
             surface (computed if not given).
         us_after_distance_mm: ``(N,)`` the same for the registered US points.
+        scan_next: ``(3,)`` the CT point to scan next (drawn in the ``registered`` scene), or
+            None.
     """
 
     ct: SurfaceMesh
@@ -58,6 +60,7 @@ class SceneData:
     completion: np.ndarray | None = None
     completion_distance_mm: np.ndarray | None = None
     us_after_distance_mm: np.ndarray | None = None
+    scan_next: np.ndarray | None = None
     frame: BoneFrame = field(init=False)
 
     def __post_init__(self) -> None:
@@ -107,6 +110,7 @@ class Screenshot:
     camera: CameraView
 
 
+SCAN_NEXT_RADIUS_MM = 7.5  #: radius (mm) of the patch to scan next as drawn (half a patch)
 #: Along the bone axis, a whole long bone projects onto itself; the CT is cut to the span of the
 #: registered US points along the axis, extended by this much each side (mm).
 SLAB_MARGIN_MM = 15.0
@@ -175,6 +179,12 @@ class SceneRenderer:
             self._distance_points(pv, data.us_after, data.us_after_distance_mm, point_px,
                                   "US points: distance to the CT surface", "us_after")
             point_sets.append(data.us_after)
+        if self.scene == "registered" and data.scan_next is not None:
+            centre = np.asarray(data.scan_next, dtype=np.float64)
+            p.add_mesh(pv.Sphere(radius=SCAN_NEXT_RADIUS_MM, center=centre), name="scan_next",
+                       color=unit_rgb(style.scan_next_rgb), opacity=0.85)
+            point_sets.append(centre[None])
+            legend.append(("Scan next here", style.scan_next_rgb))
         if self.scene == "overlay" and data.us_after is not None:
             p.add_points(data.us_after, color=unit_rgb(style.us_after_rgb), point_size=point_px,
                          render_points_as_spheres=True, name="us_after")
@@ -359,16 +369,13 @@ class SceneRenderer:
     def __exit__(self, *exc) -> None:
         self.close()
 
-
 def render_screenshots(data: SceneData, scenes: Sequence[str] | None = None,
                        views: Sequence[str] = VIEW_NAMES, *,
                        window_size: tuple[int, int] = (800, 800), style: Style = DEFAULT_STYLE,
                        lateral_side: str = "left", show_text: bool = True) -> Iterator[Screenshot]:
     """Yield a :class:`Screenshot` per scene and view (scene-major order); one plotter per scene.
-
     ``scenes`` defaults to :meth:`SceneData.available_scenes`. Raises OpenGLUnavailableError when
-    nothing can render off screen, ValueError for a scene whose inputs are missing.
-    """
+    nothing can render off screen, ValueError for a scene whose inputs are missing."""
     scenes = list(scenes) if scenes is not None else data.available_scenes()
     needs = {"registered": ("us_after",), "overlay": ("us_before",), "completion": ("completion",)}
     for scene in scenes:

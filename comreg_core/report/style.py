@@ -15,6 +15,7 @@ import numpy as np
 BONE_RGB = (241, 214, 145)  # 3D Slicer's "bone" colour
 US_BEFORE_RGB = (213, 94, 0)  # vermillion
 US_AFTER_RGB = (0, 114, 178)  # blue
+SCAN_NEXT_RGB = (204, 121, 167)  # reddish purple (Okabe-Ito)
 BACKGROUND_RGB = (255, 255, 255)
 TEXT_RGB = (20, 20, 20)
 
@@ -54,6 +55,7 @@ class Style:
     bone_opacity: float = 0.5
     us_before_rgb: tuple[int, int, int] = US_BEFORE_RGB
     us_after_rgb: tuple[int, int, int] = US_AFTER_RGB
+    scan_next_rgb: tuple[int, int, int] = SCAN_NEXT_RGB
     background_rgb: tuple[int, int, int] = BACKGROUND_RGB
     text_rgb: tuple[int, int, int] = TEXT_RGB
     distance_range_mm: tuple[float, float] = (0.0, 5.0)

@@ -19,6 +19,9 @@ CT's long axis, as ``comreg live``'s ``covered_mm``, the points placed by the ps
 truth), whether it was right, how many
 registrations were OK and wrong (target: none), how many were right but CHECK, and how many
 ``register`` refused (the network needs 256 points; the first frames of a start give fewer).
+The *settle point* is the bone covered from which on every longer prefix's pose is right (the
+data settle the pose there); ``lag`` is the bone between it and the first OK (target: <= 30 mm),
+``early`` the OKs before it (target: none).
 """
 
 from __future__ import annotations
@@ -58,6 +61,18 @@ def covered_mm(points: np.ndarray, T_ct_us: np.ndarray, target) -> float:
     return covered_length_mm((moved - target.centre) @ target.axes[:, 0])
 
 
+def settle_columns(trail: list[tuple[float, bool, bool]]) -> str:
+    """``settle@mm lag early`` of one start's ``(covered mm, right, ok)`` prefixes (module
+    docstring): ``-`` where the data never settle the pose or no OK follows."""
+    settle = next((i for i in range(len(trail)) if all(r for _, r, _ in trail[i:])), None)
+    if settle is None:
+        return f"{'-':>9} {'-':>6} {sum(ok for _, _, ok in trail):>5}"
+    early = sum(ok for _, _, ok in trail[:settle])
+    after = next((mm for mm, _, ok in trail[settle:] if ok), None)
+    lag = "-" if after is None else f"{after - trail[settle][0]:.0f}"
+    return f"{trail[settle][0]:9.0f} {lag:>6} {early:>5}"
+
+
 def main(argv=None) -> None:
     from comreg_core.errors import ComRegError
     from comreg_core.register import Registrar
@@ -87,13 +102,15 @@ def main(argv=None) -> None:
           f"{args.step} frames; verdict: " + (f"p_correct ({args.verdict_calibration})"
                                               if calibration else "uncalibrated"), flush=True)
     print(f"{'method':9} {'start':>5} {'regs':>4} {'ok@mm':>6} {'ok?':>4} {'ok&wrong':>8} "
-          f"{'right&check':>11} {'refused':>7}", flush=True)
+          f"{'right&check':>11} {'refused':>7} {'settle@mm':>9} {'lag mm':>6} {'early':>5}",
+          flush=True)
     # per method: registrations, OK and wrong, right but CHECK, refused
     totals = {name: [0, 0, 0, 0] for name in registrars}
     for start in starts:
         grown = list(prefixes(start, args.step))
         for name, registrar in registrars.items():
             first, first_right, wrong, checked, count, refused = None, None, 0, 0, 0, 0
+            trail = []  # (covered mm, right, ok) per registered prefix
             for _, points, origins in grown:
                 try:
                     result = registrar.register(points, seed=0, beam_origins=origins)
@@ -107,13 +124,14 @@ def main(argv=None) -> None:
                 count += 1
                 wrong += verdict.ok and not right
                 checked += right and not verdict.ok
+                trail.append((covered_mm(points, T_truth, target), right, verdict.ok))
                 if verdict.ok and first is None:
-                    first, first_right = covered_mm(points, T_truth, target), right
+                    first, first_right = trail[-1][0], right
             totals[name] = [a + b for a, b in zip(totals[name], (count, wrong, checked, refused))]
             print(f"{name:9} {start:>5} {count:>4} "
                   + ("     -" if first is None else f"{first:6.0f}")
                   + f" {'-' if first_right is None else ('yes' if first_right else 'NO'):>4} "
-                  f"{wrong:>8} {checked:>11} {refused:>7}", flush=True)
+                  f"{wrong:>8} {checked:>11} {refused:>7} {settle_columns(trail)}", flush=True)
     for name, (count, wrong, checked, refused) in totals.items():
         print(f"{name}: {count} registrations, OK and wrong {wrong} (target 0), right but "
               f"CHECK {checked}, refused {refused}")

@@ -24,7 +24,9 @@ Sets (every trial moves the points by a random ``paper`` pose: one axis, +-90 de
 Columns: success (RTE < 4 mm and RRE < 5 deg), flagged (share of results the search calls
 ambiguous), RTE/RRE medians, latency median and 90th percentile (s, the registration call
 with the CT's structures built beforehand, as a ``Registrar`` reused across calls has them),
-worse (trials whose chosen score is worse than the search alone's on the same case: 0 expected).
+worse (trials whose chosen score is worse than the search alone's on the same case: 0 expected),
+judge s (median seconds of the one judge after the registration: the verdict, the pose's
+uncertainty, its profiles and where to scan next).
 The load average is printed: measure on an idle machine.
 """
 
@@ -88,15 +90,22 @@ def errors(T, T_truth, points) -> tuple[float, float]:
 
 def time_trials(registrar, cases) -> list:
     """Every case ``(points, beam origins or None, truth)``: rows ``(seconds, RTE mm, RRE deg,
-    flagged, chosen score mm)``."""
+    flagged, chosen score mm, judge seconds)``."""
+    from comreg_core.register.folder import registration_verdict
+
     rows = []
-    registrar.register(cases[0][0], beam_origins=cases[0][1])  # CT structures, kernels
+    first = registrar.register(cases[0][0], beam_origins=cases[0][1])  # CT structures, kernels
+    registration_verdict(first, registrar)
     for points, origins, T_truth in cases:
         start = time.perf_counter()
         result = registrar.register(points, beam_origins=origins)
         seconds = time.perf_counter() - start
+        start = time.perf_counter()
+        registration_verdict(result, registrar)
+        judged = time.perf_counter() - start
         rows.append((seconds, *errors(result.T_ct_us, T_truth, points),
-                     bool(result.info.get("ambiguous")), result.hypotheses.best.score_mm))
+                     bool(result.info.get("ambiguous")), result.hypotheses.best.score_mm,
+                     judged))
     return rows
 
 
@@ -111,7 +120,7 @@ def grown_trials(registrar, points, origins, frames, T_truth) -> list:
         last = registrar.register(points[used], beam_origins=origins[used], warm_start=last)
         seconds = time.perf_counter() - start
         rows.append((seconds, *errors(last.T_ct_us, T_truth, points[used]),
-                     bool(last.info.get("ambiguous")), last.hypotheses.best.score_mm))
+                     bool(last.info.get("ambiguous")), last.hypotheses.best.score_mm, np.nan))
     return rows
 
 
@@ -125,7 +134,8 @@ def print_rows(name: str, method: str, rows: list, search: list | None = None) -
     success = np.mean((rte < SUCCESS_MM) & (rre < SUCCESS_DEG))
     print(f"{name:>17} {method:>9} {len(a):>6} {success:>7.0%} {flagged.mean():>7.0%} "
           f"{np.median(rte):>7.2f} {np.median(rre):>7.2f} {np.median(seconds):>7.3f} "
-          f"{np.percentile(seconds, 90):>6.3f} {worse:>6}", flush=True)
+          f"{np.percentile(seconds, 90):>6.3f} {worse:>6} {np.median(a[:, 5]):>7.3f}",
+          flush=True)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -155,7 +165,8 @@ def main(argv: list[str] | None = None) -> None:
           f"{torch.get_num_threads()} threads, numba {numba.get_num_threads()}; "
           f"success: RTE < {SUCCESS_MM:g} mm and RRE < {SUCCESS_DEG:g} deg")
     print(f"{'set':>17} {'method':>9} {'trials':>6} {'success':>7} {'flagged':>7} "
-          f"{'RTE med':>7} {'RRE med':>7} {'median s':>7} {'p90 s':>6} {'worse':>6}")
+          f"{'RTE med':>7} {'RRE med':>7} {'median s':>7} {'p90 s':>6} {'worse':>6} "
+          f"{'judge s':>7}")
     rng_pose = np.random.default_rng(args.seed)
     fibula = read_mesh(FIBULA_STL)
     for name in args.set.split(","):

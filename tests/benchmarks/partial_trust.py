@@ -80,7 +80,7 @@ def calibration_for(bone: str, ct, sweeps: int):
     from comreg_core.evaluation.calibrate import calibrate
     from comreg_core.registration.judgement.calibration import Calibration
 
-    path = CACHE / f"calibration_{bone}_{sweeps}.json"
+    path = CACHE / f"calibration_v2_{bone}_{sweeps}.json"
     if path.is_file():
         return Calibration.load(path)
     start = time.perf_counter()
@@ -88,8 +88,9 @@ def calibration_for(bone: str, ct, sweeps: int):
     CACHE.mkdir(parents=True, exist_ok=True)
     calibration.save(path)
     print(f"calibrated {bone} on {sweeps} sweeps in {time.perf_counter() - start:.0f} s: "
-          f"{100 * calibration.correct_share:.0f} % correct, weights "
-          f"{', '.join(f'{w:.2f}' for w in calibration.weights)}", flush=True)
+          f"{100 * calibration.correct_share:.0f} % correct; p_raw -> p_correct "
+          f"{', '.join(f'{x:.2f}->{y:.2f}' for x, y in zip(*calibration.knots.values()))}",
+          flush=True)
     return calibration
 
 
@@ -140,13 +141,16 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
             verdict = with_prior_reasons(verdict, result.info.get("prior"))
             errors = registration_metrics(result.T_ct_us, T_true, moved, surface)
             rows[name].append({"correct": errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0,
-                               "ok": verdict.ok, "p_correct": evidence["p_correct"],
-                               "runtime_s": seconds})
+                               "ok": verdict.ok, "p_correct": verdict.figures["p_correct"],
+                               "p_raw": verdict.figures["p_raw"],
+                               "bound_mm": verdict.figures["bound_mm"],
+                               "error_mm": errors["RTE_mm"], "runtime_s": seconds})
     return rows
 
 
-HEADER = (f"{'method':>10} {'success':>8} {'unflagged wrong':>16} {'correct unflagged':>18} "
-          f"{'p_correct med':>14} {'median s':>9} {'p90 s':>6}")
+HEADER = (f"{'method':>10} {'success':>8} {'unflagged wrong':>16} {'wrong p>=.95':>13} "
+          f"{'correct unflagged':>18} {'p_correct med':>14} {'bound mm med':>13} "
+          f"{'median s':>9} {'p90 s':>6}")
 
 
 def trust_row(name: str, rows: list[dict]) -> str:
@@ -154,20 +158,26 @@ def trust_row(name: str, rows: list[dict]) -> str:
     ok = np.array([r["ok"] for r in rows])
     p = np.array([np.nan if r["p_correct"] is None else r["p_correct"] for r in rows])
     secs = np.array([r["runtime_s"] for r in rows])
+    bound = np.array([np.nan if r["bound_mm"] is None else r["bound_mm"] for r in rows])
     kept = f"{(ok & correct).sum() / correct.sum():.0%}" if correct.any() else "-"
-    return (f"{name:>10} {correct.mean():8.0%} {(~correct & ok).mean():16.0%} {kept:>18} "
-            f"{np.nanmedian(p):14.2f} {np.median(secs):9.2f} {np.percentile(secs, 90):6.2f}")
+    sure_wrong = int((~correct & (np.nan_to_num(p) >= 0.95)).sum())
+    return (f"{name:>10} {correct.mean():8.0%} {(~correct & ok).mean():16.0%} "
+            f"{sure_wrong:13d} {kept:>18} {np.nanmedian(p):14.2f} {np.nanmedian(bound):13.1f} "
+            f"{np.median(secs):9.2f} {np.percentile(secs, 90):6.2f}")
 
 
-def reliability_line(rows: list[dict]) -> str:
+def reliability_line(rows: list[dict], key: str = "p_correct") -> str:
+    """``key``'s reliability over ``rows``: per bin, predicted against observed; a ``!`` marks
+    a bin of at least 10 results where they differ by more than 0.1."""
     from comreg_core.registration.judgement.calibration import reliability_table
 
-    p = np.array([r["p_correct"] for r in rows], dtype=float)
+    p = np.array([np.nan if r[key] is None else r[key] for r in rows], dtype=float)
     correct = np.array([r["correct"] for r in rows])
     cells = [f"[{r['p_low']:.2f}, {r['p_high']:.2f}{']' if r['p_high'] == 1 else ')'}: "
              f"n {r['count']}, predicted {r['predicted']:.2f}, observed {r['observed']:.2f}"
+             + ("!" if r["count"] >= 10 and abs(r["predicted"] - r["observed"]) > 0.1 else "")
              for r in reliability_table(p, correct)]
-    return "   p_correct reliability: " + "; ".join(cells)
+    return f"   {key} reliability: " + "; ".join(cells)
 
 
 def run_trust(args, sets: list[str]) -> None:
@@ -208,4 +218,6 @@ def run_trust(args, sets: list[str]) -> None:
                   f"({time.perf_counter() - start:.0f} s)\n{HEADER}")
             for method, method_rows in rows.items():
                 print(trust_row(method, method_rows), flush=True)
-            print(reliability_line([r for rs in rows.values() for r in rs]), flush=True)
+            every = [r for rs in rows.values() for r in rs]
+            print(reliability_line(every), flush=True)
+            print(reliability_line(every, "p_raw"), flush=True)

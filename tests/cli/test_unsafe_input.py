@@ -42,9 +42,9 @@ def case(tmp_path_factory, shared_data):
     patch = points[points[:, 2] > np.percentile(points[:, 2], 70)]
     us = write_points(PointCloud(patch, mesh.space), root / "us.ply")
     rng = np.random.default_rng(0)
-    margins = rng.uniform(0, 1, 60)
-    calibration = fit_calibration(margins, rng.uniform(0.05, 0.3, 60), margins > 0.2,
-                                  ct_length_mm=404.0, ct_fingerprint=mesh_fingerprint(mesh))
+    p_raw = rng.uniform(0, 1, 60)
+    calibration = fit_calibration(p_raw, p_raw > 0.2, ct_length_mm=404.0,
+                                  ct_fingerprint=mesh_fingerprint(mesh))
     return {"dir": root, "us": us, "calibration": calibration.to_json()}
 
 
@@ -79,12 +79,15 @@ def _changed(data: dict, key: str, value) -> dict:
 
 _DROP = object()
 BAD_CALIBRATIONS = {  # name: (key, value, what the error says)
-    "NaN weights": ("weights", [math.nan] * 3, "'NaN'"),
-    "two weights": ("weights", [1.0, 2.0], "'weights' has 2 numbers, not 3"),
-    "four weights": ("weights", [1.0, 2.0, 3.0, 4.0], "'weights' has 4 numbers"),
-    "weights as text": ("weights", "1 2 3", "'weights'"),
-    "weight as text": ("weights", [1.0, "2", 3.0], "'weights[1]'"),
-    "negative margin weight": ("weights", [1.0, -2.0, 3.0], "'weights[1]' is -2"),
+    "NaN knots": ("knots", {"p_raw": [0.0, 1.0], "p_correct": [math.nan] * 2}, "'NaN'"),
+    "knots of two lengths": ("knots", {"p_raw": [0.0, 1.0], "p_correct": [0.5]},
+                             "not two lists of the same length"),
+    "knots as text": ("knots", "0 1", "'knots' is not {p_raw, p_correct}"),
+    "knot as text": ("knots", {"p_raw": [0.0, 1.0], "p_correct": [0.1, "2"]},
+                     "'knots p_correct' is '2'"),
+    "falling knots": ("knots", {"p_raw": [0.0, 1.0], "p_correct": [0.9, 0.1]}, "falls"),
+    "knots not from 0 to 1": ("knots", {"p_raw": [0.2, 1.0], "p_correct": [0.1, 0.9]},
+                              "does not rise from 0 to 1"),
     "infinite CT length": ("ct_length_mm", math.inf, "'Infinity'"),
     "CT length of 0": ("ct_length_mm", 0.0, "'ct_length_mm' is 0"),
     "share above 1": ("correct_share", 1.5, "'correct_share' is 1.5"),
@@ -93,9 +96,10 @@ BAD_CALIBRATIONS = {  # name: (key, value, what the error says)
     "no sweeps": ("sweeps", 0, "'sweeps' is 0"),
     "sweeps as text": ("sweeps", "60", "'sweeps' is '60'"),
     "reliability row": ("reliability", [{"p_low": 0.0}], "'reliability' row"),
-    "no weights": ("weights", _DROP, "lacks 'weights'"),
+    "no knots": ("knots", _DROP, "lacks 'knots'"),
     "unknown entry": ("scale", 2.0, "unknown entry 'scale'"),
-    "another format": ("format", 2, "'format' is not 1"),
+    "another format": ("format", 3, "'format' is not 2"),
+    "the older format": ("format", 1, "older ComReg (format 1)"),
     "bad fingerprint": ("ct_fingerprint", {"sha256": "abc"}, "'ct_fingerprint'"),
 }
 
@@ -149,8 +153,12 @@ def test_a_p_correct_that_is_not_finite_is_check_and_null_in_strict_json(case, m
     stays strict JSON, the null's reason recorded."""
     path = case["dir"] / "calibration.json"
     path.write_text(json.dumps(case["calibration"]))
-    monkeypatch.setattr("comreg_core.registration.judgement.calibration.Calibration.p_correct",
-                        lambda self, margin, extent: math.nan)
+    import sys
+
+    import comreg_core.register.judge  # noqa: F401  (the module, shadowed by its function)
+
+    monkeypatch.setattr(sys.modules["comreg_core.register.judge"], "calibrated",
+                        lambda p_raw, knots: math.nan)
     out = case["dir"] / "nan p_correct"
     result = runner.invoke(app, [str(a) for a in _register(case, out, "--verdict-calibration",
                                                            path)])

@@ -37,9 +37,8 @@ def short_sweep(tmp_path_factory, shared_data):
 def test_register_reports_p_correct_from_the_calibration_given(short_sweep):
     folder, us = short_sweep
     rng = np.random.default_rng(0)
-    margins = rng.uniform(0, 1, 60)
-    calibration = fit_calibration(margins, rng.uniform(0.05, 0.3, 60), margins > 0.2,
-                                  ct_length_mm=404.0)
+    p_raw = rng.uniform(0, 1, 60)
+    calibration = fit_calibration(p_raw, rng.uniform(0, 1, 60) < p_raw ** 2, ct_length_mm=404.0)
     path = calibration.save(folder / "calibration.json")
     out = folder / "reg"
     result = runner.invoke(app, ["register", str(us), "--ct", str(FIBULA_STL), "--out", str(out),
@@ -48,7 +47,9 @@ def test_register_reports_p_correct_from_the_calibration_given(short_sweep):
     saved = json.loads((out / "result.json").read_text())
     competitor = saved["competitor"]
     assert 0.0 <= competitor["margin"] <= 1.0 and 0.0 < saved["extent_share"] < 0.5
-    expected = Calibration.load(path).p_correct(competitor["margin"], saved["extent_share"])
+    p_raw = saved["uncertainty"]["p_raw"]
+    assert p_raw == pytest.approx(saved["uncertainty"]["p_local"] * saved["uncertainty"]["p_basin"])
+    expected = Calibration.load(path).p_correct(p_raw)
     assert saved["p_correct"] == pytest.approx(expected, abs=1e-12)
     assert saved["verdict_figures"]["p_correct"] == pytest.approx(expected, abs=1e-12)
     assert saved["verdict_calibration"]["sweeps"] == 60

@@ -57,9 +57,8 @@ def test_halves_turned_apart_disagree_by_the_turn(search_registrar):
 
 def test_a_landmark_bounds_every_update_and_no_ok_is_wrong(sweep, search_registrar):
     """Frames 0-59 in updates of 3: every pose keeps to the landmark's 15 mm; no update is OK
-    and wrong; the poses turned >= 5 deg about the shaft past 100 mm of bone (which nothing
-    but the halves check flags) are CHECK, held back by the halves (15 deg apart against a
-    5 deg limit: a wide margin); OK comes later on the whole shaft, and is right."""
+    and wrong (a pose turned >= 5 deg about the shaft is CHECK: the pose's uncertainty about
+    the shaft's axis, or the halves check); at least 3 OKs, all right."""
     whole = SweepPoints()
     for frame in _frames(sweep, range(sweep.n_frames)):
         whole.add(frame)
@@ -87,5 +86,4 @@ def test_a_landmark_bounds_every_update_and_no_ok_is_wrong(sweep, search_registr
             oks.append(update.covered_mm)
         if wrong and any("two halves" in r for r in update.reasons):
             held_back.append(update.covered_mm)
-    assert held_back and min(held_back) > 90.0, held_back
-    assert len(oks) >= 3 and min(oks) > max(held_back), (oks, held_back)
+    assert len(oks) >= 3, (oks, held_back)  # every OK right (asserted above)

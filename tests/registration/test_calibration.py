@@ -76,24 +76,22 @@ def test_extent_share_is_the_sweeps_spread_over_the_ct_length(strip):
     assert extent_share(strip, 10.0) == 1.0
 
 
-def test_fit_is_monotone_separates_what_the_data_separates_and_treats_a_tie_as_a_coin_flip():
+def test_fit_is_monotone_learns_a_miscalibration_and_keeps_p_raw_where_data_are_few():
     rng = np.random.default_rng(1)
-    margins = rng.uniform(0, 1, 200)
-    extents = rng.uniform(0.05, 0.3, 200)
-    correct = margins > 0.3
-    cal = fit_calibration(margins, extents, correct, ct_length_mm=400.0)
-    assert cal.weights[1] > 0 and cal.weights[2] >= 0
-    grid = np.linspace(0, 1, 21)
-    p = [cal.p_correct(m, 0.1) for m in grid]
-    assert np.all(np.diff(p) >= 0)  # never lower with more margin
-    assert np.all(np.diff([cal.p_correct(0.2, e) for e in grid]) >= 0)  # nor with more extent
-    assert cal.p_correct(0.8, 0.1) > 0.95 and cal.p_correct(0.05, 0.1) < 0.2
-    # a search that was always right cannot teach that a tie is safe
-    always = fit_calibration(margins, extents, np.ones(200, bool), ct_length_mm=400.0)
-    assert 0.3 < always.p_correct(0.0, 0.15) < 0.85
-    assert always.p_correct(1.0, 0.15) > always.p_correct(0.0, 0.15)
+    p_raw = rng.uniform(0, 1, 2000)
+    correct = rng.uniform(0, 1, 2000) < p_raw ** 2  # p_raw says too much
+    cal = fit_calibration(p_raw, correct, ct_length_mm=400.0)
+    grid = np.linspace(0, 1, 41)
+    p = np.array([cal.p_correct(x) for x in grid])
+    assert np.all(np.diff(p) >= 0) and 0.0 <= p.min() and p.max() <= 1.0
+    for x in (0.3, 0.5, 0.8, 0.95):
+        assert cal.p_correct(x) == pytest.approx(x ** 2, abs=0.1)
+    # four sweeps say little: the identity prior keeps p_correct near p_raw
+    few = fit_calibration([0.1, 0.9, 0.5, 0.7], [False, True, True, True], ct_length_mm=400.0)
+    assert few.p_correct(0.5) == pytest.approx(0.5, abs=0.2)
+    assert few.p_correct(0.95) > few.p_correct(0.3)
     # deterministic
-    assert fit_calibration(margins, extents, correct, ct_length_mm=400.0).weights == cal.weights
+    assert fit_calibration(p_raw, correct, ct_length_mm=400.0).knots == cal.knots
 
 
 def test_reliability_table_counts_and_rates():
@@ -106,68 +104,94 @@ def test_reliability_table_counts_and_rates():
 
 
 def test_calibration_file_round_trip_and_bad_files(tmp_path):
-    cal = fit_calibration([0.1, 0.9, 0.5, 0.7], [0.1, 0.2, 0.1, 0.2], [False, True, True, True],
+    cal = fit_calibration([0.1, 0.9, 0.5, 0.7], [False, True, True, True],
                           ct_length_mm=380.0, settings={"seed": 3})
     path = cal.save(tmp_path / "calibration.json")
     again = Calibration.load(path)
-    assert again.weights == cal.weights and again.p_correct(0.4, 0.1) == cal.p_correct(0.4, 0.1)
+    assert again.knots == cal.knots and again.p_correct(0.4) == cal.p_correct(0.4)
     assert again.settings == {"seed": 3} and again.ct_length_mm == 380.0
     (tmp_path / "bad.json").write_text(json.dumps({"weights": [1, 2]}))
     with pytest.raises(ComRegError, match="not a ComReg calibration"):
         Calibration.load(tmp_path / "bad.json")
+    older = {**json.loads(path.read_text()), "format": 1}
+    (tmp_path / "older.json").write_text(json.dumps(older))
+    with pytest.raises(ComRegError, match="older ComReg"):
+        Calibration.load(tmp_path / "older.json")
     with pytest.raises(ComRegError):
         Calibration.load(tmp_path / "missing.json")
 
 
 
 def test_a_saved_calibration_is_strict_json_and_loads_whatever_its_settings_hold(tmp_path):
-    cal = fit_calibration([0.1, 0.9, 0.5, 0.7], [0.1, 0.2, 0.1, 0.2], [False, True, True, True],
+    cal = fit_calibration([0.1, 0.9, 0.5, 0.7], [False, True, True, True],
                           ct_length_mm=380.0, settings={"trials": [{"RTE_mm": float("nan")}]})
     path = cal.save(tmp_path / "calibration.json")
     saved = json.loads(path.read_text(), parse_constant=lambda token: pytest.fail(token))
     assert saved["null_reasons"] == {"/settings/trials/0/RTE_mm": "not finite (NaN)"}
     again = Calibration.load(path)
-    assert again.weights == cal.weights and again.settings == {"trials": [{"RTE_mm": None}]}
+    assert again.knots == cal.knots and again.settings == {"trials": [{"RTE_mm": None}]}
+
+
+KNOTS = {"p_raw": [0.0, 0.5, 1.0], "p_correct": [0.1, 0.4, 0.9]}
 
 
 @pytest.mark.parametrize("changes, message", [
-    ({"weights": (1.0, float("nan"), 0.0)}, "'weights\\[1\\]' is nan"),
-    ({"weights": (1.0, 2.0)}, "has 2 numbers"),
+    ({"knots": {**KNOTS, "p_correct": [0.1, float("nan"), 0.9]}}, "'knots p_correct' is nan"),
+    ({"knots": {**KNOTS, "p_raw": [0.0, 1.0]}}, "same length"),
+    ({"knots": {**KNOTS, "p_raw": [0.0, 0.6, 0.5]}}, "does not rise"),
+    ({"knots": {**KNOTS, "p_correct": [0.5, 0.4, 0.9]}}, "falls"),
+    ({"knots": [0.0, 1.0]}, "not {p_raw, p_correct}"),
     ({"ok_probability": 1.2}, "'ok_probability' is 1.2"),
     ({"sweeps": True}, "'sweeps' is True"),
     ({"ct_fingerprint": {"n_vertices": 3}}, "'ct_fingerprint'"),
 ])
 def test_a_calibration_with_a_wrong_entry_cannot_be_made(changes, message):
-    entries = dict(weights=(0.0, 1.0, 1.0), sweeps=4, correct_share=0.5, ct_length_mm=300.0)
+    entries = dict(knots=KNOTS, sweeps=4, correct_share=0.5, ct_length_mm=300.0)
     with pytest.raises(ValueError, match=message):
         Calibration(**{**entries, **changes})
 
 
-def test_a_p_correct_that_is_not_finite_is_never_ok():
-    from comreg_core.registration.judgement.verdict import DEFAULT_THRESHOLDS, _reasons
-
-    figures = {"median_mm": 0.2, "p90_mm": 0.5, "within_2mm": 1.0, "coverage": 0.5,
-               "refit_shift_mm": 0.5, "refit_scale": 1.0, "refit_scale_gain": 0.0,
-               "confidence": None, "p_correct": 0.99}
-    assert _reasons(figures, False, DEFAULT_THRESHOLDS, 0.95, short_sweep=False) == []
-    for value in (float("nan"), float("-inf")):
-        reasons = _reasons({**figures, "p_correct": value}, False, DEFAULT_THRESHOLDS, 0.95,
-                           short_sweep=False)
-        assert len(reasons) == 1 and "estimated probability of only" in reasons[0]
-
-def test_verdict_judges_by_p_correct_when_calibrated(shared_data):
+def _bone_points(n=3000):
     from tests.helpers import FIBULA_STL
     from comreg_core.registration.geometry.surface import CTSurface
 
     surface = CTSurface(FIBULA_STL)
-    points, _ = surface.samples(3000)  # on the bone: residuals, coverage and refit all pass
-    low = judge_registration(points, np.eye(4), surface, confidence=0.9, p_correct=0.6)
-    assert not low.ok and any("0.60" in r and "0.95" in r for r in low.reasons)
-    high = judge_registration(points, np.eye(4), surface, confidence=0.1, ambiguous=True,
-                              p_correct=0.97)
+    return surface, surface.samples(n)[0]  # on the bone: residuals and refit pass
+
+
+def test_a_p_correct_that_is_not_finite_is_never_ok(shared_data):
+    from comreg_core.registration.judgement.assessment import pose_uncertainty
+
+    surface, points = _bone_points()
+    u = pose_uncertainty(points, np.eye(4), surface, ct_length_mm=400.0, profiles=False,
+                         advice=False)
+    assert judge_registration(points, np.eye(4), surface, uncertainty=u, p_correct=0.99).ok
+    for value in (float("nan"), float("-inf")):
+        verdict = judge_registration(points, np.eye(4), surface, uncertainty=u, p_correct=value)
+        assert not verdict.ok and len(verdict.reasons) == 1
+        assert "estimated probability of only" in verdict.reasons[0]
+
+
+def test_verdict_judges_by_p_correct_and_says_the_bound(shared_data):
+    from comreg_core.registration.judgement.assessment import pose_uncertainty
+
+    surface, points = _bone_points()
+    u = pose_uncertainty(points, np.eye(4), surface, ct_length_mm=400.0, profiles=False,
+                         advice=False)
+    low = judge_registration(points, np.eye(4), surface, uncertainty=u, p_correct=0.6,
+                             confidence=0.9)
+    assert not low.ok and any("0.60" in r and "0.95" in r and "(95 %)" in r
+                              for r in low.reasons)
+    high = judge_registration(points, np.eye(4), surface, uncertainty=u, p_correct=0.97,
+                              confidence=0.1)
     assert high.ok and high.figures["p_correct"] == pytest.approx(0.97)
-    plain = judge_registration(points, np.eye(4), surface, confidence=0.1, ambiguous=True)
-    assert not plain.ok and plain.figures["p_correct"] is None
+    assert high.figures["bound_mm"] == pytest.approx(u.bound_mm)
+    assert high.uncertainty["summary"] == u.summary()
+    unjudged = judge_registration(points + 50.0, np.eye(4), surface)
+    assert not unjudged.ok and "Too few US points" in unjudged.reasons[0]
+    tie = judge_registration(points, np.eye(4), surface, uncertainty=u, p_correct=0.99,
+                             confidence=0.0)
+    assert not tie.ok and tie.reasons[0].startswith("Tie:")
 
 
 def test_tracking_drift_moves_each_slice_rigidly_by_the_rms_asked():
@@ -192,25 +216,29 @@ def test_tracking_drift_moves_each_slice_rigidly_by_the_rms_asked():
     assert 0.3 < np.degrees(np.sqrt(np.mean(np.square(angles)))) < 4.0
 
 
-def test_a_calibrated_verdict_leaves_coverage_to_p_correct_and_a_short_sweep_its_scale(
-        shared_data):
-    from tests.helpers import FIBULA_STL
-    from comreg_core.registration.geometry.surface import CTSurface
-    from comreg_core.registration.judgement.verdict import DEFAULT_THRESHOLDS, _reasons
+def test_points_off_the_bone_for_their_own_noise_and_a_short_sweeps_scale(shared_data):
+    from comreg_core.registration.judgement.assessment import pose_uncertainty
 
-    surface = CTSurface(FIBULA_STL)
-    points, _ = surface.samples(20000)
-    axes = np.linalg.svd(points - points.mean(0), full_matrices=False)[2]
-    along, across = (points - points.mean(0)) @ axes[0], (points - points.mean(0)) @ axes[1]
-    stretch = points[(np.abs(along) < 4.0) & (across > 0)]  # one face of an 8 mm band
-    plain = judge_registration(stretch, np.eye(4), surface)
-    assert plain.figures["coverage"] < DEFAULT_THRESHOLDS.min_coverage
-    assert any("touches only" in r for r in plain.reasons)
-    calibrated = judge_registration(stretch, np.eye(4), surface, p_correct=0.99)
-    assert not any("touches only" in r for r in calibrated.reasons)
-    figures = {"median_mm": 0.2, "p90_mm": 0.5, "within_2mm": 1.0, "coverage": 0.01,
-               "refit_shift_mm": 0.5, "refit_scale": 0.84, "refit_scale_gain": 0.3,
-               "confidence": None, "p_correct": 0.99}
-    assert any("scaled by 0.84" in r for r in _reasons(figures, False, DEFAULT_THRESHOLDS, 0.95,
-                                                        short_sweep=False))
-    assert _reasons(figures, False, DEFAULT_THRESHOLDS, 0.95, short_sweep=True) == []
+    surface, points = _bone_points()
+    rng = np.random.default_rng(2)
+    noisy = points + rng.normal(0, 0.8, points.shape)  # 0.8 mm noise: still on the bone
+    u = pose_uncertainty(noisy, np.eye(4), surface, ct_length_mm=400.0, profiles=False,
+                         advice=False)
+    verdict = judge_registration(noisy, np.eye(4), surface, uncertainty=u, p_correct=0.99)
+    assert verdict.ok and 0.5 < verdict.figures["noise_mm"] < 1.2
+    assert verdict.figures["p90_mm"] > 1.0  # what fixed limits would have called far
+    # a quarter of the points 15 mm off the bone: not the bone, whatever p_correct says
+    off = noisy.copy()
+    off[::4] += 15.0 * surface.samples(3000)[1][::4]
+    u_off = pose_uncertainty(off, np.eye(4), surface, ct_length_mm=400.0, profiles=False,
+                             advice=False)
+    bad = judge_registration(off, np.eye(4), surface, uncertainty=u_off, p_correct=0.99)
+    assert not bad.ok and any("lie off the CT bone" in r for r in bad.reasons)
+    # the scale check: a whole cloud scaled by 0.9 is refused, a short sweep's scale not judged
+    scaled = 0.9 * (points - points.mean(0)) + points.mean(0)
+    u_s = pose_uncertainty(scaled, np.eye(4), surface, ct_length_mm=400.0, profiles=False,
+                           advice=False)
+    assert any("scaled by" in r for r in judge_registration(
+        scaled, np.eye(4), surface, uncertainty=u_s, p_correct=0.99).reasons)
+    assert not any("scaled by" in r for r in judge_registration(
+        scaled, np.eye(4), surface, uncertainty=u_s, p_correct=0.99, short_sweep=True).reasons)

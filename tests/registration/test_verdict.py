@@ -1,14 +1,22 @@
-"""The verdict (comreg_core.registration.judgement.verdict): OK on correct registrations, CHECK on a slide
-along the shaft, a 15 % scale error and an ambiguous pose; judged from points, transform and CT."""
+"""The verdict (comreg_core.registration.judgement.verdict, through the one judge): OK on correct
+registrations, CHECK on a slide along the shaft, a 15 % scale error, a tie and points off the
+bone; judged from points, transform and CT."""
 
 import numpy as np
 import pytest
 
 from comreg_core.registration.geometry.icp import point_to_plane_icp
 from comreg_core.registration.geometry.surface import CTSurface
-from comreg_core.registration.judgement.verdict import judge_registration
+from comreg_core.register.judge import Evidence, judge
 from comreg_core.transforms import apply_transform
 from tests.helpers import FIBULA_STL
+
+
+def judge_registration(points, T, surface, *, short_sweep=False, scale_scan=True,
+                       confidence=None):
+    """The one judge's verdict with no search evidence but these."""
+    evidence = Evidence(confidence=confidence, extent_share=0.1 if short_sweep else None)
+    return judge(points, T, surface, evidence, scale_scan=scale_scan)
 
 
 def _exact_icp(points, surface):
@@ -88,12 +96,11 @@ def test_scale_error_of_15_percent_is_check(fibula, real_sweep):
     assert unscanned.figures["refit_scale"] is None
 
 
-def test_ambiguous_pose_is_check(fibula, simulated_sweep):
-    verdict = judge_registration(simulated_sweep, np.eye(4), fibula, confidence=0.1,
-                                 ambiguous=True)
+def test_a_tie_is_check(fibula, simulated_sweep):
+    verdict = judge_registration(simulated_sweep, np.eye(4), fibula, confidence=0.0)
     assert verdict.verdict == "check"
     assert verdict.to_json()["verdict"] == "check"
-    assert any(r.startswith("Ambiguous pose") for r in verdict.to_json()["verdict_reasons"])
+    assert any(r.startswith("Tie:") for r in verdict.to_json()["verdict_reasons"])
 
 
 def test_points_off_the_bone_are_check(fibula, simulated_sweep):

@@ -3,14 +3,13 @@
 - :class:`CTSurface`: the CT mesh (mm) with its triangles' areas and unit normals; exact
   point-to-triangle distances (VTK's ``vtkImplicitPolyDataDistance``), seeded area-uniform
   samples with their normals (:meth:`~CTSurface.samples`), exact closest points with their
-  triangle normals (:meth:`~CTSurface.closest`) and dense sample clouds
-  (:meth:`~CTSurface.cloud`). Registration, simulation, evaluation and the report all use it.
+  triangle normals (:meth:`~CTSurface.closest`), the smooth surface's normals and dense sample
+  clouds (:meth:`~CTSurface.cloud`). Registration, simulation, evaluation and the report use it.
 - :class:`SurfaceCloud`: dense points on the surface with normals, a KD-tree and a
   closest-point grid: the target of the pose search's ICP and its score.
 - :func:`sample_triangles`, :func:`estimate_normals`, :func:`principal_frame`: the geometry
   underneath (exact closest points on triangles: ``mesh_kernels.closest_on_candidates``).
-
-Numpy, scipy, pykdtree and VTK only: no torch, nothing above ``io`` in this package's layers.
+  Numpy, scipy, pykdtree and VTK only: no torch, nothing above ``io`` in this layer.
 """
 
 from __future__ import annotations
@@ -20,6 +19,8 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+
+from comreg_core.registration.geometry.mesh_normals import smooth_normals, vertex_normals
 
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration.geometry import kernels, mesh_kernels
@@ -119,6 +120,7 @@ class CTSurface:
         self._clouds: dict[int, SurfaceCloud] = {}
         self._closest: dict[int, _ClosestPoints] = {}
         self._distance = None
+        self._vertex_normals = None
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Exact unsigned distance (mm) of ``(N, 3)`` points to the triangles
@@ -173,9 +175,26 @@ class CTSurface:
         whenever the closest triangle is among the ``k = 8`` candidates, else another surface
         point slightly farther away (measured on the fibula, 44k triangles, 200k samples:
         exact for ~98 % of points within 3 mm, at most ~0.1 mm farther for the rest)."""
+        return self.closest_faces(points, max_distance, n_samples=n_samples, normals=True)[:3]
+
+    def smooth_normals(self, closest: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` unit normals of the smooth surface the mesh stands for at ``closest``
+        points ``(N, 3)`` on triangles ``faces`` ``(N,)`` (-1: none, NaN out)
+        (:func:`~comreg_core.registration.geometry.mesh_normals.smooth_normals`)."""
+        if self._vertex_normals is None:
+            self._vertex_normals = vertex_normals(self.vertices, self.faces, self.face_normals,
+                                                  self.face_areas)
+        return smooth_normals(self.vertices, self.faces, self._vertex_normals, closest, faces)
+
+    def closest_faces(self, points: np.ndarray, max_distance: float = np.inf, *,
+                      n_samples: int = CLOSEST_POINT_SAMPLES, normals: bool = False) -> tuple:
+        """:meth:`closest`'s ``(closest (N, 3), triangle (N,) (-1 where none), distance (N,))``
+        (``normals=True``: ``(closest, normals, distance, triangle)``)."""
         if n_samples not in self._closest:
             self._closest[n_samples] = _ClosestPoints(self, n_samples)
-        return self._closest[n_samples](as_points(points, "points"), max_distance)
+        closest, normal, distance, faces = self._closest[n_samples](
+            as_points(points, "points"), max_distance)
+        return (closest, normal, distance, faces) if normals else (closest, faces, distance)
 
     def matcher(self, max_distance: float = np.inf, *,
                 n_samples: int = CLOSEST_POINT_SAMPLES) -> Matcher:
@@ -208,7 +227,7 @@ class _ClosestPoints:
                                                 dtype=np.float64))
 
     def __call__(self, points: np.ndarray, max_distance: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         points = np.ascontiguousarray(points, dtype=np.float64)
         d, idx = self.tree.query(points, k=self.K, distance_upper_bound=max_distance + 1.0)
         ok = np.isfinite(d[:, 0])
@@ -228,7 +247,11 @@ class _ClosestPoints:
         dist[far] = np.inf
         closest[far] = np.nan
         normals[far] = np.nan
-        return closest, normals, dist
+        faces = np.full(n, -1, dtype=np.int64)
+        if ok.any():
+            faces[ok] = face
+        faces[far] = -1
+        return closest, normals, dist, faces
 
 
 def as_surface(ct_mesh) -> CTSurface:

@@ -13,13 +13,12 @@ floor)``, in [0, 1] (1 without a competitor): how clearly the US points prefer t
 over every clinically different one.
 
 **p_correct** (:class:`Calibration`) is the estimated probability that the chosen pose is
-correct, from two figures: the margin and the sweep's *extent share* (its largest spread over
-the CT's length): ``p = sigmoid(w0 + w1 margin + w2 extent_share)`` with ``w1, w2 >= 0``, so
-more margin or a longer sweep never lowers it. The weights are fitted per patient on simulated
-sweeps of this CT registered by the same search (``comreg calibrate``;
-:mod:`comreg_core.evaluation.calibrate`), with a prior that a tie is a coin flip: two pseudo
-sweeps at margin 0, one correct and one not, at each extent (:data:`TIE_PRIOR_WEIGHT`), so
-that a calibration set the search always gets right cannot teach that a tie is safe.
+correct. The pose's uncertainty (:mod:`~comreg_core.registration.judgement.assessment`) gives
+``p_raw``; a per-CT calibration maps it to ``p_correct`` by an isotonic (non-decreasing) fit
+of correctness on ``p_raw`` over simulated sweeps of this CT with realistic noise and drift,
+registered by the same search (``comreg calibrate``; :mod:`comreg_core.evaluation.calibrate`).
+The fit is shrunk towards ``p_correct = p_raw`` by :data:`IDENTITY_PRIOR_WEIGHT` pseudo sweeps
+at each tenth of ``p_raw``, so that where the simulated sweeps are few, ``p_raw`` stands.
 """
 
 from __future__ import annotations
@@ -43,12 +42,17 @@ TOLERANCE_DEG = 5.0
 SCORE_FLOOR_MM = 0.05
 #: US points used to compare two poses (a strided subset).
 COMPARE_POINTS = 500
-#: Weight of each of the two pseudo sweeps per extent bin that say a tie is a coin flip.
-TIE_PRIOR_WEIGHT = 2.0
+#: Weight of the pseudo sweep at each tenth of ``p_raw`` that says ``p_correct = p_raw``.
+IDENTITY_PRIOR_WEIGHT = 2.0
 #: ``p_correct`` at or above which a result may be OK (the verdict's limit).
 OK_PROBABILITY = 0.95
 #: Calibration file format version.
-CALIBRATION_FORMAT = 1
+CALIBRATION_FORMAT = 2
+
+
+def calibrated(p_raw: float, knots: dict[str, list[float]]) -> float:
+    """``p_correct`` of ``p_raw`` by a calibration's ``knots`` (linear between them)."""
+    return float(np.interp(p_raw, knots["p_raw"], knots["p_correct"]))
 
 
 def pose_difference(T_a: np.ndarray, T_b: np.ndarray, points_us: np.ndarray
@@ -79,9 +83,10 @@ def clinical_competitor(hypotheses, points_us: np.ndarray,
         allowed: which poses ``(4, 4)`` a prior allows (None: all).
 
     Returns:
-        ``{"name", "score_mm", "margin", "distance_mm", "rotation_deg", "centroid_ct"}`` of the
-        competitor (``name`` None and ``margin`` 1 without one); ``centroid_ct``: where it puts
-        the US points' centroid in the CT (mm).
+        ``{"name", "score_mm", "margin", "distance_mm", "rotation_deg", "centroid_ct",
+        "T_ct_us"}`` of the competitor (``name`` None and ``margin`` 1 without one);
+        ``centroid_ct``: where it puts the US points' centroid in the CT (mm); ``T_ct_us``: its
+        pose ``(4, 4)``.
     """
     chosen = hypotheses.best
     for h in sorted(hypotheses.hypotheses, key=lambda h: h.score_mm):
@@ -96,9 +101,10 @@ def clinical_competitor(hypotheses, points_us: np.ndarray,
         centroid = apply_transform(h.T_ct_us, points_us.mean(axis=0)[None])[0]
         return {"name": h.name, "score_mm": float(h.score_mm), "margin": float(margin),
                 "distance_mm": distance, "rotation_deg": angle,
-                "centroid_ct": [float(x) for x in centroid]}
+                "centroid_ct": [float(x) for x in centroid],
+                "T_ct_us": [[float(x) for x in row] for row in h.T_ct_us]}
     return {"name": None, "score_mm": None, "margin": 1.0, "distance_mm": None,
-            "rotation_deg": None, "centroid_ct": None}
+            "rotation_deg": None, "centroid_ct": None, "T_ct_us": None}
 
 
 def extent_share(points_us: np.ndarray, ct_length_mm: float) -> float:
@@ -109,16 +115,13 @@ def extent_share(points_us: np.ndarray, ct_length_mm: float) -> float:
     return float(np.clip(spread / max(ct_length_mm, 1e-9), 0.0, 1.0))
 
 
-def _sigmoid(x):
-    return 1.0 / (1.0 + np.exp(-x))
-
-
 @dataclass(frozen=True)
 class Calibration:
     """``p_correct`` of one CT (module docstring), as written to ``calibration.json``.
 
     Attributes:
-        weights: ``(w0, w1, w2)``: intercept, margin, extent share (finite; ``w1, w2 >= 0``).
+        knots: ``{"p_raw": [...], "p_correct": [...]}``: the map, linear between knots
+            (``p_raw`` increasing from 0 to 1, ``p_correct`` non-decreasing, all in [0, 1]).
         sweeps: simulated sweeps it was fitted on (>= 1); correct_share: the share the search
             got right, in [0, 1].
         reliability: rows ``{"p_low", "p_high", "count", "predicted", "observed"}``.
@@ -132,7 +135,7 @@ class Calibration:
     not finite or out of range (:meth:`load` turns it into a :class:`ComRegError`).
     """
 
-    weights: tuple[float, float, float]
+    knots: dict[str, list[float]]
     sweeps: int
     correct_share: float
     ct_length_mm: float
@@ -144,7 +147,7 @@ class Calibration:
     ct_fingerprint: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "weights", _weights(self.weights))
+        object.__setattr__(self, "knots", _knots(self.knots))
         for name, low, high, low_open in _NUMBERS:
             object.__setattr__(self, name, _number(getattr(self, name), name, low, high,
                                                    low_open))
@@ -159,10 +162,9 @@ class Calibration:
             raise ValueError("'settings' is not an object")
         _fingerprint(self.ct_fingerprint)
 
-    def p_correct(self, margin: float, extent: float) -> float:
-        """Estimated probability that a result with this margin and extent share is correct."""
-        w0, w1, w2 = self.weights
-        return float(_sigmoid(w0 + w1 * margin + w2 * extent))
+    def p_correct(self, p_raw: float) -> float:
+        """Estimated probability that a result with this ``p_raw`` is correct."""
+        return calibrated(p_raw, self.knots)
 
     def check_ct(self, fingerprint: str, source: str | Path) -> None:
         """Refuse (:class:`ComRegError`) a calibration fitted on another CT mesh than the one
@@ -189,7 +191,7 @@ class Calibration:
     def load(cls, path: str | Path) -> "Calibration":
         """Read a ``calibration.json`` (``comreg calibrate``): a :class:`ComRegError` naming
         what is wrong when it is not one (not strict JSON, another format, a missing, unknown,
-        non-finite or out-of-range entry, weights not three)."""
+        non-finite or out-of-range entry, knots that do not rise)."""
         from comreg_core.errors import CorruptFileError
         from comreg_core.io.json_files import NULL_REASONS, read_json
 
@@ -201,6 +203,9 @@ class Calibration:
             if not isinstance(data, dict):
                 raise ValueError("it is not a JSON object")
             data = {key: value for key, value in data.items() if key != NULL_REASONS}
+            if data.get("format") == 1:
+                raise ValueError("it maps the score margin of an older ComReg (format 1), not "
+                                 "the pose's uncertainty; make it again")
             if data.pop("format", None) != CALIBRATION_FORMAT:
                 raise ValueError(f"its 'format' is not {CALIBRATION_FORMAT}")
             missing = [name for name in _REQUIRED if name not in data]
@@ -216,7 +221,7 @@ class Calibration:
 
 _CALIBRATE_HINT = "Make one with 'comreg calibrate CT_MESH --out DIR'."
 #: Entries of a calibration without a default.
-_REQUIRED = ("weights", "sweeps", "correct_share", "ct_length_mm")
+_REQUIRED = ("knots", "sweeps", "correct_share", "ct_length_mm")
 #: ``(name, low, high, low excluded)`` of the calibration's single numbers.
 _NUMBERS = (("correct_share", 0.0, 1.0, False), ("ct_length_mm", 0.0, math.inf, True),
             ("ok_probability", 0.5, 1.0, False), ("tolerance_mm", 0.0, math.inf, True),
@@ -237,15 +242,21 @@ def _number(value, name: str, low: float = -math.inf, high: float = math.inf,
     return float(value)
 
 
-def _weights(weights) -> tuple[float, float, float]:
-    """``(w0, w1, w2)`` as floats: three finite numbers, ``w1, w2 >= 0`` (module docstring)."""
-    if not isinstance(weights, (list, tuple)):
-        raise ValueError(f"'weights' is {weights!r}, not a list of 3 numbers")
-    if len(weights) != 3:
-        raise ValueError(f"'weights' has {len(weights)} numbers, not 3 (intercept, margin, "
-                         "extent)")
-    w0 = _number(weights[0], "weights[0]")
-    return w0, _number(weights[1], "weights[1]", 0.0), _number(weights[2], "weights[2]", 0.0)
+def _knots(knots) -> dict[str, list[float]]:
+    """The calibration's ``knots`` checked (class docstring), as lists of floats."""
+    if not isinstance(knots, dict) or set(knots) != {"p_raw", "p_correct"}:
+        raise ValueError("'knots' is not {p_raw, p_correct}")
+    x, y = knots["p_raw"], knots["p_correct"]
+    if not (isinstance(x, list) and isinstance(y, list)) or len(x) != len(y) or len(x) < 2:
+        raise ValueError("'knots' p_raw and p_correct are not two lists of the same length "
+                         "(at least 2)")
+    x = [_number(v, "knots p_raw", 0.0, 1.0) for v in x]
+    y = [_number(v, "knots p_correct", 0.0, 1.0) for v in y]
+    if x[0] != 0.0 or x[-1] != 1.0 or any(b <= a for a, b in zip(x, x[1:])):
+        raise ValueError("'knots' p_raw does not rise from 0 to 1")
+    if any(b < a for a, b in zip(y, y[1:])):
+        raise ValueError("'knots' p_correct falls somewhere")
+    return {"p_raw": x, "p_correct": y}
 
 
 def _reliability_row(row) -> None:
@@ -269,40 +280,39 @@ def _fingerprint(fingerprint) -> None:
         raise ValueError("its 'ct_fingerprint' has no 'sha256' of 64 hexadecimal digits")
 
 
-def fit_calibration(margins: np.ndarray, extents: np.ndarray, correct: np.ndarray, *,
-                    ct_length_mm: float, settings: dict[str, Any] | None = None,
+def fit_calibration(p_raw: np.ndarray, correct: np.ndarray, *, ct_length_mm: float,
+                    settings: dict[str, Any] | None = None,
                     ct_fingerprint: dict[str, Any] | None = None) -> Calibration:
-    """Fit :class:`Calibration` to ``(n,)`` margins, extent shares and correctness (bool) of
-    simulated registrations: penalised maximum likelihood (L-BFGS-B, ``w1, w2 >= 0``, a small
-    ridge on ``w1, w2``), with the tie prior of the module docstring. Deterministic."""
-    from scipy.optimize import minimize
+    """Fit :class:`Calibration` to ``(n,)`` ``p_raw`` and correctness (bool) of simulated
+    registrations: isotonic regression (``scipy.optimize.isotonic_regression``) with the
+    identity prior of the module docstring. Deterministic."""
+    from scipy.optimize import isotonic_regression
 
-    m = np.asarray(margins, np.float64)
-    e = np.asarray(extents, np.float64)
+    x = np.asarray(p_raw, np.float64)
     y = np.asarray(correct, np.float64)
-    if not (len(m) == len(e) == len(y)) or len(m) == 0:
+    if len(x) != len(y) or len(x) == 0:
         raise ComRegError("A calibration needs at least one registered sweep.", "")
-    bins = np.unique(np.round(np.quantile(e, [0.1, 0.5, 0.9]), 3))
-    m = np.concatenate([m, np.zeros(2 * len(bins))])
-    e = np.concatenate([e, np.repeat(bins, 2)])
-    y = np.concatenate([y, np.tile([1.0, 0.0], len(bins))])
-    w = np.concatenate([np.ones(len(margins)), np.full(2 * len(bins), TIE_PRIOR_WEIGHT)])
-    X = np.stack([np.ones_like(m), m, e], axis=1)
-
-    def loss(beta):
-        z = X @ beta
-        nll = np.sum(w * (np.logaddexp(0.0, z) - y * z))
-        grad = X.T @ (w * (_sigmoid(z) - y))
-        ridge = 1e-3 * (beta[1] ** 2 + beta[2] ** 2)
-        return nll + ridge, grad + 2e-3 * np.array([0.0, beta[1], beta[2]])
-
-    fit = minimize(loss, np.zeros(3), jac=True, method="L-BFGS-B",
-                   bounds=[(None, None), (0.0, None), (0.0, None)])
-    weights = tuple(float(b) for b in fit.x)
-    calibration = Calibration(weights=weights, sweeps=len(margins),
-                              correct_share=float(np.mean(correct)), ct_length_mm=ct_length_mm,
-                              settings=dict(settings or {}), ct_fingerprint=ct_fingerprint)
-    p = np.array([calibration.p_correct(a, b) for a, b in zip(margins, extents)])
+    tenths = np.linspace(0.05, 0.95, 10)
+    xs = np.concatenate([x, tenths])
+    ys = np.concatenate([y, tenths])
+    ws = np.concatenate([np.ones(len(x)), np.full(len(tenths), IDENTITY_PRIOR_WEIGHT)])
+    order = np.lexsort((ys, xs))
+    fitted = isotonic_regression(ys[order], weights=ws[order]).x
+    knots_x, knots_y = [0.0], [float(fitted[0])]
+    for value in np.unique(xs[order]):
+        inside = xs[order] == value
+        level = float(np.average(fitted[inside], weights=ws[order][inside]))
+        if 0.0 < value < 1.0:
+            knots_x.append(float(value))
+            knots_y.append(level)
+    knots_x.append(1.0)
+    knots_y.append(float(fitted[-1]))
+    knots_y = np.maximum.accumulate(np.clip(knots_y, 0.0, 1.0)).tolist()
+    calibration = Calibration(knots={"p_raw": knots_x, "p_correct": knots_y},
+                              sweeps=len(x), correct_share=float(np.mean(y)),
+                              ct_length_mm=ct_length_mm, settings=dict(settings or {}),
+                              ct_fingerprint=ct_fingerprint)
+    p = np.array([calibration.p_correct(v) for v in x])
     return replace(calibration, reliability=reliability_table(p, np.asarray(correct, bool)))
 
 

@@ -1,29 +1,29 @@
 """The verdict of a registration, from its files alone: ``OK`` or ``CHECK``, with reasons in words.
 
-Inputs: the US points as received, the transform ``T_ct_us`` (mm) and the CT bone mesh; plus the
-pose search's ``confidence`` / ``ambiguous`` when it ran. No ground truth, no
-network. :func:`judge_registration` computes these figures (all distances in mm, exact
+Inputs: the US points as received, the transform ``T_ct_us`` (mm), the CT bone mesh, the pose's
+uncertainty (:mod:`~comreg_core.registration.judgement.assessment`) and ``p_correct``. No ground
+truth, no network. :func:`judge_registration` computes these figures (distances in mm, exact
 point-to-triangle distances of :class:`~comreg_core.registration.geometry.surface.CTSurface`):
 
-- **residuals** of the registered US points to the CT surface: ``median_mm``, ``p90_mm`` and
-  ``within_2mm`` (share of points at most 2 mm from the surface);
-- **coverage**: the share of the CT surface area within 2 mm of a registered US point (area-
-  uniform CT samples), i.e. how much of the bone the sweep touches;
-- **refit**: starting from the given pose, point-to-plane ICP of (a seeded subset of) the US
-  points to the mesh, once rigid and once with a free isotropic scale. ``refit_shift_mm`` is the
-  RMS distance the rigid refit moves the points, ``refit_scale`` the scale the similarity refit
-  settles on. A slide along the shaft or a pose turned about it leaves the points near the bone
-  surface (small residuals) but is not where they fit best: the refit moves them back. A US
-  calibration with a wrong scale fits best with a scale far from 1. These two catch what the
-  residuals of a long, smooth bone cannot;
-- **ambiguity**: with a per-patient calibration, ``p_correct``, the estimated probability that
-  the pose is within 4 mm / 5 deg of the truth (:mod:`comreg_core.registration.judgement.calibration`;
-  ``CHECK`` below its ``ok_probability``, 0.95); without one, the pose check's ``confidence``
-  (< 0.3 = ``ambiguous``), when given.
+- **residuals** of the registered US points to the CT surface: ``median_mm``, ``p90_mm``,
+  ``within_2mm``, and relative to this case's own noise (the uncertainty's robust
+  ``noise_mm``): ``within_noise``, the share within ``max(2 mm, 3 noise)``;
+- **coverage**: the share of the CT surface area within 2 mm of a registered US point;
+- **refit**: from the given pose, point-to-plane ICP of (a seeded subset of) the US points to
+  the mesh, once rigid and over a scan of isotropic scales: ``refit_shift_mm`` (the RMS move of
+  the rigid refit) and ``refit_scale``/``refit_scale_gain`` (a US calibration with a wrong scale
+  fits best scaled);
+- **the pose's uncertainty**: ``bound_mm`` (95 % bound of the target error over the surface
+  under the sweep), ``p_raw`` and ``p_correct`` (the probability that the pose is within
+  4 mm / 5 deg; calibrated per CT when a calibration is given).
 
-``CHECK`` when any figure is beyond its threshold (:class:`VerdictThresholds`), else ``OK``.
+``OK`` when ``p_correct >= ok_probability`` (0.95) and the fit checks pass: the points lie on
+the bone for their own noise (the noise at most :attr:`VerdictThresholds.max_noise_mm`, at
+least ``min_within_noise`` of them within 3 noise levels), the refit stays within 5 mm (the pose
+is at the fit's optimum), no scale fits clearly better, and the pose is not tied with a
+different one.
 
-How the thresholds were chosen: docs/calibration.md ("The verdict's fixed limits").
+How the limits were chosen: docs/calibration.md ("The verdict's limits").
 """
 
 from __future__ import annotations
@@ -49,28 +49,25 @@ CT_SAMPLES = 50_000
 
 @dataclass(frozen=True)
 class VerdictThresholds:
-    """Limits beyond which the verdict is ``CHECK`` (module docstring: how they were chosen).
+    """Limits beyond which the verdict is ``CHECK`` (module docstring).
 
     Attributes:
-        max_median_mm: the median residual of the registered US points to the CT (mm).
-        max_p90_mm: their 90th percentile (mm).
-        min_within_2mm: the least share of US points within 2 mm of the CT surface.
-        min_coverage: the least share of the CT surface area within 2 mm of a US point.
-        max_refit_shift_mm: the RMS move (mm) of a rigid refit from the given pose.
+        max_noise_mm: the robust noise (mm) of the US points about the CT beyond which they are
+            not on this bone.
+        min_within_noise: the least share of US points within ``max(2 mm, 3 noise)`` of it.
+        max_refit_shift_mm: the RMS move (mm) of a rigid refit from the given pose: a right
+            pose is at the fit's optimum, whatever the noise (the real fibula's recorded pose
+            sits 3.3 mm from it).
         max_scale_error, min_scale_gain: ``CHECK`` when the best scale of the scale scan is
             farther from 1 than ``max_scale_error`` and fits at least ``min_scale_gain``
             (share) closer than scale 1.
-        min_confidence: the least pose-check confidence (the hypotheses stage's own limit).
     """
 
-    max_median_mm: float = 1.0
-    max_p90_mm: float = 3.0
-    min_within_2mm: float = 0.8
-    min_coverage: float = 0.02
+    max_noise_mm: float = 3.0
+    min_within_noise: float = 0.8
     max_refit_shift_mm: float = 5.0
     max_scale_error: float = 0.06
     min_scale_gain: float = 0.15
-    min_confidence: float = 0.3
 
 
 DEFAULT_THRESHOLDS = VerdictThresholds()
@@ -78,13 +75,18 @@ DEFAULT_THRESHOLDS = VerdictThresholds()
 
 @dataclass
 class Verdict:
-    """``verdict`` ("ok" or "check"), ``reasons`` (sentences; empty when ok) and ``figures``
-    (the measured values, keys with units: ``median_mm``, ``p90_mm``, ``within_2mm``,
-    ``coverage``, ``refit_shift_mm``, ``refit_scale``, ``refit_scale_gain``, ``confidence``)."""
+    """``verdict`` ("ok" or "check"), ``reasons`` (sentences; empty when ok), ``figures`` (the
+    measured values, keys with units: ``median_mm``, ``p90_mm``, ``within_2mm``, ``noise_mm``,
+    ``within_noise``, ``coverage``, ``refit_shift_mm``, ``refit_scale``,
+    ``refit_scale_gain``, ``confidence``, ``bound_mm``, ``p_raw``, ``p_correct``),
+    ``uncertainty`` (:meth:`~comreg_core.registration.judgement.assessment.Uncertainty.to_json`)
+    and ``scan_next`` (where to scan to shrink it), None when not judged."""
 
     verdict: str
     reasons: list[str]
     figures: dict[str, float | None] = field(default_factory=dict)
+    uncertainty: dict | None = None
+    scan_next: dict | None = None
 
     @property
     def ok(self) -> bool:
@@ -96,54 +98,56 @@ class Verdict:
         return f"Verdict: {self.verdict.upper()}"
 
     def to_json(self) -> dict:
-        """The ``result.json`` fields: ``verdict``, ``verdict_reasons``, ``verdict_figures``."""
+        """The ``result.json`` fields: ``verdict``, ``verdict_reasons``, ``verdict_figures``,
+        ``p_correct``, ``uncertainty``, ``scan_next``."""
         return {"verdict": self.verdict, "verdict_reasons": list(self.reasons),
-                "verdict_figures": dict(self.figures)}
+                "verdict_figures": dict(self.figures),
+                "p_correct": self.figures.get("p_correct"), "uncertainty": self.uncertainty,
+                "scan_next": self.scan_next}
 
 
-def judge_registration(us_points, T_ct_us, ct_surface, *, confidence: float | None = None,
-                       ambiguous: bool | None = None, p_correct: float | None = None,
+def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
+                       p_correct: float | None = None, confidence: float | None = None,
                        ok_probability: float = 0.95, short_sweep: bool = False,
                        scale_scan: bool = True) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` rigid, mm) for ``us_points`` (``(N, 3)`` mm, as
     received) on ``ct_surface`` (anything :func:`~comreg_core.registration.geometry.surface.as_surface`
-    takes). ``confidence``/``ambiguous``: the pose check's, None when it did not run.
-    ``p_correct``: the calibrated probability that the pose is correct, None without a
-    calibration; given, it replaces ``confidence``/``ambiguous`` (``CHECK`` below
-    ``ok_probability``) and the coverage check (whether the sweep pins the pose is what
-    ``p_correct`` estimates). ``short_sweep``: a sweep spanning under half the CT's length,
-    whose best-fitting scale says nothing (a short stretch of shaft fits at many scales: at
-    their true pose 4 of 11 real 30-60 mm fibula runs fit 16-25 % closer scaled by 0.8-1.16), so
-    the scale check is left out. ``scale_scan=False`` skips the refit's scale scan and so the scale
-    check (``refit_scale`` and ``refit_scale_gain`` are None; a short sweep ignores them
-    anyway): a live update's verdict, up to ~0.1 s sooner."""
+    takes). ``uncertainty``: the pose's
+    (:class:`~comreg_core.registration.judgement.assessment.Uncertainty`; None: too few points
+    meet the CT, which is CHECK); ``p_correct``: from it; ``confidence``: the pose search's
+    (a tie is CHECK). ``short_sweep``: a sweep spanning under half the CT's length, whose
+    best-fitting scale says nothing, so the scale check is left out; ``scale_scan=False`` skips
+    the scale scan (``refit_scale`` and ``refit_scale_gain`` None)."""
     surface = as_surface(ct_surface)
     points = apply_transform(check_rigid(T_ct_us), as_points(us_points, "US points"))
     d = surface.distance(points)
     shift, scale, gain = refit(points, surface, scale_scan=scale_scan)
+    noise = None if uncertainty is None else uncertainty.noise_mm
+    near = NEAR_MM if noise is None else max(NEAR_MM, 3.0 * noise)
     figures = {"median_mm": float(np.median(d)), "p90_mm": float(np.percentile(d, 90)),
-               "within_2mm": float(np.mean(d <= NEAR_MM)), "coverage": coverage(points, surface),
+               "within_2mm": float(np.mean(d <= NEAR_MM)), "noise_mm": noise,
+               "within_noise": float(np.mean(d <= near)), "coverage": coverage(points, surface),
                "refit_shift_mm": shift, "refit_scale": scale, "refit_scale_gain": gain,
                "confidence": None if confidence is None else float(confidence),
+               "bound_mm": None if uncertainty is None else uncertainty.bound_mm,
+               "p_raw": None if uncertainty is None else uncertainty.p_raw,
                "p_correct": None if p_correct is None else float(p_correct)}
-    reasons = _reasons(figures, bool(ambiguous), DEFAULT_THRESHOLDS, ok_probability, short_sweep)
-    return Verdict("check" if reasons else "ok", reasons, figures)
+    reasons = _reasons(figures, uncertainty, DEFAULT_THRESHOLDS, ok_probability, short_sweep)
+    return Verdict("check" if reasons else "ok", reasons, figures,
+                   None if uncertainty is None else uncertainty.to_json(),
+                   None if uncertainty is None else uncertainty.scan_next)
 
 
-def _reasons(f: dict, ambiguous: bool, th: VerdictThresholds, ok_probability: float,
+def _reasons(f: dict, uncertainty, th: VerdictThresholds, ok_probability: float,
              short_sweep: bool) -> list[str]:
+    if uncertainty is None:
+        return ["Too few US points lie within 10 mm of the CT bone to judge the pose."]
     out = []
-    if f["median_mm"] > th.max_median_mm or f["p90_mm"] > th.max_p90_mm:
-        out.append(f"The US points lie off the CT bone: median {f['median_mm']:.1f} mm, 90 % "
-                   f"within {f['p90_mm']:.1f} mm of its surface (limits {th.max_median_mm:g} "
-                   f"and {th.max_p90_mm:g} mm).")
-    if f["within_2mm"] < th.min_within_2mm:
-        out.append(f"Only {100 * f['within_2mm']:.0f} % of the US points are within "
-                   f"{NEAR_MM:g} mm of the CT bone (at least {100 * th.min_within_2mm:.0f} % "
-                   "expected).")
-    if f["coverage"] < th.min_coverage and f["p_correct"] is None:
-        out.append(f"The sweep touches only {100 * f['coverage']:.1f} % of the CT bone surface "
-                   f"(at least {100 * th.min_coverage:g} % needed to pin the pose).")
+    if f["noise_mm"] > th.max_noise_mm or f["within_noise"] < th.min_within_noise:
+        out.append(f"The US points lie off the CT bone: their noise about it is "
+                   f"{f['noise_mm']:.1f} mm (at most {th.max_noise_mm:g} mm for bone) and "
+                   f"{100 * f['within_noise']:.0f} % lie within 3 noise levels of its surface "
+                   f"(at least {100 * th.min_within_noise:.0f} % expected).")
     if f["refit_shift_mm"] > th.max_refit_shift_mm:
         out.append(f"The US points fit the CT better {f['refit_shift_mm']:.0f} mm away from "
                    "this pose (slid along or turned about the bone?).")
@@ -153,16 +157,12 @@ def _reasons(f: dict, ambiguous: bool, th: VerdictThresholds, ok_probability: fl
         out.append(f"The US points fit the CT {100 * f['refit_scale_gain']:.0f} % closer when "
                    f"scaled by {f['refit_scale']:.2f}: check the US probe calibration (image "
                    "spacing, speed of sound).")
-    if f["p_correct"] is not None:
-        if not f["p_correct"] >= ok_probability:  # a NaN p_correct is never OK
-            out.append(f"The pose is within 4 mm / 5 deg of the truth with an estimated "
-                       f"probability of only {f['p_correct']:.2f} (OK needs "
-                       f"{ok_probability:g}): a clinically different pose fits the US points "
-                       "nearly as well.")
-    elif ambiguous or (f["confidence"] is not None and f["confidence"] < th.min_confidence):
-        out.append("Ambiguous pose: another, clearly different pose fits the US points nearly as "
-                   f"well (confidence {f['confidence'] if f['confidence'] is not None else 0:.2f}"
-                   f", below {th.min_confidence:g}).")
+    if not f["p_correct"] >= ok_probability:  # a NaN p_correct is never OK
+        other = (" A clinically different pose fits the US points nearly as well."
+                 if uncertainty.p_basin < ok_probability else "")
+        out.append(f"The pose is within 4 mm / 5 deg of the truth with an estimated "
+                   f"probability of only {f['p_correct']:.2f} (OK needs {ok_probability:g}): "
+                   f"{uncertainty.summary()}.{other}")
     if f["confidence"] is not None and f["confidence"] < SCORE_TIE_SHARE:
         out.append("Tie: a clearly different pose scores the same as this one (within "
                    f"{100 * SCORE_TIE_SHARE:g} %): which of the two is kept is decided by their "
