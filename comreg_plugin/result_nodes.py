@@ -75,3 +75,13 @@ def recordResult(parameters, transformNode, usPointsNode, completedNode, output,
     if "confidence" in info and info["confidence"] is not None:
         parameters.confidence = float(info["confidence"])
         transformNode.SetAttribute(ATTRIBUTE_PREFIX + "confidence", repr(parameters.confidence))
+
+
+def recordVerdict(parameters, figures: dict) -> None:
+    """The verdict, ``p_correct`` (-1: none) and uncertainty (mm; -1: none) of a judged
+    registration (:func:`comreg_plugin.verdict_record.recordFigures`) in the parameter node."""
+    parameters.verdict = figures.get("verdict") or ""
+    parameters.pCorrect = -1.0 if figures.get("p_correct") is None \
+        else float(figures["p_correct"])
+    parameters.uncertaintyMm = -1.0 if figures.get("uncertainty_mm") is None \
+        else float(figures["uncertainty_mm"])
