@@ -11,6 +11,7 @@ the competing pose and the region to scan next (:mod:`comreg_plugin.result_views
 Function names are camelCase, as in 3D Slicer modules.
 """
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -96,7 +97,7 @@ def showJudged(scene, judged: JudgedRegistration, usNodes: list, transformNode, 
     node = result_views.showCompetitor(scene, np.vstack(joined), competitor, judged.space,
                                        showCompetitor)
     transformNode.SetAttribute(ATTRIBUTE_PREFIX + "competitor_T_ct_us", "" if competitor is None
-                               else repr(competitor.tolist()))
+                               else json.dumps(competitor.tolist()))
     if node is not None:
         node.SetAttribute(ATTRIBUTE_PREFIX + "competitor", judged.figures["competitor"]["name"])
     result_views.showScanNext(scene, ctModelNode, judged.figures.get("scan_next"),

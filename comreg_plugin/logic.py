@@ -58,6 +58,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic, JobsLogic):
             scene = slicer.mrmlScene if IN_SLICER_APP else slicer.vtkMRMLScene()
         self.scene = scene
         register_segmentation_converters()
+        result_views.registerLegendClass(scene)
         self.sequencesLogic = sequences_logic(scene)
         self.pretrainingJob = self.calibrationJob = None  # JobsLogic's
         self._methods = RegistrationMethods()

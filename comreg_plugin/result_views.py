@@ -81,15 +81,27 @@ def colourByDistance(scene, pointsNode, distances_mm: np.ndarray,
     return _legend(scene, pointsNode, "Distance to CT (mm)")
 
 
-def _legend(scene, node, title: str):
-    """A colour legend display node of ``node``'s scalars (Slicer's Colors module's)."""
+LEGEND_CLASS = "vtkMRMLColorLegendDisplayNode"
+
+
+def registerLegendClass(scene) -> bool:
+    """Make ``scene`` know colour legend nodes (3D Slicer's Colors module does it inside the
+    application; headless, a scene must know the class to create or load one). Whether the
+    class is available."""
     import slicer
 
-    name = "vtkMRMLColorLegendDisplayNode"
-    if not hasattr(slicer, name):
+    if not hasattr(slicer, LEGEND_CLASS):
+        return False
+    if not scene.IsNodeClassRegistered(LEGEND_CLASS):
+        scene.RegisterNodeClass(getattr(slicer, LEGEND_CLASS)())
+    return True
+
+
+def _legend(scene, node, title: str):
+    """A colour legend display node of ``node``'s scalars (Slicer's Colors module's)."""
+    name = LEGEND_CLASS
+    if not registerLegendClass(scene):
         return None
-    if not scene.IsNodeClassRegistered(name):  # headless: the Colors module registers it
-        scene.RegisterNodeClass(getattr(slicer, name)())
     for k in range(node.GetNumberOfDisplayNodes()):
         legend = node.GetNthDisplayNode(k)
         if legend is not None and legend.IsA(name):

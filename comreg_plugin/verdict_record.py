@@ -51,7 +51,7 @@ def recordFigures(record: dict, resultFolder: Optional[str] = None) -> dict:
             "p_correct": record.get("p_correct"),
             "confidence": record.get("confidence", hypotheses.get("confidence")),
             "ambiguous": record.get("ambiguous", hypotheses.get("ambiguous")),
-            "advice": recordAdvice(record),
+            "advice": recordAdvice(record) or None,
             "uncertainty": uncertainty,
             "uncertainty_mm": (uncertainty or {}).get("bound_mm"),
             "scan_next": record.get("scan_next"),
