@@ -230,9 +230,10 @@ class ComRegLogic(ScriptedLoadableModuleLogic, JobsLogic):
 
         Args:
             usPointsNode: the US points model or markups (default: the parameter node's
-                ``usPoints``), or a list of them: several sweeps in one tracker frame,
-                registered as one rigid body (``comreg register A B``); a node's own
-                coordinates (without any parent transform) are the US frame.
+                ``usPoints``), or a list of them and of Sequence browsers (their bone points
+                are extracted first): several sweeps in one tracker frame, registered as one
+                rigid body (``comreg register A B``); a node's own coordinates (without any
+                parent transform) are the US frame.
             method: ``"comreg"`` (needs ``runDirectory``), ``"search"`` or ``"ransac"`` (need
                 the CT model), or a callable taking ``(N, 3)`` LPS points and returning a
                 result with ``T_ct_us``. Default: the parameter node's ``method``.
@@ -321,8 +322,10 @@ class ComRegLogic(ScriptedLoadableModuleLogic, JobsLogic):
                               "Load a tracked sweep or a US point cloud first.")
         if len({node.GetID() for node in nodes}) != len(nodes):
             raise ComRegError("A US points node was given twice.", "Give each sweep once.")
-        for node in nodes:
-            requirePointsNode(node)
+        for k, node in enumerate(nodes):
+            if node.IsA("vtkMRMLSequenceBrowserNode"):  # a sweep: its bone points first
+                nodes[k] = self.usPointsFromSequence(node, name=f"{node.GetName()} points")[0]
+            requirePointsNode(nodes[k])
         if ctModelNode is not None:
             requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
                         "Pick the CT bone model (loaded from a segmentation or mesh).")
