@@ -153,3 +153,25 @@ class _Registrar:
         @staticmethod
         def distance(points):
             return np.zeros(len(points))
+
+
+def test_the_scene_renders_off_screen_with_its_colours(logic, registered, tmp_path):
+    """The headless scene's picture (the docs' screenshot): the bone's colour, the points'
+    distance colours and the legend's top colour are in it."""
+    from PIL import Image
+
+    from comreg_plugin.scene_snapshot import SIZE, renderScene
+
+    summary, ct, points = registered
+    path = renderScene(logic.scene, tmp_path / "scene.png", fitNode=ct)
+    image = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    assert image.shape == (SIZE[1], SIZE[0], 3)
+
+    def share_near(rgb, tolerance=12):
+        return float((np.abs(image - np.asarray(rgb)).max(axis=-1) <= tolerance).mean())
+
+    bone = (np.asarray(ct.GetDisplayNode().GetColor()) * 255).round()
+    assert share_near(bone, 40) > 0.002  # the CT model (shaded; a thin bone)
+    assert share_near(colormap_rgb(np.array([1.0]))[0]) > 0.001  # the legend's 5 mm end
+    assert share_near(colormap_rgb(np.array([0.0]))[0], 30) > 0.0005  # points on the bone
+    assert path.stat().st_size < 300_000
