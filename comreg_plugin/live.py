@@ -7,7 +7,7 @@ observes the image node: each new image (``ImageDataModifiedEvent``) becomes a f
 pose its transform node holds at that moment. The registration runs in a second process
 (:class:`comreg_plugin.live_process.LiveProcess`: :class:`comreg_core.live.session.LiveSession`,
 the same update ``comreg live`` runs: warm from the last pose, the full search when the evidence
-changes, in a third process like ``comreg live``'s, the verdict, the advice), so the GUI thread
+changes, the verdict, the advice), so the GUI thread
 never waits for it: :meth:`LiveRegistration.tick` (the module's qt timer, every :data:`TICK_MS`
 ms; any loop headless) hands the frames that came to the process and writes the newest update
 it answered into the output transform node (``ReferenceToCT``, to parent, RAS; the figures as
@@ -72,15 +72,17 @@ class LiveRegistration:
         prior: a :class:`~comreg_core.registration.search.priors.Prior` (LPS; an initial pose, CT and
             US landmarks, the US ones in the stream's reference frame) bounding every update,
             or None (:func:`comreg_plugin.scene_inputs.priorFromNodes` makes one from nodes).
-        background: the full searches in a third process, as ``comreg live`` (else in the
-            session's process, between updates).
+        background: the full searches in a third process, as ``comreg live`` (default: in
+            the session's process, between its updates: inside 3D Slicer ``sys.executable`` is
+            PythonSlicer, through which ``multiprocessing``'s spawn has been reported to hang,
+            Slicer/Slicer#7445; either way none runs in Slicer's own process).
         python: the Python of the session's process (default ``sys.executable``).
     """
 
     def __init__(self, logic, imageNode, poseNode=None, *, method: str = "search",
                  ctModelNode=None, runDirectory=None, outputTransformNode=None,
                  calibration=None, prior=None, device: str = "auto", seed: int = 0,
-                 maxFramesPerUpdate: int = 16, background: bool = True, python=None):
+                 maxFramesPerUpdate: int = 16, background: bool = False, python=None):
         requireNode(imageNode, "vtkMRMLScalarVolumeNode", "incoming image",
                     "Pick the image node the OpenIGTLink connector updates (e.g. 'Image').")
         poseNode = poseNode if poseNode is not None else imageNode.GetParentTransformNode()

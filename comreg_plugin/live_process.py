@@ -7,8 +7,8 @@ background pretraining runs), sends it the session's :class:`LiveSetup` and then
 they come, and collects its answers; nothing on the GUI side waits for a registration. The
 process (:func:`serve`) runs :class:`comreg_core.live.session.LiveSession`, the update loop of
 ``comreg live`` (detection, warm or full registration, the one judge's verdict, the advice),
-and, like ``comreg live``, its full searches in a third process
-(:class:`comreg_core.live.background.FullSearchWorker`) unless told not to.
+its full searches between its updates or, when told (``background``), in a third process like
+``comreg live``'s (:class:`comreg_core.live.background.FullSearchWorker`).
 
 Messages are pickles with a length prefix over the process's stdin and stdout (its console,
 stderr, goes to a log file). To the process: the :class:`LiveSetup`, then ``("frames", seq,
@@ -52,7 +52,7 @@ class LiveSetup:
     prior: object = None
     seed: int = 0
     max_frames_per_update: int = 16
-    background: bool = True
+    background: bool = False
 
 
 def _send(stream, message) -> None:

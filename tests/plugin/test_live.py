@@ -62,9 +62,6 @@ def test_live_mode_registers_the_incoming_frames(logic, sweep16):
     p = logic.getParameterNode()
     p.method = "search"  # the pose search: no pretrained run needed
     live = LiveRegistration.fromNodeNames(logic, "Image", "ImageToReference")
-    live.process.close()  # the same, with its full searches in its own process (comparable)
-    live = LiveRegistration(logic, imageNode, poseNode, ctModelNode=ct, background=False,
-                            outputTransformNode=p.outputTransform)
     assert live.poseNode is poseNode and "waiting for frames in 'Image'" in live.status
     assert live.tick() is None  # nothing came yet
     captured, capture = [], live.captureFrame
@@ -125,7 +122,7 @@ def test_live_mode_registers_in_another_process(logic, sweep16):
     ct = logic.loadBoneMesh(FIBULA_STL)
     imageNode = logic.scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "Image")
     poseNode = logic.scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "ImageToReference")
-    live = LiveRegistration(logic, imageNode, poseNode, ctModelNode=ct)
+    live = LiveRegistration(logic, imageNode, poseNode, ctModelNode=ct, background=True)
     applied, deadline = [], time.monotonic() + 180.0
     for i in range(sweep16.n_frames):
         _stream_frame(imageNode, poseNode, sweep16, i)
