@@ -33,7 +33,8 @@ class JudgedRegistration:
         result: the :class:`~comreg_core.registration.search.result.RegistrationResult`.
         record: its ``result.json`` as read back from ``folder``.
         folder: the registration folder (``comreg register``'s files and ``inputs/``).
-        figures: what the panel shows (:func:`comreg_plugin.verdict_record.recordFigures`).
+        figures: what the panel shows (:func:`comreg_plugin.verdict_record.recordFigures`;
+            ``result_folder``: the folder's name, under the logic's registration folders).
         registrar: the :class:`~comreg_core.register.Registrar` it used.
         space: the CT's patient space of ``result`` ("LPS" unless the run says otherwise).
     """
@@ -70,7 +71,7 @@ def registerJudged(methods, usNodes: list, method: str, *, runDirectory, ctModel
     result, record = registerIntoFolder(folder, usNodes, registrar, runDirectory=runDirectory,
                                         ctModelNode=ctModelNode, seed=seed, device=device,
                                         prior=prior, calibration=calibration)
-    return JudgedRegistration(result, record, folder, recordFigures(record, str(folder)),
+    return JudgedRegistration(result, record, folder, recordFigures(record, folder.name),
                               registrar, registrar.space)
 
 
@@ -112,6 +113,7 @@ def judgedOutput(judged: JudgedRegistration) -> tuple:
 
     result = judged.result
     output = as_registration_output(result, result.runtime_s)
+    output.info.pop("us_inputs", None)  # with absolute paths: the record and its folder have it
     T = np.asarray(result.T_ct_us, dtype=np.float64)
     C = space_change(judged.space, "RAS")
     completion = result.completion_ct

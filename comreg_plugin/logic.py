@@ -3,10 +3,12 @@
 ``ComRegLogic(scene)`` works inside 3D Slicer (default scene: ``slicer.mrmlScene``) and headless
 on slicer-core (default: a new ``vtkMRMLScene``). It checks its inputs and only calls
 ``comreg_core``: CT segmentation or bone mesh -> bone models, tracked US sweep, US volume or
-point cloud -> US points (:mod:`comreg_plugin.bone_models`); ``comreg pretrain`` in a background
-process (:mod:`comreg_plugin.pretraining_job`); registration (:mod:`comreg_plugin.registration`)
--> the US->CT ``vtkMRMLLinearTransformNode`` (to parent, RAS) with the US points under it and
-the completed bone (:mod:`comreg_plugin.result_nodes`); transform and scene files
+point cloud -> US points (:mod:`comreg_plugin.bone_models`); ``comreg pretrain`` and ``comreg
+calibrate`` in background processes (:mod:`comreg_plugin.logic_jobs`); registration ("search"
+and "comreg" as ``comreg register --out``: :mod:`comreg_plugin.judged_registration`; others:
+:mod:`comreg_plugin.registration`) -> the US->CT ``vtkMRMLLinearTransformNode`` (to parent,
+RAS) with the US points under it, its verdict's figures and the completed bone
+(:mod:`comreg_plugin.result_nodes`); the result folder and report; transform and scene files
 (:mod:`comreg_plugin.scene_io`).
 
 Coordinates: the scene is RAS (Slicer's convention); files are in the patient space they declare
@@ -277,7 +279,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic, JobsLogic):
                                     calibration=verdictCalibration or p.verdictCalibration
                                     or None, base=self.resultBase())
         output, T, T_ras, completion_ct = judgedOutput(judged) if judged is not None else \
-            runRegistration(run, self._joinedPoints(usNodes), space)
+            runRegistration(run, np.vstack([arrayFromPointsNode(n) for n in usNodes]), space)
         for node in usNodes:
             transformNode = result_nodes.showResult(self.scene, transformNode, node, T_ras)
         completedNode = result_nodes.addCompletedBone(self.scene, completion_ct, space,
@@ -306,10 +308,6 @@ class ComRegLogic(ScriptedLoadableModuleLogic, JobsLogic):
             self._temporaryBase = temporaryBase()
         return self._temporaryBase
 
-    def _joinedPoints(self, usNodes) -> np.ndarray:
-        """The RAS points of ``usNodes`` joined (a method outside ``comreg register``)."""
-        return np.vstack([arrayFromPointsNode(node) for node in usNodes])
-
     def _usPointsToRegister(self, usPointsNode, ctModelNode) -> list:
         """The US points nodes to register (the parameter node's unless given), checked with
         the CT model node when one is given."""
@@ -335,17 +333,19 @@ class ComRegLogic(ScriptedLoadableModuleLogic, JobsLogic):
 
     def resultFolder(self, transformNode=None) -> Path:
         """The registration folder of ``transformNode`` (default: the parameter node's output
-        transform), as its ``ComReg.result_folder`` attribute names it."""
+        transform): the one its ``ComReg.result_folder`` attribute names (a folder name: node
+        attributes hold no absolute paths) under :meth:`resultBase`."""
         node = transformNode if transformNode is not None \
             else self.getParameterNode().outputTransform
-        folder = node.GetAttribute(ATTRIBUTE_PREFIX + "result_folder") if node else None
-        if not folder:
+        name = node.GetAttribute(ATTRIBUTE_PREFIX + "result_folder") if node else None
+        if not name:
             raise ComRegError("This transform has no registration folder.",
                               "Register with the 'search' or 'comreg' method first.")
-        if not (Path(folder) / "result.json").is_file():
+        folder = Path(self.resultBase()) / name
+        if not (folder / "result.json").is_file():
             raise ComRegError(f"The registration folder '{folder}' is gone.",
                               "Register again, or open the folder saved from it.")
-        return Path(folder)
+        return folder
 
     def saveResultFolder(self, path, transformNode=None) -> Path:
         """Save the registration as ``comreg register --out`` writes it (``result.json``,

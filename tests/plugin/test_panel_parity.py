@@ -126,6 +126,13 @@ def test_the_bundled_sample_registers_in_the_panel_as_on_the_command_line(sample
     assert p.verdict == cli["verdict"] and p.pCorrect == cli["p_correct"]
     assert f"Verdict: {cli['verdict'].upper()}" in summary.describe(p.ambiguous, p.confidence)
 
+    node = summary.transformNode  # no absolute path on the node: a saved scene moves
+    names = list(node.GetAttributeNames())
+    assert "ComReg.verdict" in names and "ComReg.result_folder" in names
+    for name in names:
+        assert str(tmp_path) not in node.GetAttribute(name), name
+    assert node.GetAttribute("ComReg.result_folder") == summary.resultFolder.name
+
     # the scene keeps the figures: saved, reloaded by another logic
     logic.saveScene(tmp_path / "scene" / "panel.mrml")
     other = ComRegLogic()
