@@ -113,10 +113,9 @@ class LiveRegistration:
         write_mesh(surfaceMeshFromModel(ctModelNode), ctPath)
         recipe = RegistrarRecipe(str(ctPath), None if method == "search" else
                                  str(runDirectory), device)
-        self.process = LiveProcess(LiveSetup(recipe, None if not calibration else
-                                             str(calibration), prior, int(seed),
-                                             int(maxFramesPerUpdate), bool(background)),
-                                   self.folder / "live_console.log", python)
+        self.setup = LiveSetup(recipe, None if not calibration else str(calibration), prior,
+                               int(seed), int(maxFramesPerUpdate), bool(background))
+        self.process = LiveProcess(self.setup, self.folder / "live_console.log", python)
         self.received = 0
         self.notes: list = []
         self.updates: list = []  # every update the process answered, in order
