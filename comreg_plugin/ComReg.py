@@ -40,6 +40,7 @@ from comreg_plugin.slicer_compat import (ScriptedLoadableModule,  # noqa: E402
                                          ScriptedLoadableModuleTest,
                                          ScriptedLoadableModuleWidget, VTKObservationMixin,
                                          slicer)
+from comreg_plugin.verdict_record import describeFigures  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -313,6 +314,8 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.ui.liveButton.checked = False
             return
         self.ui.liveStatusLabel.text = self._live.status
+        if ticked[0] is not None:  # the update's verdict, reasons, p_correct, advice
+            self.ui.verdictLabel.text = "\n".join(describeFigures(self._live.figures))
 
     def onSaveTransform(self):
         self._run("Could not save the transform.", lambda: self.logic.saveTransform(
@@ -325,7 +328,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onWriteReport(self):
         import qt
 
-        def write():
+        def write():  # then opened in the browser
             page = self.logic.writeReport(self.ui.resultFolderPath.currentPath or None)
             qt.QDesktopServices.openUrl(qt.QUrl.fromLocalFile(str(page)))
         self._run("Could not write the report.", write)
@@ -348,13 +351,10 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 class ComRegTest(ScriptedLoadableModuleTest):
     """The module's self test: builds its own small data from the bundled sample CT (a simulated
     US sweep moved by a known transform), runs the Logic end to end and asserts the errors in mm
-    and degrees, the saved transform files and a scene save/reload. Runs inside 3D Slicer
-    (Reload & Test) and headless under pytest (``tests/plugin``).
-
-    The registration is ComReg's pose search on the CT bone model (``method="search"``: the
-    registration ComReg runs, without a pretrained network, so the test needs no training),
-    into an output transform node the test creates.
-    """
+    and degrees, the saved transform files and a scene save/reload, then the panel's result parts
+    on the bundled sample. Runs inside 3D Slicer (Reload & Test) and headless under pytest
+    (``tests/plugin``). It registers by ComReg's pose search (``method="search"``), so it needs
+    no pretrained network."""
 
     def setUp(self):
         import tempfile
@@ -365,9 +365,8 @@ class ComRegTest(ScriptedLoadableModuleTest):
         self.workDir = self._tmp.name
 
     def tearDown(self):
-        tmp = getattr(self, "_tmp", None)
-        if tmp is not None:
-            tmp.cleanup()
+        if getattr(self, "_tmp", None) is not None:
+            self._tmp.cleanup()
             self._tmp = None
 
     def runTest(self):

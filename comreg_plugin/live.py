@@ -42,7 +42,9 @@ from comreg_core.transforms import T_RAS_LPS
 from comreg_plugin.bone_models import ATTRIBUTE_PREFIX
 from comreg_plugin.live_process import LiveProcess, LiveSetup
 from comreg_plugin.registration import TRANSFORM_NODE_NAME
+from comreg_plugin.result_nodes import recordVerdict
 from comreg_plugin.result_folder import newRegistrationFolder
+from comreg_plugin.verdict_record import setFigureAttributes
 from comreg_plugin.scene_inputs import priorFromNodes
 from comreg_plugin.scene_io import (arrayFromVtkMatrix, requireNode, surfaceMeshFromModel,
                                     uniqueName, vtkMatrixFromArray)
@@ -119,6 +121,7 @@ class LiveRegistration:
         self.received = 0
         self.notes: list = []
         self.updates: list = []  # every update the process answered, in order
+        self.figures: dict = {}  # the last update's (comreg_plugin.verdict_record)
         self.processId: Optional[int] = None  # once it is ready
         self.status = (f"live: preparing the CT side; then waiting for frames in "
                        f"'{imageNode.GetName()}' posed by '{poseNode.GetName()}'")
@@ -240,20 +243,20 @@ class LiveRegistration:
 
     def _show(self, update: LiveUpdate) -> None:
         """The update on the output node (matrix, figures) and the status line."""
-        from comreg_plugin.verdict_record import setFigureAttributes
-
         node = self.outputTransformNode
         node.SetMatrixTransformToParent(vtkMatrixFromArray(
             T_RAS_LPS @ update.T_ct_us @ T_RAS_LPS))
         update.latency_s = time.monotonic() - update.newest_s
         node.SetAttribute(ATTRIBUTE_PREFIX + "method", f"live {self.method}")
         node.SetAttribute(ATTRIBUTE_PREFIX + "covered_mm", f"{update.covered_mm:.1f}")
-        setFigureAttributes(node, {
+        self.figures = {
             "verdict": update.verdict, "verdict_reasons": list(update.reasons),
             "p_correct": update.p_correct, "confidence": update.confidence,
             "advice": update.advice, "uncertainty": getattr(update, "uncertainty", None),
             "uncertainty_mm": (getattr(update, "uncertainty", None) or {}).get("bound_mm"),
-            "scan_next": getattr(update, "scan_next", None)})
+            "scan_next": getattr(update, "scan_next", None)}
+        setFigureAttributes(node, self.figures)
+        recordVerdict(self.logic.getParameterNode(), self.figures)
         self.status = update.status_line()
 
     def stop(self) -> None:

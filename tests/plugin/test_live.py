@@ -101,6 +101,7 @@ def test_live_mode_registers_the_incoming_frames(logic, sweep16):
     assert node.GetAttribute("ComReg.verdict") == last.verdict
     assert node.GetAttribute("ComReg.advice") == last.advice
     assert json.loads(node.GetAttribute("ComReg.verdict_reasons")) == last.reasons
+    assert p.verdict == last.verdict and live.figures["advice"] == last.advice
     assert live.status == last.status_line() and "frames 16/16" in live.status
     T_truth = pseudo_ground_truth(expected.points, CTSurface(FIBULA_STL))
     assert translation_error_mm(last.T_ct_us, T_truth, expected.points.mean(axis=0)) < 4.0
