@@ -19,7 +19,8 @@ from tests.plugin.conftest import SLICER_CORE_MISSING
 pytest.importorskip("slicer_core", reason=SLICER_CORE_MISSING)
 
 from comreg_core.cli import app  # noqa: E402
-from comreg_core.io import PointCloud, read_mesh, read_segmentation, write_points  # noqa: E402
+from comreg_core.io import (PointCloud, read_mesh, read_points,  # noqa: E402
+                            read_segmentation, write_points)
 from comreg_core.io.meshes import write_mesh  # noqa: E402
 from comreg_core.registration.judgement.calibration import fit_calibration  # noqa: E402
 from comreg_core.surfaces.ct import extract_bone_surface  # noqa: E402
@@ -242,3 +243,33 @@ def test_write_report_renders_the_command_lines_report(short_sweep, tmp_path):
                                    np.asarray(Image.open(b).convert("RGB")))
         assert mean <= MEAN_DIFF_MAX and bad <= BAD_PIXELS_MAX, (a.name, mean, bad)
     assert "Verdict" in page.read_text()
+
+
+def test_two_sequence_browsers_register_as_the_command_line_registers_their_points(
+        shared_data, tmp_path):
+    """Two Sequence browsers (two stretches of the real sweep) picked as two sweeps: their bone
+    points are extracted and registered as one body, as `comreg extract-us` then `comreg
+    register A B --ct` do (the points through the scene's RAS agree to 1e-6 mm, so the pose
+    to 1e-6 mm and deg, and the verdict is the same)."""
+    from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
+    from tests.helpers import cut_sweep
+
+    folders = [cut_sweep(tmp_path / name, start, 20) for name, start in (("a", 0), ("b", 60))]
+    paths = [tmp_path / f"{folder.name}.ply" for folder in folders]
+    for folder, path in zip(folders, paths):
+        extract_us_to_file(folder, path)
+    _cli(["register", *paths, "--ct", FIBULA_STL, "--out", tmp_path / "cli"])
+    cli = json.loads((tmp_path / "cli" / "result.json").read_text())
+    logic = ComRegLogic()
+    ct = logic.loadBoneMesh(FIBULA_STL)
+    browsers = [logic.addSweepSequence(folder, name=folder.name) for folder in folders]
+    summary = logic.register(browsers, "search", ctModelNode=ct)
+    T_cli = np.asarray(cli["T_ct_us"])
+    centroid = np.vstack([read_points(path).points for path in paths]).mean(axis=0)
+    assert rotation_error_deg(summary.T_ct_us, T_cli) < 1e-6
+    assert translation_error_mm(summary.T_ct_us, T_cli, centroid) < 1e-6
+    assert summary.record["verdict"] == cli["verdict"]
+    assert summary.record["verdict_reasons"] == cli["verdict_reasons"]
+    assert [r["n_points"] for r in summary.record["us_inputs"]] == \
+        [r["n_points"] for r in cli["us_inputs"]]
+    assert summary.record["beam_origins_used"] is cli["beam_origins_used"] is True
