@@ -44,7 +44,6 @@ from comreg_plugin.live_process import LiveProcess, LiveSetup
 from comreg_plugin.registration import TRANSFORM_NODE_NAME
 from comreg_plugin.result_nodes import recordVerdict
 from comreg_plugin.result_folder import newRegistrationFolder
-from comreg_plugin.verdict_record import setFigureAttributes
 from comreg_plugin.scene_inputs import priorFromNodes
 from comreg_plugin.scene_io import (arrayFromVtkMatrix, requireNode, surfaceMeshFromModel,
                                     uniqueName, vtkMatrixFromArray)
@@ -255,8 +254,7 @@ class LiveRegistration:
             "advice": update.advice, "uncertainty": getattr(update, "uncertainty", None),
             "uncertainty_mm": (getattr(update, "uncertainty", None) or {}).get("bound_mm"),
             "scan_next": getattr(update, "scan_next", None)}
-        setFigureAttributes(node, self.figures)
-        recordVerdict(self.logic.getParameterNode(), self.figures)
+        recordVerdict(self.logic.getParameterNode(), node, self.figures)
         self.status = update.status_line()
 
     def stop(self) -> None:

@@ -289,7 +289,7 @@ class ComRegLogic(ScriptedLoadableModuleLogic, JobsLogic):
         if judged is not None:
             showJudged(self.scene, judged, usNodes, transformNode, ctModelNode,
                        showCompetitor=p.showCompetitor)
-            result_nodes.recordVerdict(p, judged.figures)
+        result_nodes.recordVerdict(p, transformNode, {} if judged is None else judged.figures)
         log.info("Registered %d node(s) with %s in %.3f s", len(usNodes), methodName,
                  output.runtime_s)
         return RegistrationSummary(transformNode, completedNode, T, T_ras, space, methodName,

@@ -120,10 +120,10 @@ def _attributeText(name: str, value) -> str:
     return str(value)
 
 
-def setFigureAttributes(node, figures: dict) -> None:
-    """Store ``figures`` on ``node`` as ``ComReg.<name>`` attributes (every name of
-    :data:`FIGURE_NAMES`; "" where absent, so an earlier registration's value never lingers)."""
-    for name in FIGURE_NAMES:
+def setFigureAttributes(node, figures: dict, names=FIGURE_NAMES) -> None:
+    """Store ``figures`` on ``node`` as ``ComReg.<name>`` attributes (every name of ``names``;
+    "" where absent, so an earlier registration's value never lingers)."""
+    for name in names:
         node.SetAttribute(ATTRIBUTE_PREFIX + name, _attributeText(name, figures.get(name)))
 
 
