@@ -40,6 +40,7 @@ from comreg_plugin.slicer_compat import (ScriptedLoadableModule,  # noqa: E402
                                          ScriptedLoadableModuleTest,
                                          ScriptedLoadableModuleWidget, VTKObservationMixin,
                                          slicer)
+from comreg_plugin.verdict_record import describeFigures  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,7 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.logic = None
         self._parameterNode = None
         self._parameterNodeGuiTag = None
-        self._timer = None
+        self._timer = self._lastJob = None
         self._live = None
         self._liveTimer = None
 
@@ -131,16 +132,22 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                                (ui.cancelButton, self.onCancelPretraining),
                                (ui.registerButton, self.onRegister),
                                (ui.saveTransformButton, self.onSaveTransform),
-                               (ui.saveSceneButton, self.onSaveScene)):
+                               (ui.saveSceneButton, self.onSaveScene),
+                               (ui.saveResultFolderButton, self.onSaveResultFolder),
+                               (ui.writeReportButton, self.onWriteReport),
+                               (ui.calibrateButton, self.onCalibrate),
+                               (ui.cancelCalibrationButton, self.onCancelCalibration)):
             button.connect("clicked(bool)", action)
         readable = ctk.ctkPathLineEdit.Files | ctk.ctkPathLineEdit.Readable
         for edit in (ui.segmentationPath, ui.meshPath, ui.calibrationPath, ui.usPointsPath):
             edit.filters = readable
         ui.sweepPath.filters = readable | ctk.ctkPathLineEdit.Dirs
         ui.transformPath.filters = ui.scenePath.filters = ctk.ctkPathLineEdit.Files
+        ui.resultFolderPath.filters = ctk.ctkPathLineEdit.Dirs
+        ui.showCompetitorCheckBox.connect("toggled(bool)", self.logic.setCompetitorVisible)
         self._timer = qt.QTimer()
         self._timer.setInterval(1000)
-        self._timer.connect("timeout()", self.onPollPretraining)
+        self._timer.connect("timeout()", self.onPollJobs)
         ui.liveButton.connect("toggled(bool)", self.onLiveToggled)
         self._liveTimer = qt.QTimer()
         self._liveTimer.setInterval(TICK_MS)
@@ -197,6 +204,12 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         ui.cancelButton.enabled = running
         ui.registerButton.enabled = p.usPoints is not None and not running and (
             p.method == "comreg" or p.ctModel is not None)
+        calibrating = p.calibrationState == "running"
+        ui.calibrateButton.enabled = p.ctModel is not None and not calibrating
+        ui.cancelCalibrationButton.enabled = calibrating
+        judged = p.outputTransform is not None and bool(
+            p.outputTransform.GetAttribute("ComReg.result_folder"))
+        ui.saveResultFolderButton.enabled = ui.writeReportButton.enabled = judged
 
     # -- actions ------------------------------------------------------------------------------
 
@@ -234,28 +247,47 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onStartPretraining(self):
         def start():
-            self.logic.startPretraining()
+            self._lastJob = self.logic.startPretraining()
             self._timer.start()
         self._run("Could not start the pretraining.", start)
 
     def onCancelPretraining(self):
         self._run("Could not cancel the pretraining.", self.logic.cancelPretraining)
-        self.onPollPretraining()
+        self.onPollJobs()
 
-    def onPollPretraining(self):
-        if self.logic.pretrainingJob is None:
+    def onPollJobs(self):
+        """The pretraining's and the verdict calibration's progress (the timer, every s)."""
+        lines = []
+        for job, poll in ((self.logic.pretrainingJob, self.logic.pollPretraining),
+                          (self.logic.calibrationJob, self.logic.pollCalibration)):
+            if job is not None and (job.running or job is self._lastJob):
+                status = poll()
+                lines.append(status.describe())
+                self._lastJob = job if status.state == "running" else None
+        if lines:
+            self.ui.resultLabel.text = "\n".join(lines)
+        if not any(j is not None and j.running for j in (self.logic.pretrainingJob,
+                                                        self.logic.calibrationJob)):
             self._timer.stop()
-            return
-        status = self.logic.pollPretraining()
-        self.ui.resultLabel.text = status.describe()
-        if status.state != "running":
-            self._timer.stop()
+
+    def onCalibrate(self):
+        def start():
+            self._lastJob = self.logic.startCalibration()
+            self._timer.start()
+        self._run("Could not start the verdict calibration.", start)
+
+    def onCancelCalibration(self):
+        self._run("Could not cancel the calibration.", self.logic.cancelCalibration)
+        self.onPollJobs()
 
     def onRegister(self):
         def register():
-            summary = self.logic.register()
             p = self._parameterNode
-            self.ui.resultLabel.text = summary.describe(p.ambiguous, p.confidence)
+            more = [n for n in self.ui.moreSweepsSelector.checkedNodes() if n is not p.usPoints]
+            summary = self.logic.register([p.usPoints, *more] if more else None)
+            lines = summary.describe(p.ambiguous, p.confidence).split("\n")
+            self.ui.resultLabel.text = lines[0]
+            self.ui.verdictLabel.text = "\n".join(lines[1:])
         self._run("Registration failed.", register)
 
     def onLiveToggled(self, on):
@@ -282,10 +314,24 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.ui.liveButton.checked = False
             return
         self.ui.liveStatusLabel.text = self._live.status
+        if ticked[0] is not None:  # the update's verdict, reasons, p_correct, advice
+            self.ui.verdictLabel.text = "\n".join(describeFigures(self._live.figures))
 
     def onSaveTransform(self):
         self._run("Could not save the transform.", lambda: self.logic.saveTransform(
             self._parameterNode.outputTransform, self.ui.transformPath.currentPath))
+
+    def onSaveResultFolder(self):
+        self._run("Could not save the result folder.", lambda: self.logic.saveResultFolder(
+            self.ui.resultFolderPath.currentPath))
+
+    def onWriteReport(self):
+        import qt
+
+        def write():  # then opened in the browser
+            page = self.logic.writeReport(self.ui.resultFolderPath.currentPath or None)
+            qt.QDesktopServices.openUrl(qt.QUrl.fromLocalFile(str(page)))
+        self._run("Could not write the report.", write)
 
     def onSaveScene(self):
         self._run("Could not save the scene.",
@@ -305,13 +351,10 @@ class ComRegWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 class ComRegTest(ScriptedLoadableModuleTest):
     """The module's self test: builds its own small data from the bundled sample CT (a simulated
     US sweep moved by a known transform), runs the Logic end to end and asserts the errors in mm
-    and degrees, the saved transform files and a scene save/reload. Runs inside 3D Slicer
-    (Reload & Test) and headless under pytest (``tests/plugin``).
-
-    The registration is ComReg's pose search on the CT bone model (``method="search"``: the
-    registration ComReg runs, without a pretrained network, so the test needs no training),
-    into an output transform node the test creates.
-    """
+    and degrees, the saved transform files and a scene save/reload, then the panel's result parts
+    on the bundled sample. Runs inside 3D Slicer (Reload & Test) and headless under pytest
+    (``tests/plugin``). It registers by ComReg's pose search (``method="search"``), so it needs
+    no pretrained network."""
 
     def setUp(self):
         import tempfile
@@ -322,14 +365,13 @@ class ComRegTest(ScriptedLoadableModuleTest):
         self.workDir = self._tmp.name
 
     def tearDown(self):
-        tmp = getattr(self, "_tmp", None)
-        if tmp is not None:
-            tmp.cleanup()
+        if getattr(self, "_tmp", None) is not None:
+            self._tmp.cleanup()
             self._tmp = None
 
     def runTest(self):
         """Run as few or as many tests as needed here."""
-        for test in (self.test_ComRegEndToEnd, self.test_ComRegBadInputs):
+        for test in (self.test_ComRegEndToEnd, self.test_ComRegPanel, self.test_ComRegBadInputs):
             self.setUp()
             try:
                 test()
@@ -337,64 +379,21 @@ class ComRegTest(ScriptedLoadableModuleTest):
                 self.tearDown()
 
     def test_ComRegEndToEnd(self):
-        import numpy as np
-
+        """Segmentation, sweep and points in; registration within 2 mm / 2 deg of the truth;
+        transform files; scene save and reload (:func:`comreg_plugin.testing.endToEnd`)."""
         from comreg_plugin import testing
-        from comreg_plugin.scene_io import arrayFromModelPoints
 
-        self.delayDisplay("Building the test data (sample CT, simulated sweep, known transform)")
-        case = testing.buildSyntheticCase(self.workDir)
-        logic = self.logic
+        self.endToEnd = testing.endToEnd(self, self.logic, self.workDir, ComRegLogic)
 
-        self.delayDisplay("CT segmentation -> bone model")
-        segNode, models = logic.loadSegmentation(case.segmentationPath)
-        self.assertEqual(len(models), 1)
-        vertices = arrayFromModelPoints(models[0])
-        expected = case.ctMesh.in_space("RAS").vertices
-        self.assertEqual(vertices.shape, expected.shape)
-        self.assertLess(np.abs(vertices - expected).max(), 1e-6)
+    def test_ComRegPanel(self):
+        """The verdict and its figures, several sweeps, the result folder, the report, the
+        verdict calibration and the live mode's second process on the bundled sample
+        (:func:`comreg_plugin.panel_testing.checkPanel`)."""
+        from comreg_plugin import panel_testing
 
-        self.delayDisplay("Tracked sweep as a Sequence browser -> bone points")
-        browser = testing.checkSweepInputs(self, logic)
-
-        self.delayDisplay("US points -> model")
-        usNode = logic.loadUSPoints(case.usPointsPath)
-        self.assertEqual(usNode.GetPolyData().GetNumberOfPoints(), len(case.usPoints))
-
-        self.delayDisplay("Registration (ComReg pose search, no network)")
-        output = logic.scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "ReferenceToCT")
-        summary = logic.register(usNode, "search", ctModelNode=models[0],
-                                 outputTransformNode=output)
-        self.assertIs(summary.transformNode, output)
-        self.assertIs(usNode.GetParentTransformNode(), output)
-        self.assertEqual(summary.method, "search")
-        errors = testing.checkRegistrationAccuracy(summary.transformNode, case)
-        self.delayDisplay(f"Registration error: {errors['translation_mm']:.3f} mm, "
-                          f"{errors['rotation_deg']:.3f} deg (mean point "
-                          f"{errors['mean_point_mm']:.3f} mm)")
-
-        self.delayDisplay("Transform files (.tfm, .h5)")
-        testing.checkTransformFiles(self, logic, summary.transformNode, self.workDir)
-
-        self.delayDisplay("Scene save and reload")
-        testing.checkSceneReload(self, logic, browser, case, errors, self.workDir, ComRegLogic)
-        self.delayDisplay("Test passed")
+        panel_testing.checkPanel(self, self.logic, self.workDir)
 
     def test_ComRegBadInputs(self):
-        from pathlib import Path
+        from comreg_plugin import testing
 
-        from comreg_core.errors import ComRegError
-
-        logic = self.logic
-        missing = Path(self.workDir) / "missing.seg.nrrd"
-        with self.assertRaisesRegex(ComRegError, "does not exist"):
-            logic.loadSegmentation(missing)
-        wrong = Path(self.workDir) / "notes.txt"
-        wrong.write_text("not a segmentation")
-        with self.assertRaisesRegex(ComRegError, "Use one of"):
-            logic.loadSegmentation(wrong)
-        with self.assertRaisesRegex(ComRegError, "nothing to cancel"):
-            logic.cancelPretraining()
-        with self.assertRaisesRegex(ComRegError, "no US points"):
-            logic.register(method="search")
-        self.delayDisplay("Bad inputs give clear errors")
+        testing.checkBadInputs(self, self.logic, self.workDir)

@@ -19,6 +19,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from vtk.util import numpy_support
 
 from comreg_core.errors import UnsupportedFormatError
 from comreg_core.io._files import file_extension, require_input_file
@@ -35,13 +36,36 @@ ATTRIBUTE_PREFIX = "ComReg."
 US_POINTS_NODE_NAME = "US bone points"
 BONE_COLOR = (0.95, 0.9, 0.75)
 US_POINTS_COLOR = (0.1, 0.55, 1.0)
+#: Point-data array of a US points model holding each point's beam origin (RAS, mm): where its
+#: ultrasound beam started, as ``extract-us``'s PLY files keep it.
+BEAM_ORIGINS_ARRAY = "ComReg beam origin"
 
 
-def addPointsModel(scene, points: np.ndarray, space: str, name: str, color, node=None):
+def addPointsModel(scene, points: np.ndarray, space: str, name: str, color, node=None,
+                   origins=None):
     """A model node of vertices from ``(N, 3)`` points given in ``space``; ``node`` is updated in
-    place if given."""
-    ras = apply_transform(space_change(space, "RAS"), np.asarray(points, dtype=np.float64))
-    return addModelNode(scene, ras, None, name, color, node=node)
+    place if given; ``origins`` ``(N, 3)`` (same space): the points' beam origins, kept as the
+    :data:`BEAM_ORIGINS_ARRAY` point data."""
+    change = space_change(space, "RAS")
+    ras = apply_transform(change, np.asarray(points, dtype=np.float64))
+    node = addModelNode(scene, ras, None, name, color, node=node)
+    if origins is not None:
+        array = numpy_support.numpy_to_vtk(np.ascontiguousarray(apply_transform(
+            change, np.asarray(origins, dtype=np.float64))), deep=True)
+        array.SetName(BEAM_ORIGINS_ARRAY)
+        node.GetPolyData().GetPointData().AddArray(array)
+    return node
+
+
+def beamOriginsOfNode(node, space: str = "LPS"):
+    """``(N, 3)`` beam origins (in ``space``) a US points model keeps, or None."""
+    polydata = node.GetPolyData() if node.IsA("vtkMRMLModelNode") else None
+    array = None if polydata is None else \
+        polydata.GetPointData().GetArray(BEAM_ORIGINS_ARRAY)
+    if array is None:
+        return None
+    return apply_transform(space_change("RAS", space),
+                           numpy_support.vtk_to_numpy(array).astype(np.float64))
 
 
 def addBoneModel(scene, mesh, name: str, color=BONE_COLOR):
@@ -141,8 +165,13 @@ def sweepPointsModel(scene, sweep, config, name, source: str, progress) -> tuple
     :class:`~comreg_core.io.TrackedSweep` (LPS), ``config`` a ``USExtractionConfig``."""
     from comreg_core.surfaces.us import extract_us_surface
 
+    from comreg_core.surfaces.us_points import beam_origins
+
     result = extract_us_surface(sweep, config, progress=progress)
-    return _addUSPointsModel(scene, result, "LPS", name, source), result
+    found, origins = result.points, None
+    if (found.frame_index >= 0).all():  # as extract-us writes them
+        origins = beam_origins(found.points, sweep.T_ref_image[found.frame_index])
+    return _addUSPointsModel(scene, result, "LPS", name, source, origins), result
 
 
 def volumePointsModel(scene, volumeNode, beamDirection: str, config, name, progress) -> tuple:
@@ -155,10 +184,11 @@ def volumePointsModel(scene, volumeNode, beamDirection: str, config, name, progr
     return _addUSPointsModel(scene, result, "RAS", name, volumeNode.GetName()), result
 
 
-def _addUSPointsModel(scene, result, space: str, name, source: str):
+def _addUSPointsModel(scene, result, space: str, name, source: str, origins=None):
     """The US bone points node of a :class:`~comreg_core.surfaces.us.USExtractionResult` (its
-    points in ``space``), with its extraction summary."""
-    node = addPointsModel(scene, result.points.points, space, name, US_POINTS_COLOR)
+    points, and their beam ``origins`` if known, in ``space``), with its extraction summary."""
+    node = addPointsModel(scene, result.points.points, space, name, US_POINTS_COLOR,
+                          origins=origins)
     node.SetAttribute(ATTRIBUTE_PREFIX + "role", "us_points")
     node.SetAttribute(ATTRIBUTE_PREFIX + "source", source)
     node.SetAttribute(ATTRIBUTE_PREFIX + "extraction", result.summary())
@@ -171,7 +201,8 @@ def loadPointsModel(scene, path, name):
     from comreg_core.io import read_points
 
     cloud = read_points(path)
-    node = addPointsModel(scene, cloud.points, cloud.space, name, US_POINTS_COLOR)
+    node = addPointsModel(scene, cloud.points, cloud.space, name, US_POINTS_COLOR,
+                          origins=cloud.beam_origins)
     node.SetAttribute(ATTRIBUTE_PREFIX + "role", "us_points")
     node.SetAttribute(ATTRIBUTE_PREFIX + "source", Path(path).name)
     return node

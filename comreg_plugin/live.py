@@ -4,14 +4,15 @@
 in place at every message: a scalar volume node per IMAGE device (``Image``, a 2D frame) and a
 linear transform node per TRANSFORM device (``ImageToReference``). :class:`LiveRegistration`
 observes the image node: each new image (``ImageDataModifiedEvent``) becomes a frame with the
-pose its transform node holds at that moment. :meth:`LiveRegistration.tick` (the module's qt
-timer, every :data:`TICK_MS` ms; any loop headless) starts one update of
-:class:`comreg_core.live.session.LiveSession` in a worker thread, the same update ``comreg
-live`` runs (warm from the last pose, the full search when the evidence changes, the verdict,
-the advice), so the GUI stays responsive while it registers; a later tick, on the GUI thread,
-writes its registration into the output transform node (``ReferenceToCT``, to parent, RAS) and
-the status line (:attr:`LiveRegistration.status`), and starts the next. Only the GUI thread
-touches the scene; frames that come meanwhile wait for the next update.
+pose its transform node holds at that moment. The registration runs in a second process
+(:class:`comreg_plugin.live_process.LiveProcess`: :class:`comreg_core.live.session.LiveSession`,
+the same update ``comreg live`` runs: warm from the last pose, the full search when the evidence
+changes, the verdict, the advice), so the GUI thread
+never waits for it: :meth:`LiveRegistration.tick` (the module's qt timer, every :data:`TICK_MS`
+ms; any loop headless) hands the frames that came to the process and writes the newest update
+it answered into the output transform node (``ReferenceToCT``, to parent, RAS; the figures as
+``ComReg.*`` attributes) and the status line (:attr:`LiveRegistration.status`). Only the GUI
+thread touches the scene.
 
 Coordinates, as for the module's Sequence browser sweeps
 (:func:`comreg_plugin.scene_inputs.trackedSweepFromBrowser`): a frame's pose in LPS is
@@ -24,8 +25,8 @@ Method names are camelCase here, as in 3D Slicer modules.
 """
 
 import logging
-import threading
 import time
+from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -34,15 +35,18 @@ from vtk.util import numpy_support
 
 from comreg_core.errors import ComRegError
 from comreg_core.io.sweeps import frames_to_grey
-from comreg_core.live.session import LiveSession
+from comreg_core.live.background import RegistrarRecipe
 from comreg_core.live.updates import LiveUpdate
 from comreg_core.live.stream import Frame, pixel_pose
 from comreg_core.transforms import T_RAS_LPS
 from comreg_plugin.bone_models import ATTRIBUTE_PREFIX
+from comreg_plugin.live_process import LiveProcess, LiveSetup
 from comreg_plugin.registration import TRANSFORM_NODE_NAME
+from comreg_plugin.result_nodes import recordVerdict
+from comreg_plugin.result_folder import newRegistrationFolder
 from comreg_plugin.scene_inputs import priorFromNodes
-from comreg_plugin.scene_io import (arrayFromVtkMatrix, requireNode, uniqueName,
-                                    vtkMatrixFromArray)
+from comreg_plugin.scene_io import (arrayFromVtkMatrix, requireNode, surfaceMeshFromModel,
+                                    uniqueName, vtkMatrixFromArray)
 from comreg_plugin.slicer_compat import require_slicer
 
 slicer = require_slicer()
@@ -57,44 +61,45 @@ class LiveRegistration:
     """Live registration of the frames arriving in ``imageNode`` (module docstring).
 
     Args:
-        logic: the module's :class:`~comreg_plugin.logic.ComRegLogic` (its scene, its prepared
-            registration methods).
+        logic: the module's :class:`~comreg_plugin.logic.ComRegLogic` (its scene, where the
+            session's CT file goes).
         imageNode: the incoming 2D B-mode frame (``vtkMRMLScalarVolumeNode``).
         poseNode: its pose (``vtkMRMLLinearTransformNode``, e.g. ``ImageToReference``);
             default: the image node's parent transform.
         method: ``"search"`` (the pose search on ``ctModelNode``) or ``"comreg"`` (the run in
-            ``runDirectory``, then the search).
+            ``runDirectory``, then the search, on ``ctModelNode``).
         outputTransformNode: where the registration goes (default: a new ``ReferenceToCT``).
-        calibration: a :class:`~comreg_core.registration.judgement.calibration.Calibration` for the
-            verdict, or None.
+        calibration: the verdict's ``calibration.json`` (a path) or None (the run's own).
         prior: a :class:`~comreg_core.registration.search.priors.Prior` (LPS; an initial pose, CT and
             US landmarks, the US ones in the stream's reference frame) bounding every update,
             or None (:func:`comreg_plugin.scene_inputs.priorFromNodes` makes one from nodes).
+        background: the full searches in a third process, as ``comreg live`` (default: in
+            the session's process, between its updates: inside 3D Slicer ``sys.executable`` is
+            PythonSlicer, through which ``multiprocessing``'s spawn has been reported to hang,
+            Slicer/Slicer#7445; either way none runs in Slicer's own process).
+        python: the Python of the session's process (default ``sys.executable``).
     """
 
     def __init__(self, logic, imageNode, poseNode=None, *, method: str = "search",
                  ctModelNode=None, runDirectory=None, outputTransformNode=None,
                  calibration=None, prior=None, device: str = "auto", seed: int = 0,
-                 maxFramesPerUpdate: int = 16):
+                 maxFramesPerUpdate: int = 16, background: bool = False, python=None):
         requireNode(imageNode, "vtkMRMLScalarVolumeNode", "incoming image",
                     "Pick the image node the OpenIGTLink connector updates (e.g. 'Image').")
         poseNode = poseNode if poseNode is not None else imageNode.GetParentTransformNode()
         requireNode(poseNode, "vtkMRMLLinearTransformNode", "image pose",
                     "Pick the transform node the connector updates (e.g. 'ImageToReference'), "
                     "or put the image under it.")
-        if method == "search":
-            if ctModelNode is None:
-                raise ComRegError("Live registration by the pose search needs the CT bone "
-                                  "model.", "Load a CT segmentation or bone mesh first.")
-            registrar = logic._methods.searchRegistrar(ctModelNode)
-        elif method == "comreg":
-            if not runDirectory:
-                raise ComRegError("No pretrained run folder to register with.",
-                                  "Pretrain on this CT first, or choose the run folder.")
-            registrar = logic._methods.registrar(runDirectory, device)
-        else:
+        if method not in ("search", "comreg"):
             raise ComRegError(f"Live registration cannot use the '{method}' method.",
                               "Use 'search' or 'comreg'.")
+        if ctModelNode is None:
+            raise ComRegError(f"Live registration by the '{method}' method needs the CT bone "
+                              "model.", "Load a CT segmentation or bone mesh first.")
+        if method == "comreg" and not runDirectory:
+            raise ComRegError("No pretrained run folder to register with.",
+                              "Pretrain on this CT first, or choose the run folder.")
+        requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model")
         if outputTransformNode is None:
             outputTransformNode = logic.scene.AddNewNodeByClass(
                 "vtkMRMLLinearTransformNode", uniqueName(logic.scene, TRANSFORM_NODE_NAME))
@@ -102,15 +107,27 @@ class LiveRegistration:
         self.logic, self.imageNode, self.poseNode = logic, imageNode, poseNode
         self.outputTransformNode = outputTransformNode
         self.method = method
-        self.session = LiveSession(registrar, calibration=calibration, prior=prior, seed=seed,
-                                   max_frames_per_update=maxFramesPerUpdate)
+        self.folder = newRegistrationFolder(Path(logic.resultBase()) / "live")
+        ctPath = self.folder / "ct_bone.vtk"
+        from comreg_core.io.meshes import write_mesh
+
+        write_mesh(surfaceMeshFromModel(ctModelNode), ctPath)
+        recipe = RegistrarRecipe(str(ctPath), None if method == "search" else
+                                 str(runDirectory), device)
+        self.setup = LiveSetup(recipe, None if not calibration else str(calibration), prior,
+                               int(seed), int(maxFramesPerUpdate), bool(background))
+        self.process = LiveProcess(self.setup, self.folder / "live_console.log", python)
         self.received = 0
         self.notes: list = []
-        self.status = (f"live: waiting for frames in '{imageNode.GetName()}' posed by "
-                       f"'{poseNode.GetName()}'")
+        self.updates: list = []  # every update the process answered, in order
+        self.figures: dict = {}  # the last update's (comreg_plugin.verdict_record)
+        self.processId: Optional[int] = None  # once it is ready
+        self.status = (f"live: preparing the CT side; then waiting for frames in "
+                       f"'{imageNode.GetName()}' posed by '{poseNode.GetName()}'")
         self._frames: list = []
-        self._worker: Optional[threading.Thread] = None
-        self._outcome: dict = {}  # the worker's "update" or "error"
+        self._sent = self._answered = 0  # batches sent, and answered by the process
+        self._waiting = 0  # frames in the process's backlog
+        self._stopped = False
         self._observer = imageNode.AddObserver(slicer.vtkMRMLVolumeNode.ImageDataModifiedEvent,
                                                self.onImageModified)
 
@@ -133,7 +150,8 @@ class LiveRegistration:
         live = cls(logic, nodes[0], nodes[1], method=p.method if p.method != "ransac"
                    else "search", ctModelNode=p.ctModel, runDirectory=p.runDirectory,
                    outputTransformNode=p.outputTransform, device=p.device, seed=p.seed,
-                   prior=priorFromNodes(parameters=p))
+                   prior=priorFromNodes(parameters=p),
+                   calibration=p.verdictCalibration or None)
         p.outputTransform = live.outputTransformNode
         return live
 
@@ -175,67 +193,79 @@ class LiveRegistration:
 
     @property
     def busy(self) -> bool:
-        """Whether an update is running in the worker thread."""
-        return self._worker is not None
+        """Whether the process has frames it has not answered yet (or a backlog)."""
+        return self._answered < self._sent or self._waiting > 0
 
-    def tick(self, wait: bool = False) -> Optional[LiveUpdate]:
-        """On the GUI thread: apply the update that finished in the worker thread (the output
-        node and :attr:`status` follow it), then start the next one with the frames that came
-        since (or the backlog). Returns the update applied now, or None. ``wait``: also wait
-        for the update just started and apply it (headless scripts). An error of the update
-        is raised here."""
-        applied = self._finish(block=False)
-        if self._worker is None:
-            frames, self._frames = self._frames, []
-            if frames or self.session.backlog:
-                self._outcome = {}
-                self._worker = threading.Thread(target=self._update, args=(frames,
-                                                self.received), name="ComReg live", daemon=True)
-                self._worker.start()
-        if wait and self._worker is not None:
-            applied = self._finish(block=True) or applied
+    def tick(self, wait: bool = False, timeout_s: float = 300.0) -> Optional[LiveUpdate]:
+        """On the GUI thread: apply the newest update the process answered (the output node,
+        its figures and :attr:`status` follow it) and hand it the frames that came since.
+        Returns the update applied now, or None. ``wait``: also wait until the process has
+        answered every frame (headless scripts). An error of the process is raised here."""
+        if self._stopped:
+            return None
+        applied = self._apply(self.process.messages())
+        if self._frames:
+            self._sent += 1
+            self.process.send(self._sent, self._frames, self.received)
+            self._frames = []
+        deadline = time.monotonic() + timeout_s
+        while wait and self.busy:
+            if time.monotonic() > deadline:
+                raise ComRegError(f"The live process answered nothing for {timeout_s:.0f} s.",
+                                  f"See its console, '{self.process.logPath}'.")
+            applied = self._apply(self.process.messages(timeout=0.5)) or applied
         return applied
 
-    def _update(self, frames: list, received: int) -> None:
-        """The worker thread: one session update (no scene access)."""
-        try:
-            self._outcome["update"] = self.session.update(frames, received=received)
-        except Exception as exc:  # noqa: BLE001 - raised again on the GUI thread by tick()
-            self._outcome["error"] = exc
+    def _apply(self, messages: list) -> Optional[LiveUpdate]:
+        """Take the process's answers; write the newest update into the scene."""
+        newest = None
+        for message in messages:
+            kind = message[0]
+            if kind == "ready":
+                self.processId = message[1]
+            elif kind in ("failed", "error"):
+                self._answered, self._waiting = self._sent, 0
+                raise ComRegError(f"Live registration stopped: {message[-1]}.",
+                                  f"See the live console, '{self.process.logPath}'.")
+            else:
+                _, self._answered, update, self._waiting, notes, bone = message
+                self.notes += notes
+                if update is not None:
+                    self.updates.append(update)
+                    newest = update
+                elif newest is None:
+                    self.status = (f"live: waiting for bone ({bone[0]} of {bone[1]} frames "
+                                   "show it)")
+        if newest is not None:
+            self._show(newest)
+        return newest
 
-    def _finish(self, block: bool) -> Optional[LiveUpdate]:
-        """Apply the worker's update when it is done (waiting for it with ``block``)."""
-        if self._worker is None or (self._worker.is_alive() and not block):
-            return None
-        self._worker.join()
-        self._worker = None
-        self.notes += self.session.take_notes()
-        if "error" in self._outcome:
-            raise self._outcome["error"]
-        update = self._outcome.get("update")
-        if update is None:
-            self.status = (f"live: waiting for bone ({self.session.points.frames_with_bone} of "
-                           f"{self.session.points.frames_used} frames show it)")
-            return None
+    def _show(self, update: LiveUpdate) -> None:
+        """The update on the output node (matrix, figures) and the status line."""
         node = self.outputTransformNode
         node.SetMatrixTransformToParent(vtkMatrixFromArray(
             T_RAS_LPS @ update.T_ct_us @ T_RAS_LPS))
-        update.latency_s = self.session.clock() - update.newest_s
-        for key, value in (("method", f"live {self.method}"), ("verdict", update.verdict),
-                           ("advice", update.advice), ("covered_mm", f"{update.covered_mm:.1f}"),
-                           ("p_correct", "" if update.p_correct is None
-                            else f"{update.p_correct:.4f}")):
-            node.SetAttribute(ATTRIBUTE_PREFIX + key, value)
+        update.latency_s = time.monotonic() - update.newest_s
+        node.SetAttribute(ATTRIBUTE_PREFIX + "method", f"live {self.method}")
+        node.SetAttribute(ATTRIBUTE_PREFIX + "covered_mm", f"{update.covered_mm:.1f}")
+        self.figures = {
+            "verdict": update.verdict, "verdict_reasons": list(update.reasons),
+            "p_correct": update.p_correct, "confidence": update.confidence,
+            "advice": update.advice, "uncertainty": getattr(update, "uncertainty", None),
+            "uncertainty_mm": (getattr(update, "uncertainty", None) or {}).get("bound_mm"),
+            "scan_next": getattr(update, "scan_next", None)}
+        recordVerdict(self.logic.getParameterNode(), node, self.figures)
         self.status = update.status_line()
-        return update
 
     def stop(self) -> None:
-        """Stop observing the image node, after the update under way (applied); the
-        registration stays in the output node."""
-        try:
-            self._finish(block=True)
-        except Exception as exc:  # noqa: BLE001 - stopping anyway; said in the notes
-            self.notes.append(f"the last update failed: {exc}")
+        """Stop observing the image node and stop the process (after the update under way,
+        whose answer is applied); the registration stays in the output node."""
         if self._observer is not None:
             self.imageNode.RemoveObserver(self._observer)
             self._observer = None
+        try:
+            self.tick(wait=True, timeout_s=60.0)
+        except ComRegError as exc:  # stopping anyway; said in the notes
+            self.notes.append(str(exc))
+        self._stopped = True
+        self.process.close()

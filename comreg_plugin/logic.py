@@ -3,10 +3,12 @@
 ``ComRegLogic(scene)`` works inside 3D Slicer (default scene: ``slicer.mrmlScene``) and headless
 on slicer-core (default: a new ``vtkMRMLScene``). It checks its inputs and only calls
 ``comreg_core``: CT segmentation or bone mesh -> bone models, tracked US sweep, US volume or
-point cloud -> US points (:mod:`comreg_plugin.bone_models`); ``comreg pretrain`` in a background
-process (:mod:`comreg_plugin.pretraining_job`); registration (:mod:`comreg_plugin.registration`)
--> the US->CT ``vtkMRMLLinearTransformNode`` (to parent, RAS) with the US points under it and
-the completed bone (:mod:`comreg_plugin.result_nodes`); transform and scene files
+point cloud -> US points (:mod:`comreg_plugin.bone_models`); ``comreg pretrain`` and ``comreg
+calibrate`` in background processes (:mod:`comreg_plugin.logic_jobs`); registration ("search"
+and "comreg" as ``comreg register --out``: :mod:`comreg_plugin.judged_registration`; others:
+:mod:`comreg_plugin.registration`) -> the US->CT ``vtkMRMLLinearTransformNode`` (to parent,
+RAS) with the US points under it, its verdict's figures and the completed bone
+(:mod:`comreg_plugin.result_nodes`); the result folder and report; transform and scene files
 (:mod:`comreg_plugin.scene_io`).
 
 Coordinates: the scene is RAS (Slicer's convention); files are in the patient space they declare
@@ -23,16 +25,16 @@ from typing import Optional
 import numpy as np
 
 from comreg_core.errors import ComRegError
-from comreg_core.io._files import require_input_file
 from comreg_core.progress import Progress
-from comreg_plugin import bone_models, result_nodes
-from comreg_plugin.bone_models import BONE_COLOR, US_POINTS_COLOR, US_POINTS_NODE_NAME
+from comreg_plugin import bone_models, result_nodes, result_views
+from comreg_plugin.bone_models import (ATTRIBUTE_PREFIX, BONE_COLOR, US_POINTS_COLOR,
+                                       US_POINTS_NODE_NAME)
 from comreg_plugin.parameter_node import ComRegParameterNode
-from comreg_plugin.pretraining_job import (PretrainingJob, PretrainingStatus, checkRunFolder,
-                                           launchPretraining)
+from comreg_plugin.logic_jobs import JobsLogic
+from comreg_plugin.judged_registration import judgedOutput, registerJudged, showJudged
 from comreg_plugin.registration import RegistrationMethods, RegistrationSummary, runRegistration
-from comreg_plugin.scene_io import (addModelNode, readScene, requireNode, surfaceMeshFromModel,
-                                    writeScene, writeTransform)
+from comreg_plugin.result_folder import saveResultFolder, temporaryBase
+from comreg_plugin.scene_io import addModelNode, readScene, requireNode, writeScene, writeTransform
 from comreg_plugin.scene_inputs import (addSweepBrowser, arrayFromPointsNode, priorFromNodes,
                                         requirePointsNode, trackedSweepFromBrowser)
 from comreg_plugin.slicer_compat import (IN_SLICER_APP, ScriptedLoadableModuleLogic,
@@ -44,7 +46,7 @@ slicer = require_slicer()
 log = logging.getLogger(__name__)
 
 
-class ComRegLogic(ScriptedLoadableModuleLogic):
+class ComRegLogic(ScriptedLoadableModuleLogic, JobsLogic):
     """All ComReg computations on MRML nodes, without GUI (batch-capable).
 
     Args:
@@ -58,9 +60,11 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
             scene = slicer.mrmlScene if IN_SLICER_APP else slicer.vtkMRMLScene()
         self.scene = scene
         register_segmentation_converters()
+        result_views.registerLegendClass(scene)
         self.sequencesLogic = sequences_logic(scene)
-        self.pretrainingJob: Optional[PretrainingJob] = None
+        self.pretrainingJob = self.calibrationJob = None  # JobsLogic's
         self._methods = RegistrationMethods()
+        self._temporaryBase: Optional[Path] = None
 
     # -- parameter node ---------------------------------------------------------------------
 
@@ -207,84 +211,6 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         ...; LPS unless tagged) as the parameter node's ``usPoints``."""
         return self._useUSPoints(bone_models.loadPointsModel(self.scene, path, name))
 
-    # -- pretraining ------------------------------------------------------------------------
-
-    def startPretraining(self, ctModel=None, runDirectory=None, *, preset: Optional[str] = None,
-                         maxMinutes: Optional[float] = None, epochs: Optional[int] = None,
-                         seed: Optional[int] = None, device: Optional[str] = None,
-                         config=None, resume: bool = False,
-                         python: Optional[str] = None) -> PretrainingJob:
-        """Start ``comreg pretrain`` in the background and return the :class:`PretrainingJob`.
-
-        Args:
-            ctModel: the CT bone model node (written to ``RUN_DIR/ct_bone.vtk``, LPS) or a mesh
-                file path; default the parameter node's ``ctModel``.
-            runDirectory: the run folder; default the parameter node's ``runDirectory``.
-            preset, maxMinutes, epochs, seed, device: as ``comreg pretrain`` (defaults from the
-                parameter node; ``epochs`` 0 = the preset's).
-            config: YAML overrides file (or a dict, written to ``RUN_DIR/overrides.yaml``).
-            resume: continue the run in ``runDirectory``.
-            python: the Python to run ComReg with (default ``sys.executable``, which inside 3D
-                Slicer is its PythonSlicer).
-
-        Raises:
-            ComRegError: another pretraining is running, no CT model, or the folder already
-            holds a run (without ``resume``).
-        """
-        if self.pretrainingJob is not None and self.pretrainingJob.running:
-            raise ComRegError("A pretraining is already running "
-                              f"('{self.pretrainingJob.runDirectory}').",
-                              "Wait for it to finish or cancel it first.")
-        p = self.getParameterNode()
-        runDirectory = runDirectory or p.runDirectory
-        if not runDirectory:
-            raise ComRegError("No run folder for the pretraining.",
-                              "Choose an (empty) output folder.")
-        runDirectory = checkRunFolder(runDirectory, resume)
-        ctModel = ctModel if ctModel is not None else p.ctModel
-        if ctModel is None:
-            raise ComRegError("No CT bone model to pretrain on.",
-                              "Load a CT segmentation or bone mesh first.")
-        # every check before the run folder is made, so a refusal leaves nothing behind
-        if isinstance(ctModel, (str, Path)):
-            meshPath, mesh = require_input_file(ctModel, "CT mesh file"), None
-        else:
-            requireNode(ctModel, "vtkMRMLModelNode", "CT bone model",
-                        "Pick the CT bone model (loaded from a segmentation or mesh).")
-            meshPath, mesh = runDirectory / "ct_bone.vtk", surfaceMeshFromModel(ctModel)
-        if config is not None and not isinstance(config, dict):
-            require_input_file(config, "pretraining config")
-        job = launchPretraining(
-            mesh, meshPath, runDirectory, preset=preset or p.preset, device=device or p.device,
-            maxMinutes=p.maxMinutes if maxMinutes is None else maxMinutes,
-            epochs=(p.epochs or None) if epochs is None else epochs,
-            seed=p.seed if seed is None else seed, config=config, resume=resume, python=python)
-        self.pretrainingJob = job
-        p.runDirectory = str(runDirectory)
-        p.pretrainingState = "running"
-        p.pretrainingProgress = 0.0
-        return job
-
-    def pollPretraining(self) -> PretrainingStatus:
-        """The running (or last) pretraining's status, also stored in the parameter node."""
-        if self.pretrainingJob is None:
-            raise ComRegError("No pretraining was started.", "Start one first.")
-        status = self.pretrainingJob.poll()
-        p = self.getParameterNode()
-        p.pretrainingState = status.state
-        p.pretrainingProgress = status.progress
-        if status.state == "finished":
-            p.runDirectory = str(status.runDirectory)
-        return status
-
-    def cancelPretraining(self) -> PretrainingStatus:
-        """Cancel the running pretraining (:meth:`PretrainingJob.cancel`)."""
-        if self.pretrainingJob is None:
-            raise ComRegError("No pretraining is running, so there is nothing to cancel.",
-                              "Start a pretraining first.")
-        self.pretrainingJob.cancel()
-        return self.pollPretraining()
-
     # -- registration -----------------------------------------------------------------------
 
     def registrar(self, runDirectory, device: str = "auto"):
@@ -300,38 +226,41 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
     def register(self, usPointsNode=None, method=None, *, runDirectory=None, ctModelNode=None,
                  outputTransformNode=None, completedBoneNode=None, seed: int = 0,
                  device: Optional[str] = None, initialTransformNode=None,
-                 ctLandmarksNode=None, usLandmarksNode=None) -> RegistrationSummary:
-        """Register the US points to the CT and show the result in the scene.
+                 ctLandmarksNode=None, usLandmarksNode=None,
+                 verdictCalibration=None) -> RegistrationSummary:
+        """Register the US points to the CT, judge the result and show it in the scene.
 
         Args:
-            usPointsNode: the US points model (default: the parameter node's ``usPoints``); its
-                own coordinates (without any parent transform) are the US frame.
+            usPointsNode: the US points model or markups (default: the parameter node's
+                ``usPoints``), or a list of them and of Sequence browsers (their bone points
+                are extracted first): several sweeps in one tracker frame, registered as one
+                rigid body (``comreg register A B``); a node's own coordinates (without any
+                parent transform) are the US frame.
             method: ``"comreg"`` (needs ``runDirectory``), ``"search"`` or ``"ransac"`` (need
                 the CT model), or a callable taking ``(N, 3)`` LPS points and returning a
-                result with ``T_ct_us`` (a
-                :class:`~comreg_core.registration.search.result.RegistrationResult`,
-                :class:`~comreg_core.evaluation.outputs.RegistrationOutput`, a dict or a 4x4
-                array). Default: the parameter node's ``method``.
-            runDirectory: the pretrained run (default: the parameter node's).
-            ctModelNode: the CT bone model (default: the parameter node's ``ctModel``).
-            outputTransformNode: the linear transform node to write the result into (default:
-                the parameter node's ``outputTransform``, else a new node "ReferenceToCT").
-            completedBoneNode: the model node for the completed bone (default: the parameter
-                node's ``completedBone``, else a new "ComReg completed bone").
+                result with ``T_ct_us``. Default: the parameter node's ``method``.
+            runDirectory, ctModelNode: the pretrained run, the CT bone model (default: the
+                parameter node's).
+            outputTransformNode, completedBoneNode: where the result goes (default: the
+                parameter node's, else new "ReferenceToCT" / "ComReg completed bone" nodes).
             seed: registration seed. device: torch device for "comreg".
             initialTransformNode, ctLandmarksNode, usLandmarksNode: the pose search's prior
                 (:func:`comreg_plugin.scene_inputs.priorFromNodes`; default: the parameter
-                node's, with its tolerances); ``info["prior"]`` says where the result lies in it.
+                node's, with its tolerances); ``info["prior"]`` says where the result lies.
+            verdictCalibration: the verdict's ``calibration.json`` (default: the parameter
+                node's, else the run's own): ``p_correct`` then.
 
-        Sets ``T_ct_us`` (US points' frame = the tracking reference -> CT) as the output
-        transform's to-parent matrix in RAS, places the US points under it and adds the
-        completed bone (when the method returns one) as a model in the CT frame. Values the
-        method reports under ``info["ambiguous"]`` / ``info["confidence"]`` are stored on the
-        transform node (attributes ``ComReg.ambiguous`` / ``ComReg.confidence``) and in the
-        parameter node.
+        "comreg" and "search" register exactly as ``comreg register --out`` does, into a new
+        registration folder (:mod:`comreg_plugin.judged_registration`; under the parameter
+        node's ``resultDirectory``, else a temporary one): the summary's ``record`` is its
+        ``result.json`` and the transform node carries its figures (``ComReg.verdict``,
+        ``ComReg.p_correct``, ...: :mod:`comreg_plugin.verdict_record`). Sets ``T_ct_us`` as
+        the output transform's to-parent matrix (RAS), places the US points under it, colours
+        them by their distance to the CT and adds the completed bone, the competing pose and
+        the patch to scan next when there are.
         """
         p = self.getParameterNode()
-        usPointsNode = self._usPointsToRegister(usPointsNode, ctModelNode)
+        usNodes = self._usPointsToRegister(usPointsNode, ctModelNode)
         transformNode, completedBoneNode = result_nodes.outputNodes(p, outputTransformNode,
                                                                     completedBoneNode)
         method = method if method is not None else p.method
@@ -341,32 +270,108 @@ class ComRegLogic(ScriptedLoadableModuleLogic):
         space, run, methodName, runDirectory = self._methods.prepare(
             method, p, runDirectory=runDirectory, ctModelNode=ctModelNode, seed=seed,
             device=device, prior=prior)
-        output, T, T_ras, completion_ct = runRegistration(
-            run, arrayFromPointsNode(usPointsNode), space)
-        transformNode = result_nodes.showResult(self.scene, transformNode, usPointsNode, T_ras)
+        ctModelNode = ctModelNode if ctModelNode is not None else p.ctModel
+        judged = None
+        if methodName in ("comreg", "search"):
+            judged = registerJudged(self._methods, usNodes, methodName,
+                                    runDirectory=runDirectory, ctModelNode=ctModelNode,
+                                    seed=seed, device=device, prior=prior,
+                                    calibration=verdictCalibration or p.verdictCalibration
+                                    or None, base=self.resultBase())
+        output, T, T_ras, completion_ct = judgedOutput(judged) if judged is not None else \
+            runRegistration(run, np.vstack([arrayFromPointsNode(n) for n in usNodes]), space)
+        for node in usNodes:
+            transformNode = result_nodes.showResult(self.scene, transformNode, node, T_ras)
         completedNode = result_nodes.addCompletedBone(self.scene, completion_ct, space,
                                                       completedBoneNode)
-        result_nodes.recordResult(p, transformNode, usPointsNode, completedNode, output,
+        result_nodes.recordResult(p, transformNode, usNodes[0], completedNode, output,
                                   methodName, runDirectory)
-        log.info("Registered '%s' with %s in %.3f s", usPointsNode.GetName(), methodName,
+        if judged is not None:
+            showJudged(self.scene, judged, usNodes, transformNode, ctModelNode,
+                       showCompetitor=p.showCompetitor)
+        result_nodes.recordVerdict(p, transformNode, {} if judged is None else judged.figures)
+        log.info("Registered %d node(s) with %s in %.3f s", len(usNodes), methodName,
                  output.runtime_s)
         return RegistrationSummary(transformNode, completedNode, T, T_ras, space, methodName,
-                                   float(output.runtime_s), dict(output.info))
+                                   float(output.runtime_s), dict(output.info),
+                                   None if judged is None else judged.record,
+                                   None if judged is None else judged.figures,
+                                   None if judged is None else judged.folder)
 
-    def _usPointsToRegister(self, usPointsNode, ctModelNode):
-        """The US points node to register (the parameter node's unless given), checked with
+    def resultBase(self) -> Path:
+        """Where registrations write their folders: the parameter node's ``resultDirectory``,
+        else a temporary folder of this logic."""
+        directory = self.getParameterNode().resultDirectory
+        if directory:
+            return Path(directory)
+        if self._temporaryBase is None:
+            self._temporaryBase = temporaryBase()
+        return self._temporaryBase
+
+    def _usPointsToRegister(self, usPointsNode, ctModelNode) -> list:
+        """The US points nodes to register (the parameter node's unless given), checked with
         the CT model node when one is given."""
         usPointsNode = usPointsNode if usPointsNode is not None \
             else self.getParameterNode().usPoints
-        if usPointsNode is None:
+        nodes = list(usPointsNode) if isinstance(usPointsNode, (list, tuple)) else \
+            [] if usPointsNode is None else [usPointsNode]
+        if not nodes:
             raise ComRegError("There are no US points to register.",
                               "Load a tracked sweep or a US point cloud first.")
-        requirePointsNode(usPointsNode)
+        if len({node.GetID() for node in nodes}) != len(nodes):
+            raise ComRegError("A US points node was given twice.", "Give each sweep once.")
+        for k, node in enumerate(nodes):
+            if node.IsA("vtkMRMLSequenceBrowserNode"):  # a sweep: its bone points first
+                nodes[k] = self.usPointsFromSequence(node, name=f"{node.GetName()} points")[0]
+            requirePointsNode(nodes[k])
         if ctModelNode is not None:
             requireNode(ctModelNode, "vtkMRMLModelNode", "CT bone model",
                         "Pick the CT bone model (loaded from a segmentation or mesh).")
-        return usPointsNode
+        return nodes
 
+    # -- the registration's folder and report ------------------------------------------------
+
+    def resultFolder(self, transformNode=None) -> Path:
+        """The registration folder of ``transformNode`` (default: the parameter node's output
+        transform): the one its ``ComReg.result_folder`` attribute names (a folder name: node
+        attributes hold no absolute paths) under :meth:`resultBase`."""
+        node = transformNode if transformNode is not None \
+            else self.getParameterNode().outputTransform
+        name = node.GetAttribute(ATTRIBUTE_PREFIX + "result_folder") if node else None
+        if not name:
+            raise ComRegError("This transform has no registration folder.",
+                              "Register with the 'search' or 'comreg' method first.")
+        folder = Path(self.resultBase()) / name
+        if not (folder / "result.json").is_file():
+            raise ComRegError(f"The registration folder '{folder}' is gone.",
+                              "Register again, or open the folder saved from it.")
+        return folder
+
+    def saveResultFolder(self, path, transformNode=None) -> Path:
+        """Save the registration as ``comreg register --out`` writes it (``result.json``,
+        ``transform.tfm``, ``registered_us*.ply``, ``config.yaml``; a report if written),
+        with the inputs the panel registered in ``inputs/``, into ``path``."""
+        return saveResultFolder(self.resultFolder(transformNode), path)
+
+    def writeReport(self, outDirectory=None, transformNode=None, embedImages: bool = False,
+                    progress: Optional[Progress] = None) -> Path:
+        """``comreg report`` of the registration (``report.html`` and its screenshots, rendered
+        off-screen) in its folder, or in ``outDirectory`` after saving the folder there;
+        returns the page's path."""
+        from comreg_core.report import write_report_for_registration
+
+        folder = self.resultFolder(transformNode)
+        if outDirectory is not None:
+            folder = saveResultFolder(folder, outDirectory)
+        return write_report_for_registration(folder, embed_images=embedImages,
+                                             progress=progress)
+
+    def setCompetitorVisible(self, visible: bool) -> None:
+        """Show or hide the competing pose (and keep the choice in the parameter node)."""
+        self.getParameterNode().showCompetitor = bool(visible)
+        node = result_views.roleNode(self.scene, "competitor")
+        if node is not None and node.GetDisplayNode() is not None:
+            node.GetDisplayNode().SetVisibility(bool(visible))
 
     # -- files ------------------------------------------------------------------------------
 

@@ -43,6 +43,11 @@ class ComRegParameterNode:
     device: pretraining settings. pretrainingState: idle/running/finished/failed/cancelled;
     pretrainingProgress: 0..1. ambiguous, confidence (-1 = not reported), runtimeSeconds: of
     the last registration.
+    verdictCalibration: the verdict's calibration.json ("": the run's own, if any).
+    resultDirectory: where registrations write their folders ("": a temporary folder).
+    showCompetitor: draw the competing pose. verdict ("ok"/"check"/""), pCorrect and
+    uncertaintyMm (-1 = none): of the last judged registration. calibrationState,
+    calibrationProgress: the background verdict calibration's, as the pretraining's.
     """
 
     sweep: slicer.vtkMRMLSequenceBrowserNode
@@ -71,3 +76,11 @@ class ComRegParameterNode:
     ambiguous: bool = False
     confidence: Annotated[float, Minimum(-1.0)] = -1.0
     runtimeSeconds: Annotated[float, Minimum(0.0)] = 0.0
+    verdictCalibration: str = ""
+    resultDirectory: str = ""
+    showCompetitor: bool = True
+    verdict: str = ""
+    pCorrect: Annotated[float, Minimum(-1.0)] = -1.0
+    uncertaintyMm: Annotated[float, Minimum(-1.0)] = -1.0
+    calibrationState: Annotated[str, Choice(PRETRAINING_STATES)] = "idle"
+    calibrationProgress: Annotated[float, WithinRange(0.0, 1.0)] = 0.0

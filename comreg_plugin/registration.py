@@ -15,7 +15,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
@@ -46,6 +46,10 @@ class RegistrationSummary:
         method: "comreg", "ransac" or the callable's name.
         runtimeSeconds: the method's own registration time.
         info: the method's extras (residuals, fitness, "ambiguous", "confidence", ...).
+        record: ``result.json`` of a registration made as ``comreg register`` makes it
+            ("comreg", "search"), None for other methods.
+        figures: what the panel shows of it (:mod:`comreg_plugin.verdict_record`), or None.
+        resultFolder: its registration folder, or None.
     """
 
     transformNode: Any
@@ -56,6 +60,9 @@ class RegistrationSummary:
     method: str
     runtimeSeconds: float
     info: dict = field(default_factory=dict)
+    record: Optional[dict] = None
+    figures: Optional[dict] = None
+    resultFolder: Optional[Path] = None
 
     def describe(self, ambiguous: bool, confidence: float) -> str:
         """One line for the user: method, runtime (s), median distance to the CT (mm), the
@@ -74,6 +81,10 @@ class RegistrationSummary:
             text += f", confidence {confidence:.2f}"
         if self.completedBoneNode is not None:
             text += f"; '{COMPLETED_BONE_NODE_NAME}' added"
+        if self.figures is not None:
+            from comreg_plugin.verdict_record import describeFigures
+
+            text += "\n" + "\n".join(describeFigures(self.figures))
         return text
 
 

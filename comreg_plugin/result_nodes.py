@@ -14,6 +14,7 @@ from comreg_plugin.bone_models import ATTRIBUTE_PREFIX, addPointsModel
 from comreg_plugin.registration import (COMPLETED_BONE_NODE_NAME, COMPLETION_COLOR,
                                         TRANSFORM_NODE_NAME, resultAttributes)
 from comreg_plugin.scene_io import requireNode, uniqueName, vtkMatrixFromArray
+from comreg_plugin.verdict_record import FIGURE_NAMES, setFigureAttributes
 
 
 def outputNodes(parameters, outputTransformNode, completedBoneNode) -> tuple:
@@ -75,3 +76,17 @@ def recordResult(parameters, transformNode, usPointsNode, completedNode, output,
     if "confidence" in info and info["confidence"] is not None:
         parameters.confidence = float(info["confidence"])
         transformNode.SetAttribute(ATTRIBUTE_PREFIX + "confidence", repr(parameters.confidence))
+
+
+def recordVerdict(parameters, transformNode, figures: dict) -> None:
+    """The figures of a judged registration (:func:`comreg_plugin.verdict_record.recordFigures`;
+    empty: not judged) on ``transformNode`` (every figure, none lingering from an earlier one;
+    not judged: the method's own confidence and ambiguity kept) and its verdict, ``p_correct`` (-1: none) and uncertainty (mm; -1: none) in the parameter
+    node."""
+    setFigureAttributes(transformNode, figures, FIGURE_NAMES if figures else [
+        name for name in FIGURE_NAMES if name not in ("confidence", "ambiguous")])  # the method's
+    parameters.verdict = figures.get("verdict") or ""
+    parameters.pCorrect = -1.0 if figures.get("p_correct") is None \
+        else float(figures["p_correct"])
+    parameters.uncertaintyMm = -1.0 if figures.get("uncertainty_mm") is None \
+        else float(figures["uncertainty_mm"])

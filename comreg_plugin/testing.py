@@ -227,3 +227,68 @@ def checkSceneReload(test, logic, browser, case, errors: dict, workDir, logicCla
     test.assertEqual(sweepBack.n_frames, browser.GetMasterSequenceNode().GetNumberOfDataNodes())
     errorsBack = checkRegistrationAccuracy(reloaded.getParameterNode().outputTransform, case)
     test.assertAlmostEqual(errorsBack["translation_mm"], errors["translation_mm"], places=5)
+
+
+def endToEnd(test, logic, workDir, logicClass) -> dict:
+    """The module's end-to-end self test (``test``: a unittest.TestCase with ``delayDisplay``):
+    segmentation -> bone model, the bundled sweep as a Sequence browser, US points -> model,
+    registration by the pose search within 2 mm / 2 deg of the truth, transform files, scene
+    save and reload. Returns the registration errors."""
+    from comreg_plugin.scene_io import arrayFromModelPoints
+
+    test.delayDisplay("Building the test data (sample CT, simulated sweep, known transform)")
+    case = buildSyntheticCase(workDir)
+
+    test.delayDisplay("CT segmentation -> bone model")
+    segNode, models = logic.loadSegmentation(case.segmentationPath)
+    test.assertEqual(len(models), 1)
+    vertices = arrayFromModelPoints(models[0])
+    expected = case.ctMesh.in_space("RAS").vertices
+    test.assertEqual(vertices.shape, expected.shape)
+    test.assertLess(np.abs(vertices - expected).max(), 1e-6)
+
+    test.delayDisplay("Tracked sweep as a Sequence browser -> bone points")
+    browser = checkSweepInputs(test, logic)
+
+    test.delayDisplay("US points -> model")
+    usNode = logic.loadUSPoints(case.usPointsPath)
+    test.assertEqual(usNode.GetPolyData().GetNumberOfPoints(), len(case.usPoints))
+
+    test.delayDisplay("Registration (ComReg pose search, no network)")
+    output = logic.scene.AddNewNodeByClass("vtkMRMLLinearTransformNode", "ReferenceToCT")
+    summary = logic.register(usNode, "search", ctModelNode=models[0],
+                             outputTransformNode=output)
+    test.assertIs(summary.transformNode, output)
+    test.assertIs(usNode.GetParentTransformNode(), output)
+    test.assertEqual(summary.method, "search")
+    errors = checkRegistrationAccuracy(summary.transformNode, case)
+    test.delayDisplay(f"Registration error: {errors['translation_mm']:.3f} mm, "
+                      f"{errors['rotation_deg']:.3f} deg (mean point "
+                      f"{errors['mean_point_mm']:.3f} mm)")
+
+    test.delayDisplay("Transform files (.tfm, .h5)")
+    checkTransformFiles(test, logic, summary.transformNode, workDir)
+
+    test.delayDisplay("Scene save and reload")
+    checkSceneReload(test, logic, browser, case, errors, workDir, logicClass)
+    test.delayDisplay("Test passed")
+    return errors
+
+
+def checkBadInputs(test, logic, workDir) -> None:
+    """Bad inputs give clear errors: a missing or wrong segmentation, nothing to cancel, no
+    US points."""
+    from comreg_core.errors import ComRegError
+
+    missing = Path(workDir) / "missing.seg.nrrd"
+    with test.assertRaisesRegex(ComRegError, "does not exist"):
+        logic.loadSegmentation(missing)
+    wrong = Path(workDir) / "notes.txt"
+    wrong.write_text("not a segmentation")
+    with test.assertRaisesRegex(ComRegError, "Use one of"):
+        logic.loadSegmentation(wrong)
+    with test.assertRaisesRegex(ComRegError, "nothing to cancel"):
+        logic.cancelPretraining()
+    with test.assertRaisesRegex(ComRegError, "no US points"):
+        logic.register(method="search")
+    test.delayDisplay("Bad inputs give clear errors")

@@ -60,7 +60,8 @@ def register_to_directory(run_dir: str | Path | None,
                           sweep_calibration: str | Path | None = None,
                           T_us_ref: np.ndarray | None = None,
                           calibration: str | Path | None = None,
-                          prior: Prior | None = None) -> RegistrationResult:
+                          prior: Prior | None = None,
+                          registrar: Registrar | None = None) -> RegistrationResult:
     """Register the US cloud in ``us_points_path`` with the run in ``run_dir`` (or, with
     ``run_dir`` None, by the pose search alone on the CT mesh ``ct_mesh``); write ``out_dir``.
 
@@ -70,7 +71,9 @@ def register_to_directory(run_dir: str | Path | None,
     one sweep's points (the report draws its frames). ``calibration``: the verdict's
     calibration file (default: the run folder's own), checked before any work and against the
     CT. ``prior``: an initial pose and/or landmarks (:func:`~comreg_core.register.inputs.
-    load_prior`): the search keeps to it, and its reasons join the verdict's.
+    load_prior`): the search keeps to it, and its reasons join the verdict's. ``registrar``: one
+    already built from this ``run_dir``/``ct_mesh`` with its own settings (the 3D Slicer module
+    keeps one per CT), used instead of building it again (``hypotheses`` must then be None).
 
     Files (each written atomically once the result and its verdict are known, ``result.json``
     last; their contents: docs/guide.md, "result.json"): ``transform.tfm`` (``T_ct_us``, ITK,
@@ -85,7 +88,11 @@ def register_to_directory(run_dir: str | Path | None,
     calibration_file = calibration_path(calibration, run_dir)
     calibration_record = None if calibration_file is None else Calibration.load(calibration_file)
     clouds = [read_points(path) for path in paths]  # the cheap inputs first
-    registrar = _registrar(run_dir, ct_mesh, device, icp_points, hypotheses)
+    if registrar is None:
+        registrar = _registrar(run_dir, ct_mesh, device, icp_points, hypotheses)
+    elif hypotheses is not None or icp_points is not None:
+        raise ComRegError("A registrar already built keeps its own search settings.",
+                          "Give either the registrar or the settings, not both.")
     if calibration_record is not None:
         calibration_record.check_ct(registrar.fingerprint, calibration_file)
     clouds = [cloud.in_space(registrar.space) for cloud in clouds]

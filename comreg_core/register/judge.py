@@ -2,8 +2,9 @@
 uncertainty and advice.
 
 Every caller gets its verdict here: ``comreg register`` (:mod:`comreg_core.register.folder`),
-``comreg live`` (each update), the report (from ``result.json``) and batch (through
-``comreg register``); the 3D Slicer module does not judge yet (issue 50). :class:`Evidence` is what a registration says about itself besides its fit: the pose search's
+``comreg live`` (each update), the report (from ``result.json``), batch (through
+``comreg register``), ``comreg calibrate`` and the 3D Slicer module (through
+:func:`~comreg_core.register.folder.register_to_directory`). :class:`Evidence` is what a registration says about itself besides its fit: the pose search's
 confidence, the clinically different competitor, the sweep's extent along the CT, the
 per-patient calibration's map to ``p_correct``, and the prior's record; :func:`judge` turns it,
 with the US points, the pose and the CT, into a

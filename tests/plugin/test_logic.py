@@ -288,6 +288,8 @@ def test_ambiguous_confidence_and_completion_are_stored(logic, case):
     assert float(node.GetAttribute("ComReg.confidence")) == 0.25
     p = logic.getParameterNode()
     assert p.ambiguous is True and p.confidence == 0.25 and p.runtimeSeconds == 0.5
+    assert node.GetAttribute("ComReg.verdict") == "" and p.verdict == ""  # not judged
+    assert summary.record is None and summary.figures is None
     assert summary.completedBoneNode.GetName() == COMPLETED_BONE_NODE_NAME
     assert summary.completedBoneNode.GetParentTransformNode() is None  # CT frame
     assert_close(arrayFromModelPoints(summary.completedBoneNode), completion @ RAS, atol=1e-9)

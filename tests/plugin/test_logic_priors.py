@@ -78,7 +78,7 @@ def test_initial_pose_and_landmarks_from_the_scene_restrict_the_search(logic):
 
 def test_the_live_mode_takes_the_scene_prior(logic):
     """The live mode's session keeps to the parameter node's prior: a landmark pair picked in
-    the scene (RAS) arrives in LPS with its tolerance."""
+    the scene (RAS) goes to the session's process in LPS with its tolerance."""
     from comreg_plugin.live import LiveRegistration
 
     logic.loadBoneMesh(FIBULA_STL)
@@ -92,11 +92,12 @@ def test_the_live_mode_takes_the_scene_prior(logic):
     p.usLandmarks = _points_node(logic, "US landmarks", [("ankle", (-4.0, 5.0, 6.0))])
     p.landmarkToleranceMm = 12.0
     live = LiveRegistration.fromNodeNames(logic, "Image", "ImageToReference")
-    (landmark,) = live.session.prior.landmarks
+    (landmark,) = live.setup.prior.landmarks  # what the session's process is given
     np.testing.assert_allclose(landmark.ct, [-10.0, -20.0, 30.0])
     np.testing.assert_allclose(landmark.us, [4.0, -5.0, 6.0])
-    assert landmark.tolerance_mm == 12.0 and live.session.prior.T_init is None
+    assert landmark.tolerance_mm == 12.0 and live.setup.prior.T_init is None
     live.stop()
     p.ctLandmarks = p.usLandmarks = None
-    assert LiveRegistration.fromNodeNames(logic, "Image", "ImageToReference").session.prior \
-        is None
+    live = LiveRegistration.fromNodeNames(logic, "Image", "ImageToReference")
+    assert live.setup.prior is None
+    live.stop()

@@ -69,7 +69,7 @@ def test_every_parameter_is_bound_to_one_widget_of_a_connectable_class():
             bound[parameter] = widget
     hints = typing.get_type_hints(ComRegParameterNode, include_extras=True)
     assert set(bound) == set(ComRegParameterNode.allParameters) == set(hints)
-    assert len(bound) == 26
+    assert len(bound) == 34
     for parameter, widget in bound.items():
         kinds, validators, isNode = parameterTypes(hints[parameter])
         cls = widget.attrib["class"]
@@ -89,11 +89,12 @@ def test_every_parameter_is_bound_to_one_widget_of_a_connectable_class():
 
 def test_node_selectors_follow_the_scene_and_the_code_uses_only_existing_widgets():
     root, widgets = _widgets()
-    selectors = {n for n, w in widgets.items() if w.attrib["class"] == "qMRMLNodeComboBox"}
+    selectors = {n for n, w in widgets.items()
+                 if w.attrib["class"] in ("qMRMLNodeComboBox", "qMRMLCheckableNodeComboBox")}
     connected = {c.find("receiver").text for c in root.iter("connection")
                  if c.find("signal").text == "mrmlSceneChanged(vtkMRMLScene*)"
                  and c.find("slot").text == "setMRMLScene(vtkMRMLScene*)"}
-    assert selectors == connected and len(selectors) == 10
+    assert selectors == connected and len(selectors) == 11
     source = Path(module.__file__).read_text(encoding="utf-8")
     used = set(re.findall(r"\bui\.([A-Za-z]\w*)", source))
     assert used and used <= set(widgets), used - set(widgets)
