@@ -59,6 +59,10 @@ GATE_MM = 10.0
 INLIER_SIGMAS = 3.0
 #: The least noise (mm) assumed per point (a noise-free simulated cloud is not exact).
 NOISE_FLOOR_MM = 0.1
+#: The least noise (mm) per point in the cost units ``c`` that weigh other poses: the US bone
+#: surface and the CT's agree to no better than this even at the true pose (beam width,
+#: segmentation), however smooth a short patch's own residuals look.
+MODEL_NOISE_MM = 0.3
 #: The least bound (mm) of the prior without one: the CT's length; and of its rotation (deg).
 FREE_ROTATION_DEG = 90.0
 #: A direction is *unbounded* when the data shrink its prior's standard deviation by less
@@ -75,9 +79,12 @@ class FitMoments:
     Attributes:
         A, M, prior: ``(6, 6)`` the regularised information, the gradient's spread, the prior's
             information (times ``c``).
-        c: noise variance per point times the design effect (mm^2).
-        noise_mm, design_effect, groups, inliers: the robust noise, the design effect, the
-            number of groups and of points used; blocks: of :data:`BLOCK_MM` the points touch.
+        c: the cost unit (mm^2): the noise variance per point (at least
+            :data:`MODEL_NOISE_MM` squared) times the design effect.
+        noise_mm, design_effect, groups, inliers: the robust noise, the design effect (at
+            least the points per group: independence is counted per group, not per point),
+            the number of groups and of points used; blocks: of :data:`BLOCK_MM` the points
+            touch.
         centre: ``(3,)`` CT mm; scale: mm per radian of the rotation parameters.
         targets: ``(J, 3)`` CT mm, the registered points whose displacement is bounded.
         normal_mean: ``(3,)`` the mean CT normal under the sweep (the side it was seen from).
@@ -184,8 +191,9 @@ def fit_moments(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
     H, M, _ = kern.moments(pts, q, nrm, centre, scale, group, count)
     if count > 1:
         M = M * (count / (count - 1.0))
-    deff = max(1.0, float(np.trace(M)) / (sigma ** 2 * max(float(np.trace(H)), 1e-12)))
-    c = sigma ** 2 * deff
+    deff = max(1.0, float(np.trace(M)) / (sigma ** 2 * max(float(np.trace(H)), 1e-12)),
+               len(pts) / count)  # at least: every point of a group errs alike
+    c = max(sigma, MODEL_NOISE_MM) ** 2 * deff
     variances = _prior_variances(scale, free_mm, prior_mm, prior_deg)
     prior = np.diag(c / variances)
     return FitMoments(A=H + prior, M=M, prior=c * prior, c=c, noise_mm=sigma,
