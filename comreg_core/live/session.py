@@ -127,7 +127,7 @@ class LiveSession:
         self.started_s = self.clock()
         self.frames_received = 0
         self.updates: list[LiveUpdate] = []
-        self.target = registrar.hypothesis_target(registrar.hypothesis_config.target_points)
+        self.target = registrar.search_target(registrar.search_config.target_points)
         self.ct_length = (calibration.ct_length_mm if calibration is not None
                           else ct_length_mm(self.target))
         self._evidence: Evidence | None = None
@@ -358,7 +358,7 @@ class LiveSession:
             return verdict
         if result is not None:
             self._halves_deg = halves_disagreement_deg(
-                pts, result.T_ct_us, self.target, self.registrar.hypothesis_config,
+                pts, result.T_ct_us, self.target, self.registrar.search_config,
                 origins=origins)
         halves_deg = self._halves_deg
         if halves_deg is None or halves_deg <= HALVES_TOLERANCE_DEG:

@@ -73,8 +73,8 @@ class Evidence:
         the ``(n, 3)`` US points it registered (US frame, mm) on a CT ``ct_length_mm`` long;
         ``allowed``: the poses a prior allows (the competitor is looked for among them)."""
         competitor = extent = None
-        if result.hypotheses is not None:
-            competitor, extent = result_evidence(result.hypotheses, points_us, ct_length_mm,
+        if result.search is not None:
+            competitor, extent = result_evidence(result.search, points_us, ct_length_mm,
                                                  allowed)
         return cls(confidence=result.confidence, ambiguous=bool(result.ambiguous),
                    competitor=competitor, extent_share=extent,
@@ -86,11 +86,11 @@ class Evidence:
     @classmethod
     def from_json(cls, record: dict[str, Any]) -> Evidence:
         """The evidence a ``result.json`` holds (what ``comreg register`` judged with)."""
-        hypotheses = record.get("hypotheses") or {}
-        # "calibration": the key's name before 2026-12-05 (still read)
+        # earlier names, still read: "hypotheses" (the search), "calibration" (to 2026-12-05)
+        search = record.get("search") or record.get("hypotheses") or {}
         calibration = record.get("verdict_calibration") or record.get("calibration") or {}
-        return cls(confidence=hypotheses.get("confidence"),
-                   ambiguous=bool(hypotheses.get("ambiguous")),
+        return cls(confidence=search.get("confidence"),
+                   ambiguous=bool(search.get("ambiguous")),
                    competitor=record.get("competitor"), extent_share=record.get("extent_share"),
                    knots=calibration.get("knots"),
                    ok_probability=calibration.get("ok_probability", OK_PROBABILITY),

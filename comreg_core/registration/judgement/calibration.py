@@ -72,13 +72,13 @@ def same_answer(T_a: np.ndarray, T_b: np.ndarray, points_us: np.ndarray) -> bool
     return distance <= TOLERANCE_MM and angle <= TOLERANCE_DEG
 
 
-def clinical_competitor(hypotheses, points_us: np.ndarray,
+def clinical_competitor(search, points_us: np.ndarray,
                         allowed: Callable[[np.ndarray], bool] | None = None
                         ) -> dict[str, Any]:
     """The competitor of a search result (module docstring).
 
     Args:
-        hypotheses: a :class:`~comreg_core.registration.search.scoring.HypothesisResult`.
+        search: a :class:`~comreg_core.registration.search.scoring.SearchResult`.
         points_us: ``(n, 3)`` the US points the search registered (US frame, mm).
         allowed: which poses ``(4, 4)`` a prior allows (None: all).
 
@@ -88,8 +88,8 @@ def clinical_competitor(hypotheses, points_us: np.ndarray,
         ``centroid_ct``: where it puts the US points' centroid in the CT (mm); ``T_ct_us``: its
         pose ``(4, 4)``.
     """
-    chosen = hypotheses.best
-    for h in sorted(hypotheses.hypotheses, key=lambda h: h.score_mm):
+    chosen = search.best
+    for h in sorted(search.candidates, key=lambda h: h.score_mm):
         if h.name == chosen.name or not math.isfinite(h.score_mm):
             continue
         if allowed is not None and not allowed(h.T_ct_us):
@@ -329,11 +329,11 @@ def reliability_table(p: np.ndarray, correct: np.ndarray,
     return rows
 
 
-def result_evidence(hypotheses, points_us: np.ndarray, ct_length_mm: float,
+def result_evidence(search, points_us: np.ndarray, ct_length_mm: float,
                     allowed: Callable[[np.ndarray], bool] | None = None
                     ) -> tuple[dict[str, Any], float]:
     """The competitor (:func:`clinical_competitor`) and the extent share
     (:func:`extent_share`) of a search result for ``(n, 3)`` US points: what
     :meth:`Calibration.p_correct` takes."""
-    return (clinical_competitor(hypotheses, points_us, allowed),
+    return (clinical_competitor(search, points_us, allowed),
             extent_share(points_us, ct_length_mm))

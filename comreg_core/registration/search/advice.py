@@ -1,7 +1,7 @@
 """What would resolve an ambiguous registration: where the competing pose puts the sweep.
 
 When another, clearly different pose fits the US points nearly as well as the chosen one
-(:attr:`HypothesisResult.ambiguous`), the geometry of this sweep cannot tell them apart; more
+(:attr:`SearchResult.ambiguous`), the geometry of this sweep cannot tell them apart; more
 sweep can. :func:`ambiguity_advice` describes the runner-up against the chosen pose in the CT's
 own terms (how far along the bone's long axis it puts the sweep, how far it turns it) and says
 what to scan: along the bone towards the nearer end when the poses differ by a slide, another
