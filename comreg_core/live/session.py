@@ -33,7 +33,8 @@ import numpy as np
 from comreg_core.errors import ComRegError
 from comreg_core.registration.search.advice import scan_advice
 from comreg_core.register.judge import Evidence, is_short_sweep, judge
-from comreg_core.registration.judgement.calibration import TOLERANCE_DEG, Calibration, extent_share
+from comreg_core.registration.geometry.extent import extent_share
+from comreg_core.registration.judgement.calibration import TOLERANCE_DEG, Calibration
 from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.registration.search.polish import halves_disagreement_deg
 from comreg_core.registration.judgement.prior_reasons import prior_allows

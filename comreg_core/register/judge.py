@@ -21,6 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from comreg_core.registration.geometry.extent import SHORT_SWEEP_SHARE
 from comreg_core.registration.geometry.surface import as_surface
 from comreg_core.registration.judgement.assessment import pose_uncertainty
 from comreg_core.registration.judgement.calibration import (OK_PROBABILITY, Calibration,
@@ -28,14 +29,10 @@ from comreg_core.registration.judgement.calibration import (OK_PROBABILITY, Cali
 from comreg_core.registration.judgement.verdict import (Verdict, judge_registration,
                                                         with_prior_reasons)
 
-#: A sweep spanning less than this share of the CT's length (5th-95th percentile along its
-#: long axis, :func:`~comreg_core.registration.judgement.calibration.extent_share`) is a *short sweep*:
-#: its best-fitting scale says nothing, and live checks that its two halves agree.
-SHORT_SWEEP_SHARE = 0.5
-
 
 def is_short_sweep(extent_share: float | None) -> bool:
-    """Whether a sweep of this extent share (None: unknown) is short."""
+    """Whether a sweep of this extent share (None: unknown) is short (under
+    :data:`~comreg_core.registration.geometry.extent.SHORT_SWEEP_SHARE`)."""
     return extent_share is not None and extent_share < SHORT_SWEEP_SHARE
 
 

@@ -1,5 +1,5 @@
 """The slide probe of the polish (comreg_core.registration.search.polish.probe_slides) on the real
-fibula sweep's first 28 frames: the search alone stops in the basin next to the right one, 4-5
+fibula sweep's first 30 frames: the search alone stops in the basin next to the right one, 4
 mm along the shaft; polished again from 5 mm along the CT's long axis, it reaches the pose that
 ICP from the recorded tracking finds (the pseudo ground truth of these frames), with a better
 exact score. A whole sweep is not probed; a sweep whose stray points reach further than its bone
@@ -17,8 +17,8 @@ from comreg_core.register import Registrar
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.stream import Frame, SweepPoints
 from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
-from comreg_core.registration.geometry.surface import ct_length_mm, spread_mm
-from comreg_core.registration.search.config import SLIDE_PROBE_MAX_SHARE
+from comreg_core.registration.geometry.extent import SLIDE_PROBE_MAX_SHARE, spread_mm
+from comreg_core.registration.geometry.surface import ct_length_mm
 from comreg_core.transforms import apply_transform
 from tests.helpers import FIBULA_STL
 
@@ -37,8 +37,9 @@ def sweep_start(shared_data, frames: int):
 
 @pytest.fixture(scope="module")
 def first_frames(shared_data):
-    """The sweep's frames 0-27 (:func:`sweep_start`)."""
-    return sweep_start(shared_data, 28)
+    """The sweep's frames 0-29 (:func:`sweep_start`; frames 0-27, half the CT long, are a patch
+    whose starts over all rotations find the right basin without the probe)."""
+    return sweep_start(shared_data, 30)
 
 
 def test_the_probe_moves_a_slid_pose_into_the_right_basin(first_frames):

@@ -31,9 +31,9 @@ from typing import Any, Callable
 import numpy as np
 
 from comreg_core.errors import ComRegError
+from comreg_core.registration.geometry.extent import extent_share
 from comreg_core.registration.geometry.metrics import rotation_error_deg
-from comreg_core.registration.geometry.surface import principal_frame, spread_mm
-from comreg_core.transforms import apply_transform, project
+from comreg_core.transforms import apply_transform
 
 #: Clinical tolerance: target error over the sweep (mm) and rotation (deg).
 TOLERANCE_MM = 4.0
@@ -105,14 +105,6 @@ def clinical_competitor(search, points_us: np.ndarray,
                 "T_ct_us": [[float(x) for x in row] for row in h.T_ct_us]}
     return {"name": None, "score_mm": None, "margin": 1.0, "distance_mm": None,
             "rotation_deg": None, "centroid_ct": None, "T_ct_us": None}
-
-
-def extent_share(points_us: np.ndarray, ct_length_mm: float) -> float:
-    """The sweep's spread along its largest principal axis (5th-95th percentile, mm) over the
-    CT's length, clipped to [0, 1]."""
-    centre, axes = principal_frame(points_us)
-    spread = spread_mm(project(points_us - centre, axes[:, 0]))
-    return float(np.clip(spread / max(ct_length_mm, 1e-9), 0.0, 1.0))
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import ClassVar
 
 from comreg_core.config import ConfigError, RetiredCheck, from_dict, load_config, require
+from comreg_core.registration.geometry.extent import PATCH_MAX_SHARE
 
 #: The polish stops once an update moves no US point by more than this (mm), or once its
 #: RMS has stalled for :data:`~comreg_core.registration.geometry.icp.POLISH_PATIENCE`
@@ -16,10 +17,6 @@ POLISH_TOLERANCE_MM = 0.01
 #: US points and most iterations of the quick polish that compares poses tied with the best.
 QUICK_POLISH_POINTS = 512
 QUICK_POLISH_ITERATIONS = 30
-#: Sweeps spanning less than this share of the CT's length (5th-95th percentile along its
-#: long axis) get the slide probe (``SearchConfig.slide_probe_mm``); whole clouds do not
-#: need it.
-SLIDE_PROBE_MAX_SHARE = 0.8
 #: A slid pose replaces the chosen one when its exact score is lower by at least this share
 #: (less is noise: the same basin, polished from elsewhere).
 SLIDE_PROBE_GAIN = 0.02
@@ -99,8 +96,10 @@ class SearchConfig:
         score_floor_mm: score differences are measured relative to at least this (mm) in the
             confidence: below it they are noise (step 6). Raise it for a coarse CT mesh or
             noisy US points, where near-perfect fits differ by more than 0.05 mm by chance.
-        patch_max_share: a US cloud whose largest spread is under this share of the CT's
-            length is a *patch* (a short sweep): it also gets 60 orientations spread evenly
+        patch_max_share: a US cloud whose extent share (its 5th-95th percentile spread along
+            its largest principal axis over the CT's length,
+            :mod:`comreg_core.registration.geometry.extent`) is under this is a *patch* (a
+            short sweep): it also gets 60 orientations spread evenly
             over all rotations (scipy's icosahedral group) as starts, each with the patch's
             centroid on the CT's centre and slid along the long axis (a short sweep's own
             axes say little about the bone's: on simulated 40-50 mm one-face fibula sweeps,
@@ -119,12 +118,13 @@ class SearchConfig:
             this to its distance in every score (screening, refinement, polish): a pose the
             beams could not have seen loses to one they could, whatever its fit; 0 = off, for
             beam origins that cannot be trusted (a doubtful probe calibration).
-        slide_probe_mm: a partial sweep (spanning less than :data:`SLIDE_PROBE_MAX_SHARE`
-            of the CT's length) has its chosen pose polished again from this far along the
+        slide_probe_mm: a partial sweep (spanning less than
+            :data:`~comreg_core.registration.geometry.extent.SLIDE_PROBE_MAX_SHARE` of the CT's
+            length) has its chosen pose polished again from this far along the
             CT's long axis, both ways, and the better-scoring pose kept: a shaft's surface
             slides under the points, and the search can stop in the basin next to the right
-            one (on the real fibula sweep's first 28-30 frames, 4.5 mm off with a 16 % worse
-            score than the pose 0.2 mm from the pseudo ground truth). 0 = off.
+            one (on the real fibula sweep's first 29-30 frames, 3.8 mm off with a 16-17 % worse
+            score than the probed pose, 0.7 mm from the pseudo ground truth). 0 = off.
         min_confidence: a result is ambiguous when its confidence is below this (a different
             pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score, or
             within ``min_confidence * score_floor_mm`` of it). Higher flags more results for
@@ -155,7 +155,7 @@ class SearchConfig:
     score_floor_mm: float = 0.05
     min_confidence: float = 0.3
     facing_penalty_mm: float = 5.0
-    patch_max_share: float = 0.5
+    patch_max_share: float = PATCH_MAX_SHARE
     patch_min_confidence: float = 0.5
     slide_probe_mm: float = 5.0
 

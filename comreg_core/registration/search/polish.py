@@ -12,14 +12,14 @@ import numpy as np
 
 from comreg_core.registration.search.config import (POLISH_TOLERANCE_MM, QUICK_POLISH_ITERATIONS,
                                                     QUICK_POLISH_POINTS, SLIDE_PROBE_GAIN,
-                                                    SLIDE_PROBE_MAX_SHARE, SearchConfig)
+                                                    SearchConfig)
+from comreg_core.registration.geometry.extent import SLIDE_PROBE_MAX_SHARE, extent_mm
 from comreg_core.registration.geometry.icp import (POLISH_PATIENCE, apply_poses,
                                                    point_to_plane_icp, strided)
 from comreg_core.registration.geometry.metrics import rotation_error_deg
 from comreg_core.registration.search.scoring import (choose, polish_candidates, runner_up,
                                                      trimmed_mean)
-from comreg_core.registration.geometry.surface import (SurfaceCloud, ct_length_mm, facing_away,
-                                                       spread_mm)
+from comreg_core.registration.geometry.surface import SurfaceCloud, ct_length_mm, facing_away
 from comreg_core.transforms import apply_transform, matmul, project
 
 
@@ -93,13 +93,14 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
     :data:`SLIDE_PROBE_GAIN` lower: ``(pose, exact score, polish record)``, the record with
     ``slid_mm``, ``probe_shift_mm`` (of the US centroid from ``T``) and ``moved_mm`` (from
     before the first polish, as the norms combine). None otherwise, when the sweep spans at
-    least :data:`SLIDE_PROBE_MAX_SHARE` of the CT's length (a whole cloud; the span is
-    :func:`~comreg_core.registration.geometry.surface.spread_mm`'s, so that a few stray points do not
-    make a partial sweep whole), or when ``slide_probe_mm`` is 0."""
+    least :data:`~comreg_core.registration.geometry.extent.SLIDE_PROBE_MAX_SHARE` of the CT's
+    length along its long axis (a whole cloud; the sweep's
+    :func:`~comreg_core.registration.geometry.extent.extent_mm` along that axis, so that a few
+    stray points do not make a partial sweep whole), or when ``slide_probe_mm`` is 0."""
     if config.slide_probe_mm <= 0:
         return None
     axis = target.axes[:, 0]
-    span = spread_mm(project(apply_transform(T, subset_mm), axis))
+    span = extent_mm(apply_transform(T, subset_mm), axis)
     if span >= SLIDE_PROBE_MAX_SHARE * ct_length_mm(target):
         return None
     best = None

@@ -60,9 +60,10 @@ from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.screening import screen_starts
 from comreg_core.registration.search.scoring import (Candidate, SearchResult, confidence_over,
                                                      score_poses)
+from comreg_core.registration.geometry.extent import extent_share
 from comreg_core.registration.geometry.surface import SurfaceCloud, ct_length_mm, principal_frame
 from comreg_core.transforms import (apply_transform, as_points, check_rigid, matmul,
-                                    orthonormalize, project, rotate)
+                                    orthonormalize, rotate)
 
 
 def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -148,11 +149,10 @@ PATCH_ORIENTATIONS = 60
 
 
 def is_patch(points_us: np.ndarray, target: SurfaceCloud, config: SearchConfig) -> bool:
-    """Whether ``(N, 3)`` US points (mm) are a patch of the bone: their largest spread along
-    their own principal axes is under ``patch_max_share`` of the CT's length."""
-    _, axes = principal_frame(points_us)
-    spread = float(np.ptp(project(points_us, axes[:, 0])))
-    return spread < config.patch_max_share * ct_length_mm(target)
+    """Whether ``(N, 3)`` US points (mm) are a patch of the bone: their extent share
+    (:func:`~comreg_core.registration.geometry.extent.extent_share`) is under
+    ``patch_max_share``."""
+    return extent_share(points_us, ct_length_mm(target)) < config.patch_max_share
 
 
 def patch_orientation_starts(points_us: np.ndarray, target: SurfaceCloud,
