@@ -2,18 +2,21 @@
 the limits that use it.
 
 The **extent** of US points ``(N, 3)`` (mm) is the length they span along an axis, from the
-5th to the 95th percentile of their positions on it (:func:`spread_mm`: a few stray echoes do
-not lengthen a sweep), by default along their own largest principal axis; its **share** is
-that over the CT bone's length
-(:func:`~comreg_core.registration.geometry.surface.ct_length_mm`), in [0, 1]. A sweep is
-*short* below a share; each of the limits below is such a share:
+5th to the 95th percentile of their positions on it (:func:`extent_bounds_mm`,
+:func:`spread_mm`: a few stray echoes do not lengthen a sweep), by default along their own
+largest principal axis; its **share** is that over the CT bone's length
+(:func:`~comreg_core.registration.geometry.surface.ct_length_mm`), in [0, 1]. Each limit below
+is such a share:
 
 - :data:`PATCH_MAX_SHARE`: the pose search treats a shorter sweep as a *patch* (starts over all
   rotations, a wider lead to trust; ``SearchConfig.patch_max_share``);
-- :data:`SHORT_SWEEP_SHARE`: the verdict's *short sweep* (the halves check of ``comreg live``,
-  the verdict's reasons);
-- :data:`SLIDE_PROBE_MAX_SHARE`: the slide probe of the search's choice, measured along the
-  CT's long axis once the pose places the points.
+- :data:`SHORT_SWEEP_SHARE`: the verdict's *short sweep* (its best-fitting scale says nothing;
+  ``comreg live`` checks that its two halves agree);
+- :data:`SLIDE_PROBE_MAX_SHARE`: the slide probe of the search's choice, the extent measured
+  along the CT's long axis once the chosen pose places the points.
+
+Where a registered sweep lies along the CT's long axis (the advice's end to scan towards) is
+its :func:`extent_bounds_mm` there.
 """
 
 from __future__ import annotations
@@ -33,10 +36,17 @@ SHORT_SWEEP_SHARE = 0.5
 SLIDE_PROBE_MAX_SHARE = 0.8
 
 
+def extent_bounds_mm(along: np.ndarray) -> tuple[float, float]:
+    """Where points lie along one axis, robust to stray points: the 5th and 95th percentiles
+    (mm) of their positions ``along`` ``(N,)`` (mm) on that axis."""
+    return float(np.percentile(along, 5)), float(np.percentile(along, 95))
+
+
 def spread_mm(along: np.ndarray) -> float:
-    """The length (mm) points span along one axis, robust to stray points: the 5th to 95th
-    percentile of their positions ``along`` ``(N,)`` (mm) on that axis."""
-    return float(np.percentile(along, 95) - np.percentile(along, 5))
+    """The length (mm) points span along one axis: from the 5th to the 95th percentile of
+    their positions ``along`` ``(N,)`` (mm; :func:`extent_bounds_mm`)."""
+    low, high = extent_bounds_mm(along)
+    return high - low
 
 
 def extent_mm(points: np.ndarray, axis: np.ndarray | None = None) -> float:
