@@ -9,6 +9,7 @@ Sections validate their own ranges in ``__post_init__`` by raising :class:`Confi
 from __future__ import annotations
 
 import dataclasses
+import logging
 import types
 import typing
 from collections.abc import Callable
@@ -18,6 +19,8 @@ from typing import Any, TypeVar
 from comreg_core.errors import ComRegError
 
 T = TypeVar("T")
+
+log = logging.getLogger(__name__)
 
 
 class ConfigError(ComRegError):
@@ -138,21 +141,46 @@ def to_dict(config) -> dict[str, Any]:
 
 
 def load_config(cls: type[T], path: str | Path | None = None, overrides: dict | None = None,
-                section: str | None = None, ignore: tuple[str, ...] = ()) -> T:
+                section: str | None = None, ignore: tuple[str, ...] = (),
+                renamed: dict[str, str] | None = None) -> T:
     """Defaults of ``cls``, updated from the YAML file at ``path`` then from ``overrides``.
 
     With ``section``, a file holding a mapping with that key (e.g. a run's ``config.yaml`` with
     ``simulation:`` beside other sections) contributes only that section; a file without the key
     is taken as the section's own keys. Top-level keys in ``ignore`` are left out (records a
-    command writes beside its settings, e.g. ``inputs:``).
+    command writes beside its settings, e.g. ``inputs:``). ``renamed`` ``{old: new}``: a
+    file's top-level section under its old name is read as the new one (one warning per file).
     """
     data: dict[str, Any] = {}
     if path is not None:
         data = {k: v for k, v in read_yaml_mapping(path).items() if k not in ignore}
+        data = _rename_sections(data, renamed or {}, path)
         if section is not None and section in data:
             data = data[section] or {}
     merged = deep_merge(data, overrides or {})
     return from_dict(cls, merged, section or "")
+
+
+#: ``(file, old section name)`` already warned about by :func:`_rename_sections`.
+_WARNED_RENAMES: set[tuple[str, str]] = set()
+
+
+def _rename_sections(data: dict[str, Any], renamed: dict[str, str],
+                     path: str | Path) -> dict[str, Any]:
+    """``data`` with its sections under an old name (``renamed`` ``{old: new}``) moved to
+    the new name; a warning once per file and name, an error when both are there."""
+    for old, new in renamed.items():
+        if old not in data:
+            continue
+        if new in data:
+            raise ConfigError(f"'{path}' has both a '{old}:' and a '{new}:' section.",
+                              f"'{old}:' is the old name of '{new}:'; keep only '{new}:'.")
+        data = {(new if k == old else k): v for k, v in data.items()}
+        if (str(path), old) not in _WARNED_RENAMES:
+            _WARNED_RENAMES.add((str(path), old))
+            log.warning("'%s': the section '%s:' is now called '%s:' (read as such).",
+                        path, old, new)
+    return data
 
 
 def parse_yaml_mapping(text: str, where: str) -> dict[str, Any]:

@@ -47,13 +47,16 @@ class JudgedRegistration:
     space: str
 
     def competitorPose(self) -> Optional[np.ndarray]:
-        """``(4, 4)`` the competing pose the record names (its ``competitor``), found among the
-        search's refined hypotheses; None without one."""
+        """``(4, 4)`` the competing pose the record names (its ``competitor``: its own
+        ``T_ct_us``, else found by name among the search's refined candidates); None without
+        one."""
         competitor = self.record.get("competitor") or {}
-        hypotheses = getattr(self.result.hypotheses, "hypotheses", ())
-        for hypothesis in hypotheses:
-            if competitor.get("name") is not None and hypothesis.name == competitor["name"]:
-                return np.asarray(hypothesis.T_ct_us, dtype=np.float64)
+        if competitor.get("T_ct_us") is not None:
+            return np.asarray(competitor["T_ct_us"], dtype=np.float64)
+        candidates = getattr(getattr(self.result, "search", None), "candidates", ())
+        for candidate in candidates:
+            if competitor.get("name") is not None and candidate.name == competitor["name"]:
+                return np.asarray(candidate.T_ct_us, dtype=np.float64)
         return None
 
 

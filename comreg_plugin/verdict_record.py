@@ -25,23 +25,25 @@ JSON_FIGURES = ("verdict_reasons", "uncertainty", "scan_next", "competitor")
 
 
 def recordAdvice(record: dict) -> str:
-    """The advice of a record: its own ``advice`` (text), else the ambiguity advice of the
-    pose search (``hypotheses.advice.advice``), else the words of ``scan_next``; "" if none."""
+    """The advice of a record: its own ``advice`` (text), else, when the verdict is CHECK, the
+    words of ``scan_next`` (where to scan to shrink the pose's bound), else the pose search's
+    ambiguity advice (``search.advice.advice``; ``hypotheses`` in older records); "" if
+    none."""
     advice = record.get("advice")
     if isinstance(advice, dict):
         advice = advice.get("advice") or advice.get("words")
-    if not advice:
-        hypotheses = record.get("hypotheses") or {}
-        advice = (hypotheses.get("advice") or {}).get("advice")
-    if not advice:
+    if not advice and record.get("verdict") != "ok":
         advice = (record.get("scan_next") or {}).get("words")
+    if not advice:
+        search = record.get("search") or record.get("hypotheses") or {}
+        advice = (search.get("advice") or {}).get("advice")
     return str(advice or "")
 
 
 def recordFigures(record: dict, resultFolder: Optional[str] = None) -> dict:
     """The figures of a ``result.json`` record (names of :data:`FIGURE_NAMES`, values as the
     record has them; None where it has none)."""
-    hypotheses = record.get("hypotheses") or {}
+    search = record.get("search") or record.get("hypotheses") or {}  # older records: hypotheses
     uncertainty = record.get("uncertainty")
     competitor = record.get("competitor")
     if competitor is not None and competitor.get("name") is None:
@@ -49,8 +51,8 @@ def recordFigures(record: dict, resultFolder: Optional[str] = None) -> dict:
     return {"verdict": record.get("verdict"),
             "verdict_reasons": list(record.get("verdict_reasons") or []),
             "p_correct": record.get("p_correct"),
-            "confidence": record.get("confidence", hypotheses.get("confidence")),
-            "ambiguous": record.get("ambiguous", hypotheses.get("ambiguous")),
+            "confidence": record.get("confidence", search.get("confidence")),
+            "ambiguous": record.get("ambiguous", search.get("ambiguous")),
             "advice": recordAdvice(record) or None,
             "uncertainty": uncertainty,
             "uncertainty_mm": (uncertainty or {}).get("bound_mm"),

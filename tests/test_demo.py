@@ -123,7 +123,7 @@ def test_further_starts_compare_the_network_with_the_search_alone(demo):
     scores: dict = {}
     for trial in metrics["trials"]:
         scores.setdefault(trial["trial"], {})[trial["method"]] = \
-            trial["info"]["hypotheses"]["score_mm"]
+            trial["info"]["search"]["score_mm"]
     assert scores and all(set(pair) == {"search", "comreg"} for pair in scores.values())
     assert all(pair["comreg"] <= pair["search"] for pair in scores.values()), scores
     assert result.search_success_rate == metrics["summary"]["search"]["success_rate"]

@@ -21,7 +21,7 @@ from comreg_core.transforms import apply_transform, check_rigid, orthonormalize
 from tests.helpers import FIBULA_STL, assert_close
 from tests.training.tiny import tiny_run
 
-TIMING_KEYS = {"preprocess", "completion_and_coarse_pose", "icp", "hypotheses", "postprocess",
+TIMING_KEYS = {"preprocess", "completion_and_coarse_pose", "icp", "search", "postprocess",
                "total", "residuals"}
 
 
@@ -67,7 +67,7 @@ def test_register_returns_a_rigid_transform_and_consistent_outputs(registrar, us
 
 
 def test_staged_forward_equals_the_network_forward(registrar, us_cloud):
-    res = registrar.register(us_cloud, hypotheses=False)  # the paper's plain pipeline
+    res = registrar.register(us_cloud, search=False)  # the paper's plain pipeline
     norm = registrar.normalization
     src = torch.from_numpy(norm.points_to_model(us_cloud)).float()[None]
     with torch.no_grad(), registrar.deterministic_forward():  # the registrar's one thread
@@ -80,21 +80,21 @@ def test_staged_forward_equals_the_network_forward(registrar, us_cloud):
                  res.T_ct_us_coarse, atol=1e-3)
 
 
-def test_hypotheses_stage_is_on_by_default_and_recorded(registrar, us_cloud):
+def test_the_pose_search_is_on_by_default_and_recorded(registrar, us_cloud):
     res = registrar.register(us_cloud)
-    hyp = res.hypotheses
-    assert registrar.hypothesis_config.enabled and hyp is not None
-    assert res.timings["hypotheses"] > 0 and res.runtime_s == res.timings["total"]
+    hyp = res.search
+    assert registrar.search_config.enabled and hyp is not None
+    assert res.timings["search"] > 0 and res.runtime_s == res.timings["total"]
     assert_close(res.T_ct_us, hyp.T_ct_us, atol=0)
     assert_close(res.registered_points, apply_transform(res.T_ct_us, us_cloud), atol=1e-9)
     # the search alone ran with all its starts (the same as without a network), then the
     # network's three poses were refined as further starts; the chosen score is never worse
     alone = Registrar.from_ct((registrar._ct_vertices, registrar._ct_faces)).register(us_cloud)
-    config = registrar.hypothesis_config
-    assert hyp.starts_tried == alone.hypotheses.starts_tried + 3
+    config = registrar.search_config
+    assert hyp.starts_tried == alone.search.starts_tried + 3
     assert list(hyp.scores)[-3:] == ["network", "coarse", "completion"]
-    assert set(alone.hypotheses.scores) < set(hyp.scores)
-    assert hyp.best.score_mm <= alone.hypotheses.best.score_mm
+    assert set(alone.search.scores) < set(hyp.scores)
+    assert hyp.best.score_mm <= alone.search.best.score_mm
     if hyp.chosen not in ("network", "coarse", "completion"):  # the search's own choice
         assert_close(res.T_ct_us, alone.T_ct_us, atol=0)
     assert res.confidence == hyp.confidence and res.ambiguous == hyp.ambiguous
@@ -103,28 +103,28 @@ def test_hypotheses_stage_is_on_by_default_and_recorded(registrar, us_cloud):
     assert res.icp_rmse == hyp.polish["rmse_mm"] and 0.5 < hyp.polish["inlier_fraction"] <= 1
     data = json.loads(json.dumps(res.to_json(), allow_nan=False))
     assert data["ambiguous"] == hyp.ambiguous and data["confidence"] == hyp.confidence
-    assert data["hypotheses"]["chosen"] == hyp.chosen
-    assert set(data["hypotheses"]["scores_mm"]) == set(hyp.scores)
-    assert res.info["hypotheses"] == hyp.to_json()
+    assert data["search"]["chosen"] == hyp.chosen
+    assert set(data["search"]["scores_mm"]) == set(hyp.scores)
+    assert res.info["search"] == hyp.to_json()
     assert res.info["ambiguous"] == hyp.ambiguous and res.info["confidence"] == hyp.confidence
 
 
-def test_hypotheses_off_is_the_plain_pipeline(run, registrar, us_cloud):
-    plain = Registrar.from_run(run, device="cpu", hypotheses=False)
-    assert not plain.hypothesis_config.enabled
+def test_the_pose_search_off_is_the_plain_pipeline(run, registrar, us_cloud):
+    plain = Registrar.from_run(run, device="cpu", search=False)
+    assert not plain.search_config.enabled
     a = plain.register(us_cloud, seed=3)
-    b = registrar.register(us_cloud, seed=3, hypotheses=False)
+    b = registrar.register(us_cloud, seed=3, search=False)
     for res in (a, b):
-        assert res.hypotheses is None and res.confidence is None and res.ambiguous is None
-        assert res.timings["hypotheses"] == 0.0
+        assert res.search is None and res.confidence is None and res.ambiguous is None
+        assert res.timings["search"] == 0.0
         data = res.to_json()
-        assert data["ambiguous"] is None and data["hypotheses"] is None
-        assert "ambiguous" not in res.info and res.info["hypotheses"] is None
+        assert data["ambiguous"] is None and data["search"] is None
+        assert "ambiguous" not in res.info and res.info["search"] is None
     assert np.array_equal(a.T_ct_us, b.T_ct_us) and np.array_equal(a.completion_ct,
                                                                    b.completion_ct)
     assert a.icp_rmse == b.icp_rmse
-    # and the plain Registrar can still run the stage for one call
-    assert plain.register(us_cloud, hypotheses=True).hypotheses is not None
+    # and the plain Registrar can still run the search for one call
+    assert plain.register(us_cloud, search=True).search is not None
 
 
 def test_register_to_directory_writes_the_result_folder(run, registrar, us_cloud, tmp_path):
@@ -134,10 +134,10 @@ def test_register_to_directory_writes_the_result_folder(run, registrar, us_cloud
     data = json.loads((out / "result.json").read_text())
     for key in ("T_ct_us", "T_ct_us_coarse", "timings_s", "runtime_s", "device", "seed",
                 "residuals_mm", "n_points", "space", "ct_fingerprint", "files", "confidence",
-                "ambiguous", "hypotheses"):
+                "ambiguous", "search"):
         assert key in data, key
-    assert data["ambiguous"] == res.ambiguous and data["hypotheses"]["chosen"] == \
-        res.hypotheses.chosen
+    assert data["ambiguous"] == res.ambiguous and data["search"]["chosen"] == \
+        res.search.chosen
     assert data["seed"] == 7 and data["device"] == "cpu" and data["n_points"] == len(us_cloud)
     assert set(data["timings_s"]) == TIMING_KEYS
     assert_close(np.array(data["T_ct_us"]), res.T_ct_us, atol=0)
@@ -149,16 +149,40 @@ def test_register_to_directory_writes_the_result_folder(run, registrar, us_cloud
     import yaml
 
     settings = yaml.safe_load((out / "config.yaml").read_text())
-    assert settings["hypotheses"]["enabled"] is True and settings["inputs"]["seed"] == 7
+    assert settings["search"]["enabled"] is True and settings["inputs"]["seed"] == 7
     from comreg_core.registration.search.config import load_register_config
 
-    assert load_register_config(out / "config.yaml").hypotheses == registrar.hypothesis_config
+    assert load_register_config(out / "config.yaml").search == registrar.search_config
     assert not list(out.glob(".*tmp*"))
     plain = register_to_directory(run, us_path, tmp_path / "plain", device="cpu",
-                                  hypotheses=False)
+                                  search=False)
     data = json.loads((tmp_path / "plain" / "result.json").read_text())
-    assert data["ambiguous"] is None and data["hypotheses"] is None
-    assert plain.hypotheses is None
+    assert data["ambiguous"] is None and data["search"] is None
+    assert plain.search is None
+
+
+def test_results_written_under_the_older_key_names_read_the_same(run, us_cloud, tmp_path):
+    """A result.json written when the pose search was called ``hypotheses`` (its block and
+    its time) reads as today's: the folder's reader, the judge's evidence, the report."""
+    from comreg_core.register.folder import read_result
+    from comreg_core.register.judge import Evidence
+    from comreg_core.report.registration import registration_metrics_table
+
+    us_path = write_points(PointCloud(us_cloud, "LPS"), tmp_path / "us.ply")
+    register_to_directory(run, us_path, tmp_path / "new", device="cpu", ct_mesh=FIBULA_STL)
+    text = (tmp_path / "new" / "result.json").read_text()
+    assert '"hypotheses"' not in text
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "result.json").write_text(text.replace('"search"', '"hypotheses"'))
+    new, old = read_result(tmp_path / "new"), read_result(tmp_path / "old")
+    assert old == new and list(old) == list(new) and list(old["timings_s"]) == \
+        list(new["timings_s"])
+    raw = json.loads((tmp_path / "old" / "result.json").read_text())
+    assert "hypotheses" in raw and "hypotheses" in raw["timings_s"]
+    assert Evidence.from_json(raw) == Evidence.from_json(new)
+    assert Evidence.from_json(raw).confidence == new["search"]["confidence"] is not None
+    figures = new["verdict_figures"]
+    assert registration_metrics_table(raw, figures) == registration_metrics_table(new, figures)
 
 
 def test_ct_fingerprint_mismatch_is_a_clear_error(run, tmp_path):

@@ -15,10 +15,10 @@ from tests.cli.test_reliability import SAMPLE_MODEL
 
 @pytest.fixture(scope="module")
 def registrar():
-    """The bundled sample model, plain pipeline (no hypotheses stage: the checks are before it)."""
+    """The bundled sample model, plain pipeline (no pose search: the checks are before it)."""
     from comreg_core.register import Registrar
 
-    return Registrar.from_run(SAMPLE_MODEL, "cpu", hypotheses=False)
+    return Registrar.from_run(SAMPLE_MODEL, "cpu", search=False)
 
 
 @pytest.fixture(scope="module")

@@ -56,13 +56,13 @@ def test_real_sweep_from_full_rotation_starts(search, real_sweep, seed):
     result = search.register(moved)
     errors = registration_metrics(result.T_ct_us, invert_rigid(T_moved), moved, FIBULA_STL)
     assert errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0, errors
-    assert result.hypotheses.chosen.startswith("pca") and not result.ambiguous
+    assert result.search.chosen.startswith("pca") and not result.ambiguous
     assert result.completion_ct.shape == (0, 3) and result.residuals["median"] < 1.0
 
 
 def test_search_cannot_be_turned_off_and_needs_points(search):
-    result = search.register(read_mesh(FIBULA_STL).vertices[::50], hypotheses=False)
-    assert result.hypotheses is not None  # the search is the whole registration
+    result = search.register(read_mesh(FIBULA_STL).vertices[::50], search=False)
+    assert result.search is not None  # the search is the whole registration
     with pytest.raises(ComRegError, match="at least 6"):
         search.register(np.zeros((4, 3)))
 
@@ -75,7 +75,7 @@ def test_register_and_report_without_a_run(tmp_path, real_sweep):
     assert "by the pose search (no network)" in result.output
     assert "short sweep" not in result.output  # a whole cloud keeps the usual search
     saved = json.loads((out / "result.json").read_text())
-    assert saved["hypotheses"]["patch"] is False
+    assert saved["search"]["patch"] is False
     assert saved["run_dir"] is None and saved["verdict"] == "ok", saved["verdict_reasons"]
     assert not (out / "completion_ct.ply").exists() and "completion_ct" not in saved["files"]
     errors = registration_metrics(np.asarray(saved["T_ct_us"]), np.eye(4), real_sweep,
@@ -84,9 +84,9 @@ def test_register_and_report_without_a_run(tmp_path, real_sweep):
     result = runner.invoke(app, ["report", str(out)])
     assert result.exit_code == 0, result.output
     assert "none (the pose search alone)" in (out / "report.html").read_text()
-    # no CT and no run; --no-hypotheses without a network; three positionals: one line, exit 2
+    # no CT and no run; --no-search without a network; three positionals: one line, exit 2
     for args in (["register", str(us), "--out", str(tmp_path / "x")],
-                 ["register", str(us), "--ct", str(FIBULA_STL), "--no-hypotheses", "--out",
+                 ["register", str(us), "--ct", str(FIBULA_STL), "--no-search", "--out",
                   str(tmp_path / "y")],
                  ["register", str(us), str(us), str(us), "--out", str(tmp_path / "z")],
                  ["register", str(us), "--ct", str(FIBULA_STL), "--sweep",
@@ -95,6 +95,13 @@ def test_register_and_report_without_a_run(tmp_path, real_sweep):
         assert result.exit_code == 2 and len(result.output.strip().splitlines()) <= 2, \
             result.output
         assert not any((tmp_path / n).exists() for n in "xyzw")
+    # --no-hypotheses, the former name of --no-search, is still accepted (and not in the help)
+    for flag in ("--no-search", "--no-hypotheses"):
+        result = runner.invoke(app, ["register", str(us), "--ct", str(FIBULA_STL), flag,
+                                     "--out", str(tmp_path / "v")])
+        assert result.exit_code == 2 and "cannot be turned off" in result.output, result.output
+    help_text = runner.invoke(app, ["register", "--help"]).output
+    assert "--no-search" in help_text and "hypotheses" not in help_text
 
 
 def test_register_a_short_stretch_of_the_real_sweep(tmp_path, real_sweep):
@@ -111,9 +118,9 @@ def test_register_a_short_stretch_of_the_real_sweep(tmp_path, real_sweep):
     assert result.exit_code == 0, result.output
     assert "(a short sweep: all orientations tried)" in result.output
     saved = json.loads((out / "result.json").read_text())
-    hypotheses = saved["hypotheses"]
-    assert hypotheses["patch"] is True and hypotheses["starts_tried"] > 3000
-    assert saved["ambiguous"] == (hypotheses["confidence"] < 0.5)
+    search = saved["search"]
+    assert search["patch"] is True and search["starts_tried"] > 3000
+    assert saved["ambiguous"] == (search["confidence"] < 0.5)
 
 
 def test_evaluate_search_without_a_run(tmp_path, real_sweep):
@@ -148,7 +155,7 @@ def test_beam_origins_lie_above_the_bone_and_keep_the_pose(search, real_sweep_be
     errors = registration_metrics(result.T_ct_us, invert_rigid(T_moved),
                                   apply_transform(T_moved, points), FIBULA_STL)
     assert errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0, errors
-    assert result.hypotheses.polish["facing_away"] < 0.1
+    assert result.search.polish["facing_away"] < 0.1
     with pytest.raises(ComRegError, match="beam origins for"):
         search.register(points, beam_origins=origins[:-1])
 
@@ -180,7 +187,7 @@ def test_extract_us_keeps_beam_origins_and_register_uses_them(tmp_path, shared_d
     assert runner.invoke(app, ["report", str(out)]).exit_code == 0
     frames = sorted(p.name for p in (out / "report_images").glob("frame_*.png"))
     assert len(frames) == 4 and all(n in (out / "report.html").read_text() for n in frames)
-    assert saved["hypotheses"]["polish"]["facing_away"] < 0.1
+    assert saved["search"]["polish"]["facing_away"] < 0.1
     errors = registration_metrics(np.asarray(saved["T_ct_us"]), np.eye(4), cloud.points,
                                   FIBULA_STL)
     assert errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0, errors

@@ -62,9 +62,9 @@ def case_row(plan: CasePlan) -> dict[str, Any]:
             read_status(plan.status("register"))["status"] == OK and result_path.is_file():
         result = json.loads(result_path.read_text(encoding="utf-8"))
         residuals = result.get("residuals_mm") or {}
-        hypotheses = result.get("hypotheses") or {}
+        search = result.get("search") or result.get("hypotheses") or {}  # its earlier name
         row.update(verdict=result.get("verdict"), p_correct=result.get("p_correct"),
-                   confidence=result.get("confidence", hypotheses.get("confidence")),
+                   confidence=result.get("confidence", search.get("confidence")),
                    ambiguous=result.get("ambiguous"), n_points=result.get("n_points"),
                    residual_median_mm=residuals.get("median"),
                    residual_p95_mm=residuals.get("p95"),

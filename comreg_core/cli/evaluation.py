@@ -36,7 +36,7 @@ EVALUATE_CT = typer.Option(None, "--ct", rich_help_panel=INPUTS, help="The CT bo
 EVALUATE_GT = typer.Option(None, "--gt", rich_help_panel=INPUTS, help="Ground-truth T_ct_us "
                            "(.tfm/.h5); identity if omitted.")
 EVALUATE_CONFIG = typer.Option(None, "--config", rich_help_panel=INPUTS, help="YAML with "
-                               "sections 'hypotheses:' (the pose search), 'baselines:' "
+                               "sections 'search:' (the pose search), 'baselines:' "
                                "('ransac:', 'icp_gt:') and 'simulation:' (the sweeps of "
                                "'simulated').")
 EVALUATE_MODEL = typer.Option(None, "--model", rich_help_panel=NETWORK, help="Run folder "
@@ -73,7 +73,7 @@ def evaluate(
 ) -> None:
     """Measure registration accuracy from random initial poses: RTE, RRE, CD, HD95, success and
     flip rates, runtime (and, for ComReg, how often it flags its result ambiguous), for ComReg
-    with and without its hypotheses stage and the baselines (Open3D RANSAC+FPFH+ICP; ICP from
+    with and without its pose search and the baselines (Open3D RANSAC+FPFH+ICP; ICP from
     the ground truth), written to metrics.json."""
     from comreg_core.evaluation.evaluate import summary_line, write_metrics
 
@@ -126,7 +126,7 @@ def _evaluation_inputs(us_points: str, out: Path, *, ct_mesh, gt, config, model,
     clouds = "simulated" if simulated else limit_us_points(cloud.in_space(ct.space).points, seed)
     chosen = [m.value for m in method] if method else ["comreg" if model else "search"]
     methods = registration_methods(method_names(chosen), model, ct, device=device, seed=seed,
-                                   hypotheses=settings.hypotheses,
+                                   search=settings.search,
                                    baseline_config=settings.baselines)
     if not simulated:
         _check_us_cloud(methods, clouds)

@@ -34,14 +34,17 @@ REGISTER_CALIBRATION = typer.Option(None, "--probe-calibration", "--calibration"
 REGISTER_MODEL = typer.Option(None, "--model", rich_help_panel=NETWORK, help="Run folder written "
                               "by 'comreg pretrain': the network's pose first, then the search "
                               "around it.")
-REGISTER_HYPOTHESES = typer.Option(
-    True, "--hypotheses/--no-hypotheses", rich_help_panel=SEARCH, help="After the network, also "
-    "try the alternatives of its pose (flipped end to end, turned about the shaft, slid along "
-    "it; around the coarse pose and a principal-axes solve too), keep the one that fits the CT "
-    "best and flag the result ambiguous when another pose fits about as well. --no-hypotheses "
-    "is the paper's plain pipeline.")
+REGISTER_SEARCH = typer.Option(
+    True, "--search/--no-search", rich_help_panel=SEARCH, help="The pose search: many start "
+    "poses (flipped end to end, turned about the shaft, slid along it; with --model the "
+    "network's poses too) refined by ICP and scored against the CT; the best is kept and the "
+    "result flagged ambiguous when another pose fits about as well. --no-search (with --model "
+    "only) is the paper's plain pipeline: the network alone.")
+#: ``--hypotheses/--no-hypotheses``: the former name of ``--search/--no-search``, still accepted.
+REGISTER_HYPOTHESES = typer.Option(None, "--hypotheses/--no-hypotheses", hidden=True,
+                                   help="Former name of --search/--no-search.")
 REGISTER_CONFIG = typer.Option(None, "--config", rich_help_panel=SEARCH, help="YAML with a "
-                               "'hypotheses:' section (the pose search's settings), e.g. the "
+                               "'search:' section (the pose search's settings), e.g. the "
                                "config.yaml of an earlier registration.")
 REGISTER_SEED = typer.Option(0, "--seed", min=0, rich_help_panel=SEARCH,
                               help="Random seed; the same seed gives the same result.")
@@ -59,7 +62,8 @@ def register(
     calibration: Optional[Path] = REGISTER_CALIBRATION,
     model: Optional[Path] = REGISTER_MODEL,
     device: Device = DEVICE_OPTION,
-    hypotheses: bool = REGISTER_HYPOTHESES,
+    search: bool = REGISTER_SEARCH,
+    hypotheses: Optional[bool] = REGISTER_HYPOTHESES,
     config: Optional[Path] = REGISTER_CONFIG,
     seed: int = REGISTER_SEED,
     init: Optional[Path] = INIT_OPTION,
@@ -72,10 +76,10 @@ def register(
     """Register a US bone surface to the CT: with --ct alone by the pose search (principal axes,
     flips, turns and slides of the US cloud, refined by ICP and scored against the CT); with
     --model the same search, then the pretrained network's poses (completion, coarse pose, ICP)
-    as further starts, kept only when clearly better (--no-hypotheses: the network alone).
+    as further starts, kept only when clearly better (--no-search: the network alone).
 
     Writes result.json (T_ct_us 4x4 in mm, the coarse transform, timings, residuals, the
-    chosen hypothesis, confidence and the ambiguous flag), transform.tfm (ITK, LPS, as 3D Slicer
+    search's chosen pose, confidence and the ambiguous flag), transform.tfm (ITK, LPS, as 3D Slicer
     reads it), registered_us.ply and completion_ct.ply in the CT frame. A cloud of more than
     100,000 points is registered as a seeded uniform subset of 100,000 (said in a warning).
     --out must not be the run folder or inside it.
@@ -87,10 +91,10 @@ def register(
     refuse_the_older_form("register", inputs[0])
     us_points = inputs[0] if len(inputs) == 1 else inputs
     prior = load_prior(init, init_tolerance, landmarks, landmark_tolerance)
-    search = load_register_config(config, {"hypotheses": {"enabled": False}} if not hypotheses
-                                  else None).hypotheses
+    off = not search or hypotheses is False
+    settings = load_register_config(config, {"search": {"enabled": False}} if off else None)
     result = register_to_directory(model, us_points, out, device=device.value, seed=seed,
-                                   ct_mesh=ct_mesh, hypotheses=search, sweep=sweep,
+                                   ct_mesh=ct_mesh, search=settings.search, sweep=sweep,
                                    sweep_calibration=calibration,
                                    calibration=verdict_calibration, prior=prior)
     for line in summary_lines(result, out, with_network=model is not None):

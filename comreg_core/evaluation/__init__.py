@@ -7,7 +7,7 @@ The metrics themselves (RTE, RRE, CD, HD95, success, flip) are defined in
   ground truth ``icp-gt`` (numpy/scipy), :class:`BaselineConfig`.
 - :mod:`.evaluate`: :func:`evaluate` (random initial poses -> methods -> ``metrics.json`` dict),
   :func:`write_metrics`, :func:`simulated_us_clouds` (seeds disjoint from training).
-- :mod:`.methods`: the methods by name (``comreg`` with the hypotheses stage, ``comreg-plain``
+- :mod:`.methods`: the methods by name (``comreg`` with the pose search, ``comreg-plain``
   without it, the baselines, ``all``): :func:`registration_methods`.
 
 Typical use::

@@ -143,8 +143,8 @@ class RansacIcpBaseline:
         config: :class:`RansacConfig` (or a whole :class:`BaselineConfig`).
         seed: seeds Open3D's global random generator before every RANSAC run; call ``i`` uses
             the ``i``-th draw of a generator seeded with ``seed``, so a run of calls is
-            reproducible up to thread scheduling: Open3D's RANSAC runs hypotheses in parallel
-            threads and, under load, may keep a different but equally good one (on the 2-core
+            reproducible up to thread scheduling: Open3D's RANSAC tries its samples in parallel
+            threads and, under load, may keep a different but equally good pose (on the 2-core
             machine repeated runs agreed to 1e-11, or within ~0.01 mm after ICP when loaded).
             With ``OMP_NUM_THREADS=1`` set before Open3D is imported, repeats agree to ~1e-13.
 

@@ -92,7 +92,7 @@ def calibrate(ct_mesh, *, sweeps: int = 60, lengths_mm: tuple[float, float] = (3
         raise ComRegError(f"Sweep lengths {lengths_mm} must be two increasing positive mm.", "")
     registrar = Registrar.from_ct(ct_mesh)
     surface = registrar.surface
-    length = ct_length_mm(registrar.hypothesis_target(registrar.hypothesis_config.target_points))
+    length = ct_length_mm(registrar.search_target(registrar.search_config.target_points))
     bone = BoneModel((surface.vertices, surface.faces))
     config = calibration_sweep_config(lengths_mm)
     raw, correct, rows = [], [], []

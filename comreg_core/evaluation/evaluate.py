@@ -31,7 +31,7 @@ identity unless given):
 
 Rates are fractions in [0, 1] of *all* trials of the method (a failed trial is neither a success
 nor a flip). ``confidence`` and ``ambiguous`` are the method's own verdict on its result (ComReg
-with its hypotheses stage, :mod:`comreg_core.registration.search.search`; null for methods without one);
+with its pose search, :mod:`comreg_core.registration.search.search`; null for methods without one);
 ``ambiguous_rate`` is the share of trials flagged ambiguous and ``unflagged_flip_rate`` the share
 that are flips *not* flagged (silent flips), both null for a method that flags nothing. Statistics (numpy mean, population std with ``ddof=0``, median) are over the trials
 with a value; ``null`` where there is none (e.g. completion metrics of a method without a

@@ -25,7 +25,7 @@ class RegistrationOutput:
             received (the network's ``T_hat^t``), mm.
         info: method-specific extras (fitness values, iterations, ...), JSON-able.
         confidence: the method's own confidence in [0, 1], None if it gives none (ComReg's
-            hypotheses stage: :mod:`comreg_core.registration.search.search`).
+            pose search: :mod:`comreg_core.registration.search.search`).
         ambiguous: whether the method flags its result as ambiguous, None if it cannot.
     """
 

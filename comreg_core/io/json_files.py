@@ -4,7 +4,7 @@ and reads back: strict JSON (RFC 8259), which has no NaN or Infinity.
 **Writing** (:func:`write_json`, atomic): numpy scalars and arrays become numbers and lists,
 paths and other objects their text, and every float that is not finite becomes ``null``. When
 the top level is an object, ``null_reasons`` (:data:`NULL_REASONS`) then maps the place of each
-such null, as a JSON Pointer (RFC 6901: ``/hypotheses/candidates/3/score_mm``), to why it is
+such null, as a JSON Pointer (RFC 6901: ``/search/scores_mm/flip``), to why it is
 null: ``"not finite (NaN)"``, ``"not finite (+Infinity)"`` or ``"not finite (-Infinity)"``.
 A file without such a null has no ``null_reasons``.
 

@@ -67,7 +67,7 @@ def warm_up_registrar(registrar, seed: int = 0):
     RegistrationResult)``."""
     from comreg_core.registration.geometry.surface import ct_length_mm
 
-    target = registrar.hypothesis_target(registrar.hypothesis_config.target_points)
+    target = registrar.search_target(registrar.search_config.target_points)
     samples, _ = registrar.surface.samples(2000)
     along = (samples - target.centre) @ target.axes[:, 0]
     patch = samples[np.abs(along - np.median(along)) < 0.25 * ct_length_mm(target)]
@@ -110,7 +110,7 @@ def _serve(recipe: RegistrarRecipe, prior, connection) -> None:
     torch.set_num_threads(1)
     try:
         registrar = build_registrar(recipe)
-        target = registrar.hypothesis_target(registrar.hypothesis_config.target_points)
+        target = registrar.search_target(registrar.search_config.target_points)
         warm_up_registrar(registrar)
     except Exception as exc:  # the parent runs its full searches itself then
         connection.send(("failed", f"{type(exc).__name__}: {exc}"))
@@ -130,7 +130,7 @@ def _serve(recipe: RegistrarRecipe, prior, connection) -> None:
             halves = None
             if job.halves:
                 halves = halves_disagreement_deg(job.points, result.T_ct_us, target,
-                                                 registrar.hypothesis_config,
+                                                 registrar.search_config,
                                                  origins=job.origins)
             done = FullSearchDone(job.job, result, halves, time.perf_counter() - start)
         except Exception as exc:

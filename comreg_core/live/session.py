@@ -33,7 +33,8 @@ import numpy as np
 from comreg_core.errors import ComRegError
 from comreg_core.registration.search.advice import scan_advice
 from comreg_core.register.judge import Evidence, is_short_sweep, judge
-from comreg_core.registration.judgement.calibration import TOLERANCE_DEG, Calibration, extent_share
+from comreg_core.registration.geometry.extent import extent_share
+from comreg_core.registration.judgement.calibration import TOLERANCE_DEG, Calibration
 from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.registration.search.polish import halves_disagreement_deg
 from comreg_core.registration.judgement.prior_reasons import prior_allows
@@ -127,7 +128,7 @@ class LiveSession:
         self.started_s = self.clock()
         self.frames_received = 0
         self.updates: list[LiveUpdate] = []
-        self.target = registrar.hypothesis_target(registrar.hypothesis_config.target_points)
+        self.target = registrar.search_target(registrar.search_config.target_points)
         self.ct_length = (calibration.ct_length_mm if calibration is not None
                           else ct_length_mm(self.target))
         self._evidence: Evidence | None = None
@@ -358,7 +359,7 @@ class LiveSession:
             return verdict
         if result is not None:
             self._halves_deg = halves_disagreement_deg(
-                pts, result.T_ct_us, self.target, self.registrar.hypothesis_config,
+                pts, result.T_ct_us, self.target, self.registrar.search_config,
                 origins=origins)
         halves_deg = self._halves_deg
         if halves_deg is None or halves_deg <= HALVES_TOLERANCE_DEG:

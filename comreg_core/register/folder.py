@@ -24,7 +24,7 @@ from comreg_core.register.inputs import (calibration_path, input_paths, join_clo
 from comreg_core.register.judge import Evidence, judge
 from comreg_core.register.registrar import Registrar
 from comreg_core.registration.judgement.calibration import Calibration
-from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.inputs import MAX_US_POINTS
 from comreg_core.registration.judgement.prior_reasons import prior_allows
 from comreg_core.registration.search.priors import Prior
@@ -45,8 +45,8 @@ def registration_verdict(result: RegistrationResult, registrar: Registrar,
                           "judged.", "Load the run folder with its CT mesh.")
     points = apply_transform(invert_rigid(result.T_ct_us), result.registered_points)
     length = (calibration.ct_length_mm if calibration is not None else
-              ct_length_mm(registrar.hypothesis_target(
-                  registrar.hypothesis_config.target_points)))
+              ct_length_mm(registrar.search_target(
+                  registrar.search_config.target_points)))
     evidence = Evidence.of(result, points, length, calibration, allowed)
     return judge(points, result.T_ct_us, registrar.surface, evidence), evidence
 
@@ -55,7 +55,7 @@ def register_to_directory(run_dir: str | Path | None,
                           us_points_path: str | Path | Sequence[str | Path],
                           out_dir: str | Path, *, device: str = "auto", seed: int = 0,
                           ct_mesh: str | Path | None = None, icp_points: int | None = None,
-                          hypotheses: HypothesisConfig | bool | None = None,
+                          search: SearchConfig | bool | None = None,
                           sweep: str | Path | None = None,
                           sweep_calibration: str | Path | None = None,
                           T_us_ref: np.ndarray | None = None,
@@ -73,7 +73,7 @@ def register_to_directory(run_dir: str | Path | None,
     CT. ``prior``: an initial pose and/or landmarks (:func:`~comreg_core.register.inputs.
     load_prior`): the search keeps to it, and its reasons join the verdict's. ``registrar``: one
     already built from this ``run_dir``/``ct_mesh`` with its own settings (the 3D Slicer module
-    keeps one per CT), used instead of building it again (``hypotheses`` must then be None).
+    keeps one per CT), used instead of building it again (``search`` must then be None).
 
     Files (each written atomically once the result and its verdict are known, ``result.json``
     last; their contents: docs/guide.md, "result.json"): ``transform.tfm`` (``T_ct_us``, ITK,
@@ -89,8 +89,8 @@ def register_to_directory(run_dir: str | Path | None,
     calibration_record = None if calibration_file is None else Calibration.load(calibration_file)
     clouds = [read_points(path) for path in paths]  # the cheap inputs first
     if registrar is None:
-        registrar = _registrar(run_dir, ct_mesh, device, icp_points, hypotheses)
-    elif hypotheses is not None or icp_points is not None:
+        registrar = _registrar(run_dir, ct_mesh, device, icp_points, search)
+    elif search is not None or icp_points is not None:
         raise ComRegError("A registrar already built keeps its own search settings.",
                           "Give either the registrar or the settings, not both.")
     if calibration_record is not None:
@@ -103,7 +103,7 @@ def register_to_directory(run_dir: str | Path | None,
     inputs_record = input_records(paths, clouds, result, registrar)
     result.info["us_inputs"] = inputs_record
     files = _output_files(registrar, inputs_record)
-    settings = {"hypotheses": to_dict(registrar.hypothesis_config),
+    settings = {"search": to_dict(registrar.search_config),
                 "inputs": _inputs_setting(run_dir, paths, device, seed, registrar, ct_mesh,
                                           origins is not None, prior)}
     allowed = None
@@ -172,23 +172,23 @@ def _log_outcome(result: RegistrationResult, registrar: Registrar, verdict, out:
     if not verdict.ok:
         log.warning("%s: %s", verdict.headline, " ".join(verdict.reasons))
     if result.ambiguous:
-        log.warning("Ambiguous registration: hypothesis '%s' fits the US points within %.2f mm "
+        log.warning("Ambiguous registration: the pose '%s' fits the US points within %.2f mm "
                     "of '%s' (confidence %.2f); check the result visually.",
-                    result.hypotheses.runner_up, result.hypotheses.score_gap_mm,
-                    result.hypotheses.chosen, result.confidence)
+                    result.search.runner_up, result.search.score_gap_mm,
+                    result.search.chosen, result.confidence)
 
 
-def _registrar(run_dir, ct_mesh, device: str, icp_points, hypotheses) -> Registrar:
+def _registrar(run_dir, ct_mesh, device: str, icp_points, search) -> Registrar:
     """The registrar of ``register_to_directory``: the run's network (``run_dir``) or the pose
     search alone on ``ct_mesh``."""
     if run_dir is not None:
         return Registrar.from_run(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points,
-                                  hypotheses=hypotheses)
-    if hypotheses is False or getattr(hypotheses, "enabled", True) is False:
+                                  search=search)
+    if search is False or getattr(search, "enabled", True) is False:
         raise ComRegError("Without a pretrained run the pose search is the registration; "
                           "it cannot be turned off.",
-                          "Drop --no-hypotheses, or give --model RUN_DIR.")
-    return Registrar.from_ct(ct_mesh, hypotheses=hypotheses)
+                          "Drop --no-search, or give --model RUN_DIR.")
+    return Registrar.from_ct(ct_mesh, search=search)
 
 
 def _output_files(registrar: Registrar, inputs_record: list[dict]) -> dict:
@@ -226,15 +226,15 @@ def _write_outputs(out: Path, files: dict, result: RegistrationResult, registrar
 
 def summary_lines(result: RegistrationResult, out_dir, *, with_network: bool) -> list[str]:
     """What ``comreg register`` prints: the folder, points, time and residual; the chosen
-    hypothesis, the competing pose and confidence; what to scan when it is ambiguous."""
+    start, the competing pose and confidence; what to scan when it is ambiguous."""
     how = f"on {result.device}" if with_network else "by the pose search (no network)"
     lines = [f"wrote {out_dir}: {result.n_points} points registered in {result.runtime_s:.2f} s "
              f"{how}; median residual {result.residuals['median']:.2f} mm"]
-    h = result.hypotheses
+    h = result.search
     if h is not None:
         gap = "no competing pose" if h.score_gap_mm is None else \
             f"next different pose ('{h.runner_up}') {h.score_gap_mm:.3f} mm worse"
-        lines.append(f"hypothesis '{h.chosen}' of {h.starts_tried} starts"
+        lines.append(f"pose '{h.chosen}', best of {h.starts_tried} starts"
                      + (" (a short sweep: all orientations tried)" if h.patch
                         and not result.info.get("prior") else "")
                      + f", {gap}; confidence {h.confidence:.2f}"
@@ -310,11 +310,29 @@ def _sweep_record(sweep, calibration, T_us_ref) -> dict | None:
 # ------------------------------------------------------------------------------------- priors
 
 
+#: ``result.json``'s keys under an earlier name, still read: ``{old: new}`` (in the result
+#: and in its ``timings_s``).
+RENAMED_RESULT_KEYS = {"hypotheses": "search"}
+
+
+def upgraded_result(result: dict[str, Any]) -> dict[str, Any]:
+    """The content of a ``result.json`` with its keys under an earlier name
+    (:data:`RENAMED_RESULT_KEYS`) under today's, in their place (a copy)."""
+    def renamed(record: dict[str, Any]) -> dict[str, Any]:
+        names = {old: new for old, new in RENAMED_RESULT_KEYS.items() if new not in record}
+        return {names.get(key, key): value for key, value in record.items()}
+
+    out = renamed(result)
+    if isinstance(out.get("timings_s"), dict):
+        out["timings_s"] = renamed(out["timings_s"])
+    return out
+
+
 def read_result(out_dir: str | Path) -> dict[str, Any]:
     """``out_dir/result.json`` checked to hold ``T_ct_us``, ``us_points`` and a ``run_dir`` or
-    a ``ct_mesh`` (a registration without a network has no run). Relative paths in it (results
-    written before they were stored absolute) are taken as relative to the current directory,
-    as they were written."""
+    a ``ct_mesh`` (a registration without a network has no run), its keys as today's
+    (:func:`upgraded_result`). Relative paths in it (results written before they were stored
+    absolute) are taken as relative to the current directory, as they were written."""
     path = require_input_file(Path(out_dir) / runs.RESULT, "registration result")
     try:
         result = json.loads(path.read_text(encoding="utf-8"))
@@ -325,4 +343,4 @@ def read_result(out_dir: str | Path) -> dict[str, Any]:
     except (ValueError, KeyError, TypeError) as exc:
         raise ComRegError(f"'{path}' is not a ComReg registration result ({exc}).",
                           "Run 'comreg register' into this folder first.") from None
-    return result
+    return upgraded_result(result)

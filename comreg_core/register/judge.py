@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from comreg_core.registration.geometry.extent import SHORT_SWEEP_SHARE
 from comreg_core.registration.geometry.surface import as_surface
 from comreg_core.registration.judgement.assessment import pose_uncertainty
 from comreg_core.registration.judgement.calibration import (OK_PROBABILITY, Calibration,
@@ -29,14 +30,10 @@ from comreg_core.registration.judgement.calibration import (OK_PROBABILITY, Cali
 from comreg_core.registration.judgement.verdict import (Verdict, judge_registration,
                                                         with_prior_reasons)
 
-#: A sweep spanning less than this share of the CT's length (5th-95th percentile along its
-#: long axis, :func:`~comreg_core.registration.judgement.calibration.extent_share`) is a *short sweep*:
-#: its best-fitting scale says nothing, and live checks that its two halves agree.
-SHORT_SWEEP_SHARE = 0.5
-
 
 def is_short_sweep(extent_share: float | None) -> bool:
-    """Whether a sweep of this extent share (None: unknown) is short."""
+    """Whether a sweep of this extent share (None: unknown) is short (under
+    :data:`~comreg_core.registration.geometry.extent.SHORT_SWEEP_SHARE`)."""
     return extent_share is not None and extent_share < SHORT_SWEEP_SHARE
 
 
@@ -74,8 +71,8 @@ class Evidence:
         the ``(n, 3)`` US points it registered (US frame, mm) on a CT ``ct_length_mm`` long;
         ``allowed``: the poses a prior allows (the competitor is looked for among them)."""
         competitor = extent = None
-        if result.hypotheses is not None:
-            competitor, extent = result_evidence(result.hypotheses, points_us, ct_length_mm,
+        if result.search is not None:
+            competitor, extent = result_evidence(result.search, points_us, ct_length_mm,
                                                  allowed)
         return cls(confidence=result.confidence, ambiguous=bool(result.ambiguous),
                    competitor=competitor, extent_share=extent,
@@ -87,11 +84,11 @@ class Evidence:
     @classmethod
     def from_json(cls, record: dict[str, Any]) -> Evidence:
         """The evidence a ``result.json`` holds (what ``comreg register`` judged with)."""
-        hypotheses = record.get("hypotheses") or {}
-        # "calibration": the key's name before 2026-12-05 (still read)
+        # earlier names, still read: "hypotheses" (the search), "calibration" (to 2026-12-05)
+        search = record.get("search") or record.get("hypotheses") or {}
         calibration = record.get("verdict_calibration") or record.get("calibration") or {}
-        return cls(confidence=hypotheses.get("confidence"),
-                   ambiguous=bool(hypotheses.get("ambiguous")),
+        return cls(confidence=search.get("confidence"),
+                   ambiguous=bool(search.get("ambiguous")),
                    competitor=record.get("competitor"), extent_share=record.get("extent_share"),
                    knots=calibration.get("knots"),
                    ok_probability=calibration.get("ok_probability", OK_PROBABILITY),

@@ -7,11 +7,11 @@
 - ``Registrar.from_run(run_dir).register(us_points)``: the same search, then the pretrained
   network's poses (:mod:`comreg_core.register.network`: completion, coarse pose, ICP) as
   further starts (:mod:`comreg_core.registration.search.network_starts`): kept only when clearly
-  better, so never worse than the search alone. ``hypotheses=False`` is the paper's plain
+  better, so never worse than the search alone. ``search=False`` is the paper's plain
   pipeline (network and ICP only).
 
 Timings per stage (s): ``preprocess``, ``completion_and_coarse_pose``, ``icp``,
-``hypotheses`` (the search), ``postprocess``, ``total`` (their sum, ``runtime_s``), and
+``search`` (the pose search), ``postprocess``, ``total`` (their sum, ``runtime_s``), and
 ``residuals`` (outside ``total``). Preparing the CT side (encoding, search cloud, grids) happens
 once per Registrar, outside the timings.
 """
@@ -28,15 +28,15 @@ import numpy as np
 from comreg_core.errors import ComRegError, InvalidGeometryError
 from comreg_core.io.meshes import ct_fingerprint
 from comreg_core.normalization import Normalization
-from comreg_core.registration import (CTSurface, HypothesisConfig, SurfaceCloud,
-                                      as_hypothesis_config, search_hypotheses)
+from comreg_core.registration import (CTSurface, SearchConfig, SurfaceCloud,
+                                      as_search_config, search_poses)
 from comreg_core.registration.geometry.inputs import (beam_origins_for, limit_us_points,
                                                       subset_notice)
 from comreg_core.registration.search.network_starts import add_network_starts
 from comreg_core.registration.judgement.prior_reasons import prior_record
 from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.result import RegistrationResult, residual_statistics
-from comreg_core.registration.search.scoring import HypothesisResult
+from comreg_core.registration.search.scoring import SearchResult
 from comreg_core.registration.search.search import principal_axes_pose, us_subset_indices
 from comreg_core.registration.geometry.surface import mesh_arrays
 from comreg_core.registration.search.warm import warm_search
@@ -62,9 +62,9 @@ class Registrar:
         ct_vertices, ct_faces: the CT mesh (residual distances), or None to use the CT cloud.
         fingerprint: the CT fingerprint (sha256).
         space: the CT's patient space ("LPS"/"RAS").
-        hypotheses: the pose search: None or True = on with the defaults of
-            :class:`~comreg_core.registration.HypothesisConfig`, False = off (with a network:
-            the paper's plain pipeline), or a ``HypothesisConfig`` (its ``enabled`` decides).
+        search: the pose search: None or True = on with the defaults of
+            :class:`~comreg_core.registration.SearchConfig`, False = off (with a network:
+            the paper's plain pipeline), or a ``SearchConfig`` (its ``enabled`` decides).
         warnings: what the run's own validation says against its network; copied into every
             result's ``warnings``.
     """
@@ -72,7 +72,7 @@ class Registrar:
     def __init__(self, network, ct_points: np.ndarray, normalization: Normalization, *,
                  ct_vertices: np.ndarray | None = None, ct_faces: np.ndarray | None = None,
                  fingerprint: str = "", space: str = "LPS",
-                 hypotheses: HypothesisConfig | bool | None = None,
+                 search: SearchConfig | bool | None = None,
                  warnings: list[str] | None = None):
         self.network = network
         self.warnings = list(warnings or [])
@@ -81,7 +81,7 @@ class Registrar:
         self.fingerprint = fingerprint
         self.space = space
         self._ct_vertices, self._ct_faces = ct_vertices, ct_faces
-        self.hypothesis_config = self._search_config(hypotheses)
+        self.search_config = self._as_config(search)
         self._surface = None
         self._bare_cloud: SurfaceCloud | None = None
 
@@ -109,33 +109,33 @@ class Registrar:
         """The network's one-thread context (:meth:`Network.deterministic_forward`)."""
         return self.network.deterministic_forward()
 
-    def _search_config(self, hypotheses) -> HypothesisConfig:
-        """``hypotheses`` as a :class:`HypothesisConfig`; without a network the search is the
+    def _as_config(self, search) -> SearchConfig:
+        """``search`` as a :class:`SearchConfig`; without a network the search is the
         whole registration (always on)."""
-        config = as_hypothesis_config(hypotheses)
+        config = as_search_config(search)
         if self.network is None:
             config = replace(config, enabled=True)
         return config
 
     @classmethod
-    def from_ct(cls, ct_mesh, *, hypotheses: HypothesisConfig | bool | None = None
+    def from_ct(cls, ct_mesh, *, search: SearchConfig | bool | None = None
                 ) -> Registrar:
         """A Registrar with no network: the pose search alone on the CT mesh ``ct_mesh`` (a
-        path, SurfaceMesh, ``(V, F)``, ...; mm). ``hypotheses`` as for :meth:`from_run`, but
+        path, SurfaceMesh, ``(V, F)``, ...; mm). ``search`` as for :meth:`from_run`, but
         the search cannot be turned off (it is the whole registration)."""
         vertices, faces, space, _ = mesh_arrays(ct_mesh)
         return cls(None, vertices, Normalization.from_ct(vertices), ct_vertices=vertices,
                    ct_faces=faces, fingerprint=ct_fingerprint(vertices, faces)["sha256"],
-                   space=space, hypotheses=hypotheses)
+                   space=space, search=search)
 
     @classmethod
     def from_run(cls, run_dir: str | Path, device: str = "auto", *, ct_mesh=None,
                  icp_points: int | None = None,
-                 hypotheses: HypothesisConfig | bool | None = None) -> Registrar:
+                 search: SearchConfig | bool | None = None) -> Registrar:
         """The pose search with the network of ``run_dir`` (a folder of ``comreg pretrain`` or
         its checkpoint file; :func:`~comreg_core.register.network.load_network`: weights only,
         ``ct_mesh`` checked against the run's CT, ``icp_points`` at inference). ``device``:
-        ``"auto"``, ``"cpu"`` or ``"cuda"``. ``hypotheses``: see the class (not part of the
+        ``"auto"``, ``"cpu"`` or ``"cuda"``. ``search``: see the class (not part of the
         run: the network is the same either way).
 
         Raises:
@@ -144,11 +144,11 @@ class Registrar:
         from comreg_core.register.network import load_network
 
         return cls(**load_network(run_dir, device, ct_mesh=ct_mesh, icp_points=icp_points),
-                   hypotheses=hypotheses)
+                   search=search)
 
     # ------------------------------------------------------------------------------------------
 
-    def hypothesis_target(self, n_points: int) -> SurfaceCloud:
+    def search_target(self, n_points: int) -> SurfaceCloud:
         """The CT side of the pose search: ``n_points`` area-uniform samples of the CT mesh
         (:meth:`CTSurface.cloud`; the run's CT cloud with estimated normals when no mesh is
         known), built once and cached."""
@@ -186,7 +186,7 @@ class Registrar:
         return pts
 
     def register(self, points, seed: int = 0, *,
-                 hypotheses: HypothesisConfig | bool | None = None,
+                 search: SearchConfig | bool | None = None,
                  beam_origins: np.ndarray | None = None,
                  prior: Prior | None = None,
                  warm_start: RegistrationResult | None = None,
@@ -196,8 +196,8 @@ class Registrar:
         Args:
             points: the US bone points.
             seed: seeds torch's generator (the forward pass is deterministic anyway).
-            hypotheses: this call's hypotheses setting (True/False/a config); None = the
-                Registrar's (:attr:`hypothesis_config`).
+            search: this call's pose search setting (True/False/a config); None = the
+                Registrar's (:attr:`search_config`).
             beam_origins: ``(N, 3)`` mm, where each point's ultrasound beam started (the
                 probe's element; same frame as ``points``), or None. The pose search then
                 rules out poses under which the CT surface faces away from the probe.
@@ -215,39 +215,38 @@ class Registrar:
                 with the mesh ~9 us a point, not part of ``runtime_s``); False leaves
                 ``residuals`` empty (live updates, which judge a subset themselves).
         """
-        hyp_cfg = (self.hypothesis_config if hypotheses is None
-                   else self._search_config(hypotheses))
+        config = self.search_config if search is None else self._as_config(search)
         if prior is not None:
-            if not hyp_cfg.enabled:
+            if not config.enabled:
                 raise ComRegError("An initial pose or landmarks need the pose search, which is "
-                                  "turned off.", "Drop --no-hypotheses (hypotheses=False).")
+                                  "turned off.", "Drop --no-search (search=False).")
             prior = prior.in_space(self.space)
-        if warm_start is not None and (warm_start.hypotheses is None or not hyp_cfg.enabled):
+        if warm_start is not None and (warm_start.search is None or not config.enabled):
             raise ComRegError("A warm start needs the pose search, on in both registrations.",
-                              "Register with hypotheses on.")
+                              "Register with the pose search on.")
         t: dict[str, float] = {}
         start = time.perf_counter()
         pts, origins, warnings = self._inputs(points, beam_origins, seed)
         check_s = time.perf_counter() - start
-        target = self._prepare_ct(hyp_cfg)  # built once per CT: not part of the time
+        target = self._prepare_ct(config)  # built once per CT: not part of the time
         start = time.perf_counter() - check_s  # the checks count as preprocessing
         T, T_coarse, dense, icp_rmse = self._start_pose(pts, target, prior, warm_start, seed,
                                                         t, start)
-        hyp, t["hypotheses"] = None, 0.0
-        if hyp_cfg.enabled:
+        found, t["search"] = None, 0.0
+        if config.enabled:
             mark = time.perf_counter()
             if warm_start is not None:
-                hyp = warm_search(pts, warm_start.hypotheses, target, hyp_cfg,
+                found = warm_search(pts, warm_start.search, target, config,
                                   beam_origins=origins, prior=prior, space=self.space)
             else:
-                hyp = self._search(pts, target, hyp_cfg, origins, prior,
+                found = self._search(pts, target, config, origins, prior,
                                    None if self.network is None else (T, T_coarse, dense))
-            T, icp_rmse = hyp.T_ct_us, hyp.best.icp_rmse_mm
-            if hyp.polish is not None and math.isfinite(hyp.polish["rmse_mm"]):
-                icp_rmse = hyp.polish["rmse_mm"]
+            T, icp_rmse = found.T_ct_us, found.best.icp_rmse_mm
+            if found.polish is not None and math.isfinite(found.polish["rmse_mm"]):
+                icp_rmse = found.polish["rmse_mm"]
             if self.network is not None:
                 self.network.sync()
-            t["hypotheses"] = time.perf_counter() - mark
+            t["search"] = time.perf_counter() - mark
         mark = time.perf_counter()
         completion_ct = np.zeros((0, 3)) if dense is None else apply_transform(T, dense)
         registered = apply_transform(T, pts)
@@ -256,13 +255,13 @@ class Registrar:
         mark = time.perf_counter()
         residuals = self.residuals(registered) if residuals else {}
         t["residuals"] = time.perf_counter() - mark
-        info = self._info(T, T_coarse, t, residuals, warnings, hyp, warm_start, prior, pts,
-                          hyp_cfg)
+        info = self._info(T, T_coarse, t, residuals, warnings, found, warm_start, prior, pts,
+                          config)
         return RegistrationResult(
             T_ct_us=T, T_ct_us_coarse=T_coarse, registered_points=registered,
             completion_ct=completion_ct, timings=t, runtime_s=t["total"],
             device=self.device, seed=int(seed), residuals=residuals,
-            icp_rmse=icp_rmse, n_points=len(pts), hypotheses=hyp, info=info)
+            icp_rmse=icp_rmse, n_points=len(pts), search=found, info=info)
 
     def _inputs(self, points, beam_origins, seed: int):
         """``(points (N, 3), beam origins (N, 3) or None, warnings)``: the US cloud checked
@@ -280,13 +279,13 @@ class Registrar:
             warnings.append(subset_notice(n_given, len(pts)))
         return pts, origins, warnings
 
-    def _prepare_ct(self, config: HypothesisConfig) -> SurfaceCloud | None:
+    def _prepare_ct(self, config: SearchConfig) -> SurfaceCloud | None:
         """The search's CT cloud (None with the search off), with everything a registration
         reads built once per CT: the network's CT half, the closest-point grid, the mesh's
         KD-tree."""
         if self.network is not None:
             self.network.encoding  # cached CT half
-        target = self.hypothesis_target(config.target_points) if config.enabled else None
+        target = self.search_target(config.target_points) if config.enabled else None
         if target is not None and config.refine_top:
             target.closest_point_grid
         mesh_refine = self.network is not None and self.network.model.config.icp.mesh_refine
@@ -309,35 +308,35 @@ class Registrar:
         return answer.T_ct_us, answer.T_coarse, answer.completion, answer.icp_rmse_mm
 
     @staticmethod
-    def _info(T, T_coarse, timings, residuals, warnings, hyp, warm_start, prior, pts,
-              config: HypothesisConfig) -> dict:
+    def _info(T, T_coarse, timings, residuals, warnings, found, warm_start, prior, pts,
+              config: SearchConfig) -> dict:
         """The result's ``info``: the coarse pose, timings, residuals, warnings, the search's
         record and flags, and the prior's record."""
         info = {"T_ct_us_coarse": T_coarse.tolist(), "timings_s": dict(timings),
                 "residuals_mm": residuals, "warnings": warnings,
-                "hypotheses": None if hyp is None else hyp.to_json(),
+                "search": None if found is None else found.to_json(),
                 "warm_start": warm_start is not None}
-        if hyp is not None:  # the flag where other consumers (the plugin) look for it
-            info.update(ambiguous=hyp.ambiguous, confidence=hyp.confidence)
+        if found is not None:  # the flag where other consumers (the plugin) look for it
+            info.update(ambiguous=found.ambiguous, confidence=found.confidence)
         if prior is not None:
-            info["prior"] = prior_record(prior, T, pts.mean(axis=0), hyp,
+            info["prior"] = prior_record(prior, T, pts.mean(axis=0), found,
                                          min_confidence=config.min_confidence,
                                          score_floor_mm=config.score_floor_mm)
         return info
 
     __call__ = register
 
-    def _search(self, pts: np.ndarray, target: SurfaceCloud, config: HypothesisConfig,
+    def _search(self, pts: np.ndarray, target: SurfaceCloud, config: SearchConfig,
                 origins: np.ndarray | None, prior: Prior | None,
-                network: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> HypothesisResult:
+                network: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> SearchResult:
         """The pose search alone (its own starts, always all of them), then with a network
         its poses ``(T_ct_us after its ICP, coarse T_ct_us, completion (M, 3) US frame)`` as
         further starts that win only by a clearly better score
         (:mod:`~comreg_core.registration.search.network_starts`)."""
         start_name = "pca" if getattr(prior, "T_init", None) is None else "init"
-        result = search_hypotheses(pts, search_start(pts, target, prior), target, None, config,
-                                   start_name=start_name, beam_origins=origins,
-                                   space=self.space, prior=prior)
+        result = search_poses(pts, search_start(pts, target, prior), target, None, config,
+                              start_name=start_name, beam_origins=origins,
+                              space=self.space, prior=prior)
         if network is None:
             return result
         T_network, T_coarse, completion = network

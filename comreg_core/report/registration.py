@@ -209,32 +209,32 @@ def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], 
             "Best-fitting scale of the US points": Quantity(figures["refit_scale"])}}
     if judged_file is not None:
         rows["Fit of the US points to the CT bone"]["Transform judged"] = str(judged_file)
-    hypotheses = result.get("hypotheses")
-    if hypotheses:  # the pose check of the hypotheses stage (comreg_core.registration.search.search)
+    search = result.get("search") or result.get("hypotheses")  # "hypotheses": its earlier name
+    if search:  # the pose search's choice (comreg_core.registration.search.search)
         pose = {"Another pose fits nearly as well (ambiguous)":
-                "YES: check the images" if hypotheses.get("ambiguous") else "no",
-                "Confidence (0-1; below 0.3 is ambiguous)": Quantity(hypotheses.get("confidence")),
-                "Pose kept": _hypothesis_words(hypotheses.get("chosen")),
-                "Next best pose": _hypothesis_words(hypotheses.get("runner_up")),
-                "Trimmed mean distance of the kept pose": Quantity(hypotheses.get("score_mm"),
+                "YES: check the images" if search.get("ambiguous") else "no",
+                "Confidence (0-1; below 0.3 is ambiguous)": Quantity(search.get("confidence")),
+                "Pose kept": _start_words(search.get("chosen")),
+                "Next best pose": _start_words(search.get("runner_up")),
+                "Trimmed mean distance of the kept pose": Quantity(search.get("score_mm"),
                                                                    "mm"),
-                "Next best pose is worse by": Quantity(hypotheses.get("score_gap_mm"), "mm")}
+                "Next best pose is worse by": Quantity(search.get("score_gap_mm"), "mm")}
         competitor = result.get("competitor") or {}
         if competitor.get("name"):
             where = ", ".join(f"{x:.0f}" for x in competitor["centroid_ct"])
             pose["Best clinically different pose"] = (
-                f"{_hypothesis_words(competitor['name'])}: {competitor['distance_mm']:.0f} mm and "
+                f"{_start_words(competitor['name'])}: {competitor['distance_mm']:.0f} mm and "
                 f"{competitor['rotation_deg']:.0f} deg from the kept pose, its sweep centred at "
                 f"({where}) mm on the CT; margin {competitor['margin']:.2f}")
-        if hypotheses.get("advice"):  # an ambiguous result: what would tell the poses apart
-            pose["What would resolve it"] = hypotheses["advice"]["advice"]
-        polish = hypotheses.get("polish")
+        if search.get("advice"):  # an ambiguous result: what would tell the poses apart
+            pose["What would resolve it"] = search["advice"]["advice"]
+        polish = search.get("polish")
         if polish:
             pose["Final polish"] = (
                 f"moved {polish['moved_mm']:.2f} mm in {polish['iterations']} iterations, "
                 f"{100 * polish['inlier_fraction']:.0f} % of the points matched, "
                 f"RMS {polish['rmse_mm']:.2f} mm")
-        rows["Pose check"] = pose
+        rows["Pose search"] = pose
     timings = result.get("timings_s") or {}
     rows["Time"] = {"Registration in all": Quantity(result.get("runtime_s"), "s"),
                     **{_stage_words(k): Quantity(v, "s") for k, v in timings.items()
@@ -246,7 +246,8 @@ def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], 
 
 _STAGE_WORDS = {"preprocess": "Checks and normalisation",
                 "completion_and_coarse_pose": "Completion and coarse pose (network)",
-                "icp": "Network ICP", "hypotheses": "Pose check",
+                "icp": "Network ICP", "search": "Pose search",
+                "hypotheses": "Pose search",  # the search's earlier name in timings_s
                 "postprocess": "Back to millimetres", "residuals": "Distances to the CT"}
 
 
@@ -256,8 +257,8 @@ def _stage_words(key: str) -> str:
     return words[:1].upper() + words[1:]
 
 
-def _hypothesis_words(name: str | None) -> str | None:
-    """A hypothesis name such as ``coarse+rot45+slide96`` in words."""
+def _start_words(name: str | None) -> str | None:
+    """A start's name such as ``coarse+rot45+slide96`` in words."""
     if not name:
         return name
     words = []

@@ -3,12 +3,12 @@
 Run after ``bench_pretrain`` (or on any run folder):
 ``.venv/bin/python -m tests.benchmarks.bench_evaluate [--run out/bench_pretrain/run] [--trials 100]``
 
-Prints, for ComReg with its hypotheses stage (``comreg``), the paper's plain pipeline
+Prints, for ComReg with its pose search (``comreg``), the paper's plain pipeline
 (``comreg-plain``), Open3D RANSAC+FPFH+ICP and ICP from the ground truth (the pseudo ground
 truth): success and flip rates, median/mean RTE and RRE, CD, HD95 and mean runtime on ``--trials``
 fresh simulated sweeps of the fibula with the paper's initial poses, and the same cases with the
 full-rotation perturbation (``--full-trials``, ComReg only); registration latency with ICP on 4096
-points, with and without the hypotheses; and the same evaluation on the real fibula sweep's bone
+points, with and without the pose search; and the same evaluation on the real fibula sweep's bone
 points (extracted from its B-mode frames; CT and tracking share one frame, so the ground truth is
 the identity).
 Writes metrics.json files under ``out/bench_evaluate/``.
@@ -77,12 +77,12 @@ def main(argv: list[str] | None = None) -> None:
 
     latency = Registrar.from_run(args.run, "auto", icp_points=4096)
     cloud = simulated_us_clouds(ct, 1, seed=args.seed)[0]
-    for hypotheses in (True, False):
-        times = [latency.register(cloud, seed=i, hypotheses=hypotheses).timings
+    for search in (True, False):
+        times = [latency.register(cloud, seed=i, search=search).timings
                  for i in range(10)]
         totals = [t["total"] for t in times]
         stages = {k: float(np.median([t[k] for t in times])) for k in times[0]}
-        print(f"\nregistration latency ({'with' if hypotheses else 'without'} hypotheses, ICP "
+        print(f"\nregistration latency ({'with' if search else 'without'} the pose search, ICP "
               f"on 4096 points, {latency.device}): median {np.median(totals):.3f} s, max "
               f"{np.max(totals):.3f} s; stages (median s): "
               + ", ".join(f"{k} {v:.3f}" for k, v in stages.items()))

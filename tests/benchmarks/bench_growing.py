@@ -95,8 +95,8 @@ def main(argv=None) -> None:
     for name, run in (("comreg", args.model), ("untrained", args.untrained)):
         if run is not None:
             registrars[name] = Registrar.from_run(run, device="cpu", ct_mesh=ct)
-    target = registrars["search"].hypothesis_target(
-        registrars["search"].hypothesis_config.target_points)
+    target = registrars["search"].search_target(
+        registrars["search"].search_config.target_points)
     starts = [int(s) for s in args.starts.split(",")]
     print(f"register on growing prefixes of {SHARED.name} from frames {starts}, every "
           f"{args.step} frames; verdict: " + (f"p_correct ({args.verdict_calibration})"

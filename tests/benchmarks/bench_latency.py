@@ -104,7 +104,7 @@ def time_trials(registrar, cases) -> list:
         registration_verdict(result, registrar)
         judged = time.perf_counter() - start
         rows.append((seconds, *errors(result.T_ct_us, T_truth, points),
-                     bool(result.info.get("ambiguous")), result.hypotheses.best.score_mm,
+                     bool(result.info.get("ambiguous")), result.search.best.score_mm,
                      judged))
     return rows
 
@@ -120,7 +120,7 @@ def grown_trials(registrar, points, origins, frames, T_truth) -> list:
         last = registrar.register(points[used], beam_origins=origins[used], warm_start=last)
         seconds = time.perf_counter() - start
         rows.append((seconds, *errors(last.T_ct_us, T_truth, points[used]),
-                     bool(last.info.get("ambiguous")), last.hypotheses.best.score_mm, np.nan))
+                     bool(last.info.get("ambiguous")), last.search.best.score_mm, np.nan))
     return rows
 
 

@@ -103,7 +103,7 @@ def _methods(bone: str, ct, args) -> dict:
             registrar = Registrar.from_run(by_bone[bone], "cpu")
             methods[label] = registrar
             methods[f"{label}-plain"] = (
-                lambda points, r=registrar: r.register(points, hypotheses=False))
+                lambda points, r=registrar: r.register(points, search=False))
     return methods
 
 
@@ -206,11 +206,11 @@ def _trials(methods: dict, runs: list, ct, trials: int, seed: int, perturbation:
                 result = methods[name](moved)
             seconds = time.perf_counter() - start
             errors = registration_metrics(result.T_ct_us, invert_rigid(T_p), moved, surface)
-            hypotheses = getattr(result, "hypotheses", None)
+            search = getattr(result, "search", None)
             rows[name].append({**errors, "runtime_s": seconds,
                                "ambiguous": getattr(result, "ambiguous", None),
-                               "score_mm": None if hypotheses is None
-                               else hypotheses.best.score_mm})
+                               "score_mm": None if search is None
+                               else search.best.score_mm})
     return rows
 
 

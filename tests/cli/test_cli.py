@@ -233,38 +233,38 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     assert_close(load_transform(out / "transform.tfm"), np.asarray(saved["T_ct_us"]), atol=1e-9)
     T = np.asarray(saved["T_ct_us"])
     assert_close(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9, what="rigid")
-    assert isinstance(saved["ambiguous"], bool) and "hypothesis '" in result.output
-    assert saved["hypotheses"]["chosen"] in saved["hypotheses"]["scores_mm"]
-    polish = saved["hypotheses"]["polish"]  # the final exact-mesh ICP of the chosen pose
+    assert isinstance(saved["ambiguous"], bool) and "pose '" in result.output
+    assert saved["search"]["chosen"] in saved["search"]["scores_mm"]
+    polish = saved["search"]["polish"]  # the final exact-mesh ICP of the chosen pose
     assert 1 <= polish["iterations"] <= 100 and 0.5 < polish["inlier_fraction"] <= 1.0, polish
     result = runner.invoke(app, ["register", str(tmp_path / "us.ply"), "--model", str(run), "--out",
-                                 str(tmp_path / "plain"), "--no-hypotheses"])
+                                 str(tmp_path / "plain"), "--no-search"])
     assert result.exit_code == 0, result.output
     plain = json.loads((tmp_path / "plain" / "result.json").read_text())
-    assert plain["ambiguous"] is None and plain["hypotheses"] is None
-    assert plain["timings_s"]["hypotheses"] == 0.0
+    assert plain["ambiguous"] is None and plain["search"] is None
+    assert plain["timings_s"]["search"] == 0.0
     # --config: the pose search's settings from YAML, the same loader as pretrain's; a
     # registration's config.yaml reads back; unknown keys are refused before any work
     search = tmp_path / "search.yaml"
-    search.write_text(yaml.safe_dump({"hypotheses": {"shaft_rotations": 2, "slide_step_mm": 0,
-                                                     "patch_max_share": 0.05}}))  # no patch starts
+    search.write_text(yaml.safe_dump({"search": {"shaft_rotations": 2, "slide_step_mm": 0,
+                                                 "patch_max_share": 0.05}}))  # no patch starts
     result = runner.invoke(app, ["register", str(tmp_path / "us.ply"), "--model", str(run), "--out",
                                  str(tmp_path / "narrow"), "--config", str(search)])
     assert result.exit_code == 0, result.output
-    narrow = json.loads((tmp_path / "narrow" / "result.json").read_text())["hypotheses"]
+    narrow = json.loads((tmp_path / "narrow" / "result.json").read_text())["search"]
     # the search's own base, 2 turns x 2 flips per round (a second round when the first is
     # ambiguous), then the network's 3 poses
     assert narrow["starts_tried"] in (2 * 2 + 3, 2 * 2 * 2 + 3)
-    assert narrow["starts_tried"] < saved["hypotheses"]["starts_tried"]
+    assert narrow["starts_tried"] < saved["search"]["starts_tried"]
     recorded = yaml.safe_load((tmp_path / "narrow" / "config.yaml").read_text())
-    assert recorded["hypotheses"]["shaft_rotations"] == 2
+    assert recorded["search"]["shaft_rotations"] == 2
     result = runner.invoke(app, ["register", str(tmp_path / "us.ply"), "--model", str(run), "--out",
                                  str(tmp_path / "again"), "--config",
                                  str(tmp_path / "narrow" / "config.yaml")])
     assert result.exit_code == 0, result.output
-    again = json.loads((tmp_path / "again" / "result.json").read_text())["hypotheses"]
+    again = json.loads((tmp_path / "again" / "result.json").read_text())["search"]
     assert again["starts_tried"] == narrow["starts_tried"] and again["chosen"] == narrow["chosen"]
-    search.write_text(yaml.safe_dump({"hypotheses": {"rotations": 2}}))
+    search.write_text(yaml.safe_dump({"search": {"rotations": 2}}))
     for command in ("register", "evaluate"):
         result = runner.invoke(app, [command, str(tmp_path / "us.ply"), "--model", str(run),
                                      "--out", str(tmp_path / f"bad-{command}"), "--config",
@@ -308,8 +308,8 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     # the evaluation's metrics.json was not made for this registration: the report leaves it out
     assert "icp-gt" not in html and "registered_anterior.png" in html
     assert "Verdict: OK" in html or "Verdict: CHECK" in html
-    # the pose check of the hypotheses stage is in the report
-    hypotheses = json.loads((out / "result.json").read_text())["hypotheses"]
-    assert "Pose check / Confidence (0-1; below 0.3 is ambiguous)" in html
-    assert f"in {hypotheses['polish']['iterations']} iterations" in html
-    assert ("YES: check the images" in html) == hypotheses["ambiguous"]
+    # the pose search's choice is in the report
+    search = json.loads((out / "result.json").read_text())["search"]
+    assert "Pose search / Confidence (0-1; below 0.3 is ambiguous)" in html
+    assert f"in {search['polish']['iterations']} iterations" in html
+    assert ("YES: check the images" in html) == search["ambiguous"]

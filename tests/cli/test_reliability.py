@@ -341,7 +341,7 @@ def test_register_uses_at_most_the_limit_and_says_so(sample, tmp_path, monkeypat
 
     monkeypatch.setattr("comreg_core.registration.geometry.inputs.MAX_US_POINTS", 500)
     result = runner.invoke(app, ["register", str(sample[1]), "--model", str(sample[0]), "--out",
-                                 str(tmp_path / "reg"), "--no-hypotheses", "--device", "cpu"])
+                                 str(tmp_path / "reg"), "--no-search", "--device", "cpu"])
     assert result.exit_code == 0, (result.stdout, result.stderr)
     saved = json.loads((tmp_path / "reg" / "result.json").read_text())
     assert saved["n_points"] == 500

@@ -41,7 +41,7 @@ def test_ransac_recovers_a_known_pose_of_a_fibula_patch(ransac, fibula_patch, fi
     assert rte < 2.0 and rre < 2.0, f"RTE {rte:.2f} mm, RRE {rre:.2f} deg"
     assert out.runtime_s > 0 and out.info["ransac_fitness"] > 0.5
     # the same seed gives the same pose, up to Open3D's thread scheduling (its parallel RANSAC
-    # may keep another, equally good hypothesis; ICP then lands within ~0.01 mm)
+    # may keep another, equally good pose; ICP then lands within ~0.01 mm)
     ransac.reseed(0)
     again = ransac(moved)
     assert_close(_errors(again.T_ct_us, out.T_ct_us, moved), [0.0, 0.0], atol=0.05,

@@ -1,4 +1,4 @@
-"""Methods by name for ``comreg evaluate``: ComReg with and without its hypotheses stage side by
+"""Methods by name for ``comreg evaluate``: ComReg with and without its pose search side by
 side (one network), the baselines, ``all``."""
 
 from __future__ import annotations
@@ -34,17 +34,17 @@ def test_comreg_and_plain_side_by_side(tmp_path_factory):
                                    device="cpu")
     assert list(methods) == ["comreg", "comreg-plain", "icp-gt"]
     comreg, plain = methods["comreg"], methods["comreg-plain"]
-    assert isinstance(comreg, Registrar) and comreg.hypothesis_config.enabled
+    assert isinstance(comreg, Registrar) and comreg.search_config.enabled
     assert isinstance(plain, functools.partial) and plain.func.__self__ is comreg  # one network
     result = evaluate(methods, "simulated", FIBULA_STL, trials=1, seed=0)
     rows = {r["method"]: r for r in result["trials"]}
     assert isinstance(rows["comreg"]["ambiguous"], bool)
-    assert rows["comreg"]["info"]["hypotheses"]["chosen"] in \
-        rows["comreg"]["info"]["hypotheses"]["scores_mm"]
+    assert rows["comreg"]["info"]["search"]["chosen"] in \
+        rows["comreg"]["info"]["search"]["scores_mm"]
     assert rows["comreg-plain"]["ambiguous"] is None
-    assert rows["comreg-plain"]["info"]["hypotheses"] is None
+    assert rows["comreg-plain"]["info"]["search"] is None
     s = result["summary"]
     assert s["comreg"]["ambiguous_rate"] in (0.0, 1.0)
     assert s["comreg-plain"]["ambiguous_rate"] is None
     with pytest.raises(ComRegError, match="comreg-plain"):
-        registration_methods(["comreg"], run, FIBULA_STL, device="cpu", hypotheses=False)
+        registration_methods(["comreg"], run, FIBULA_STL, device="cpu", search=False)

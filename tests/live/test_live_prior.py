@@ -40,8 +40,8 @@ def _shaft_end(target) -> np.ndarray:
 def test_halves_turned_apart_disagree_by_the_turn(search_registrar):
     """Samples of 120 mm of the CT's own shaft at the identity pose: halves agree; the upper
     half turned 10 deg about the long axis: halves 10 deg apart (polished each to its own)."""
-    target = search_registrar.hypothesis_target(search_registrar.hypothesis_config.target_points)
-    config = search_registrar.hypothesis_config
+    target = search_registrar.search_target(search_registrar.search_config.target_points)
+    config = search_registrar.search_config
     points, _ = search_registrar.surface.samples(40_000)
     axis = target.axes[:, 0]
     along = (points - target.centre) @ axis
@@ -63,7 +63,7 @@ def test_a_landmark_bounds_every_update_and_no_ok_is_wrong(sweep, search_registr
     for frame in _frames(sweep, range(sweep.n_frames)):
         whole.add(frame)
     truth = pseudo_ground_truth(whole.cloud().points, search_registrar.surface)
-    target = search_registrar.hypothesis_target(search_registrar.hypothesis_config.target_points)
+    target = search_registrar.search_target(search_registrar.search_config.target_points)
     ct_point = _shaft_end(target)
     offset = np.random.default_rng(0).normal(size=3)
     us_point = apply_transform(invert_rigid(truth), ct_point[None])[0] \

@@ -28,7 +28,7 @@ from comreg_plugin.verdict_record import (describeFigures, figuresFromNode,  # n
 
 #: A record with the keys issue 48 adds (uncertainty, scan_next) besides comreg register's.
 UNCERTAIN = {"verdict": "check", "verdict_reasons": ["The sweep covers too little bone."],
-             "p_correct": 0.61, "hypotheses": {"confidence": 0.4, "ambiguous": False},
+             "p_correct": 0.61, "search": {"confidence": 0.4, "ambiguous": False},
              "competitor": {"name": "pca+flip", "margin": 0.2, "distance_mm": 30.0,
                             "rotation_deg": 180.0},
              "uncertainty": {"bound_mm": 3.25, "noise_mm": 0.4, "directions": [
@@ -141,10 +141,10 @@ def test_a_record_with_uncertainty_and_scan_next_is_shown(logic, registered):
 
 
 class _Result:
-    """A result holding only its pose (no hypotheses: no competitor pose)."""
+    """A result holding only its pose (no search: no competitor pose)."""
 
     def __init__(self, T):
-        self.T_ct_us, self.hypotheses = T, None
+        self.T_ct_us, self.search = T, None
 
 
 class _Registrar:

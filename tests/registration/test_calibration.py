@@ -14,7 +14,7 @@ from comreg_core.registration.judgement.calibration import (Calibration, clinica
                                                             extent_share, fit_calibration,
                                                             pose_difference, reliability_table,
                                                             same_answer)
-from comreg_core.registration.search.scoring import Hypothesis, HypothesisResult
+from comreg_core.registration.search.scoring import Candidate, SearchResult
 from comreg_core.registration.judgement.verdict import judge_registration
 
 
@@ -47,11 +47,11 @@ def test_pose_difference_and_clinical_sameness_against_known_transforms(strip):
     assert not same_answer(np.eye(4), _pose((0, 0, 6.0)), strip)  # beyond 5 deg, though 2.6 mm
 
 
-def _result(strip, entries) -> HypothesisResult:
-    hypotheses = tuple(Hypothesis(name, np.eye(4), T, score, 0.0) for name, T, score in entries)
-    return HypothesisResult(T_ct_us=entries[0][1], chosen=entries[0][0], runner_up=None,
-                            score_gap_mm=None, confidence=1.0, ambiguous=False,
-                            hypotheses=hypotheses)
+def _result(strip, entries) -> SearchResult:
+    candidates = tuple(Candidate(name, np.eye(4), T, score, 0.0) for name, T, score in entries)
+    return SearchResult(T_ct_us=entries[0][1], chosen=entries[0][0], runner_up=None,
+                        score_gap_mm=None, confidence=1.0, ambiguous=False,
+                        candidates=candidates)
 
 
 def test_the_competitor_is_the_best_clinically_different_pose(strip):

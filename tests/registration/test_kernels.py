@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from comreg_core.registration.geometry import kernels, mesh_kernels
-from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.icp import point_to_plane_icp, strided
 from comreg_core.registration.search.scoring import score_poses
 from tests.helpers import random_rigid
@@ -66,7 +66,7 @@ def test_pose_steps_match_the_numpy_update():
 
 def test_grid_icp_and_scores_match_the_python_screening(fibula_patch, fibula_surface):
     target = fibula_surface.cloud(5000)
-    config = HypothesisConfig()
+    config = SearchConfig()
     rng = np.random.default_rng(4)
     starts = _starts(rng, fibula_patch, 40, degrees=40.0, mm=30.0)
     src = strided(fibula_patch, 64)

@@ -154,12 +154,12 @@ def test_a_prior_around_the_truth_registers_a_real_short_run(tmp_path, search, s
     us = write_points(PointCloud(short_run), tmp_path / "us.ply")
     result = register_to_directory(None, us, tmp_path / "reg", ct_mesh=FIBULA_STL, prior=prior)
     rte, rre = _errors(result.T_ct_us, np.eye(4), short_run)
-    assert rte < 4.0 and rre < 5.0, (rte, rre, result.hypotheses.chosen)
+    assert rte < 4.0 and rre < 5.0, (rte, rre, result.search.chosen)
     record = result.info["prior"]
     assert record["within"] and record["init_file"] == str(init.absolute())
     assert abs(record["rotation_from_init_deg"] - 25.0) < 3.0
     assert abs(record["shift_from_init_mm"] - 25.0) < 4.0
-    assert result.hypotheses.chosen.startswith("init")
+    assert result.search.chosen.startswith("init")
     again = load_prior(tmp_path / "reg" / "transform.tfm")  # the registration's own output
     assert_close(again.T_init, result.T_ct_us, atol=1e-9, what="transform.tfm as --init")
 
@@ -191,11 +191,11 @@ def test_one_landmark_10mm_off_registers_from_any_rotation(search, short_run):
     landmark = Landmark("tip", short_run[mid] + [0.0, 6.0, 8.0], us[mid], 15.0)
     result = search.register(us, prior=Prior(landmarks=[landmark]))
     rte, rre = _errors(result.T_ct_us, truth, us)
-    assert rte < 4.0 and rre < 5.0, (rte, rre, result.hypotheses.chosen)
+    assert rte < 4.0 and rre < 5.0, (rte, rre, result.search.chosen)
     record = result.info["prior"]
     assert record["within"] and record["max_deg"] is None
     assert 5.0 < record["landmarks"][0]["error_mm"] < 15.0
-    assert "+lm" in result.hypotheses.chosen or result.hypotheses.chosen == "landmarks"
+    assert "+lm" in result.search.chosen or result.search.chosen == "landmarks"
 
 
 def test_a_landmark_beyond_its_tolerance_rules_poses_out(search, short_run):
@@ -213,7 +213,7 @@ def test_a_landmark_beyond_its_tolerance_rules_poses_out(search, short_run):
     result = search.register(short_run, prior=prior)
     record = result.info["prior"]
     assert record["within"] and record["landmarks"][0]["error_mm"] <= 5.0
-    assert prior.allows(result.hypotheses.best.T_ct_us[None], centroid)[0]
+    assert prior.allows(result.search.best.T_ct_us[None], centroid)[0]
     assert _errors(result.T_ct_us, np.eye(4), short_run)[0] > 10.0
     best_outside = record["best_outside"]
     assert best_outside["lead"] >= 0.3 and best_outside["rotation_from_init_deg"] is None
@@ -228,18 +228,18 @@ def test_a_landmark_beyond_its_tolerance_rules_poses_out(search, short_run):
 def test_with_the_network_its_pose_is_one_more_start(tmp_path_factory, short_run):
     """``--model``: the network's pose is refined as one more start (the tiny test network's
     lands far off) but, outside the prior, never chosen; the search around the initial pose
-    finds the truth. The prior needs the search: with ``hypotheses=False`` it is refused."""
+    finds the truth. The prior needs the search: with ``search=False`` it is refused."""
     from comreg_core.errors import ComRegError
     from tests.training.tiny import tiny_run
 
     registrar = Registrar.from_run(tiny_run(tmp_path_factory)[1], "cpu")
     prior = Prior(_turned(short_run.mean(axis=0), 25.0, 25.0, seed=2))
     result = registrar.register(short_run, prior=prior)
-    network = next(h for h in result.hypotheses.hypotheses if h.name == "network")
+    network = next(h for h in result.search.candidates if h.name == "network")
     assert result.info["prior"]["within"]
     if not prior.allows(network.T_ct_us[None], short_run.mean(axis=0))[0]:
-        assert result.hypotheses.chosen != "network"
+        assert result.search.chosen != "network"
     rte, rre = _errors(result.T_ct_us, np.eye(4), short_run)
-    assert rte < 4.0 and rre < 5.0, (rte, rre, result.hypotheses.chosen)
+    assert rte < 4.0 and rre < 5.0, (rte, rre, result.search.chosen)
     with pytest.raises(ComRegError, match="need the pose search"):
-        registrar.register(short_run, hypotheses=False, prior=prior)
+        registrar.register(short_run, search=False, prior=prior)

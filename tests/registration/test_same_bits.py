@@ -38,8 +38,8 @@ prior = Prior(landmarks=(Landmark("tip", centroid + 5.0, centroid, 20.0),), spac
 for points, given in ((run, None), (run, prior), (us.points[::3], None)):
     result = registrar.register(points, prior=given)
     digest.update(result.T_ct_us.tobytes())
-    digest.update(np.float64(result.hypotheses.best.score_mm).tobytes())
-    digest.update(np.float64(result.hypotheses.confidence).tobytes())
+    digest.update(np.float64(result.search.best.score_mm).tobytes())
+    digest.update(np.float64(result.search.confidence).tobytes())
 print(digest.hexdigest())
 """
 

@@ -3,7 +3,7 @@ acoustic rule (a surface facing away from its beam's origin is penalised)."""
 
 import numpy as np
 
-from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.search.scoring import score_poses
 from comreg_core.registration.geometry.surface import facing_away
 from tests.helpers import BOX_CENTRE, assert_close, rigid_about
@@ -24,13 +24,13 @@ def test_a_pose_that_puts_the_probe_inside_the_bone_loses(box_surface):
     cloud = box_surface.cloud(20_000)
     flip = rigid_about([180.0, 0.0, 0.0], [0.0, 0.0, 0.0], points.mean(axis=0))
     poses = np.stack([np.eye(4), flip])
-    config = HypothesisConfig()
+    config = SearchConfig()
     plain = score_poses(poses, points, cloud, config)
     assert_close(plain, [0.0, 0.0], atol=1e-9, what="both fit the face")
     with_beams = score_poses(poses, points, cloud, config, origins=origins)
     assert_close(with_beams, [0.0, config.facing_penalty_mm], atol=1e-9,
                  what="the flipped probe is behind the surface for every point")
-    off = HypothesisConfig(facing_penalty_mm=0.0)
+    off = SearchConfig(facing_penalty_mm=0.0)
     assert_close(score_poses(poses, points, cloud, off, origins=origins), plain, atol=0)
 
 

@@ -13,13 +13,13 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from comreg_core.config import ConfigError
-from comreg_core.registration.search.config import HypothesisConfig, as_hypothesis_config
+from comreg_core.registration.search.config import SearchConfig, as_search_config
 from comreg_core.registration.geometry.icp import coarse_to_fine_icp
 from comreg_core.registration.search.screening import screen_starts
-from comreg_core.registration.search.search import (PATCH_ORIENTATIONS, build_hypotheses,
+from comreg_core.registration.search.search import (PATCH_ORIENTATIONS, build_starts,
                                                     patch_orientation_starts, principal_axes_pose,
                                                     refine_starts, rotation_about,
-                                                    search_hypotheses, slide_offsets_mm, us_subset)
+                                                    search_poses, slide_offsets_mm, us_subset)
 from comreg_core.registration.geometry.surface import CTSurface, SurfaceCloud
 from comreg_core.pointsets import farthest_point_indices
 from comreg_core.transforms import apply_transform, invert_rigid
@@ -56,7 +56,7 @@ def _perturb(T, centre, degrees, mm, seed) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def fibula_target(shared_data):
-    return CTSurface(FIBULA_STL).cloud(HypothesisConfig.target_points)
+    return CTSurface(FIBULA_STL).cloud(SearchConfig.target_points)
 
 
 @pytest.fixture(scope="module")
@@ -80,21 +80,21 @@ def test_distal_patch_near_start_lands_and_is_not_ambiguous(fibula_target, dista
     assert 1000 < len(us) < 10_000
     start = _perturb(truth, ct_patch.mean(axis=0), degrees=6.0, mm=4.0, seed=1)
     assert _errors(start, truth, us)[1] > 5.0
-    result = search_hypotheses(us, start, fibula_target)
+    result = search_poses(us, start, fibula_target)
     rte, rre = _errors(result.T_ct_us, truth, us)
     assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen)
     assert not result.ambiguous and result.confidence > 0.5, result.to_json()
-    # not ambiguous: no second round (its hypotheses are named by the half steps)
-    assert not any("rot22.5" in h.name or "+turned" in h.name for h in result.hypotheses)
+    # not ambiguous: no second round (its candidates are named by the half steps)
+    assert not any("rot22.5" in h.name or "+turned" in h.name for h in result.candidates)
     # a patch (40 mm of the bone) must lead by patch_min_confidence, not min_confidence
     assert result.patch and result.to_json()["patch"]
     assert result.confidence < 1.0  # it has a runner-up
     stricter = (1.0 + result.confidence) / 2  # above this result's lead
-    strict = HypothesisConfig(patch_min_confidence=stricter)
-    flagged = search_hypotheses(us, start, fibula_target, config=strict)
+    strict = SearchConfig(patch_min_confidence=stricter)
+    flagged = search_poses(us, start, fibula_target, config=strict)
     assert flagged.confidence < stricter and flagged.ambiguous
-    whole = search_hypotheses(fibula_target.points[::10], np.eye(4), fibula_target,
-                              config=strict)
+    whole = search_poses(fibula_target.points[::10], np.eye(4), fibula_target,
+                         config=strict)
     assert not whole.patch and not whole.ambiguous
     assert result.runner_up is not None and result.score_gap_mm > 0.1
 
@@ -114,8 +114,8 @@ def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_pa
         whole, _ = CTSurface(FIBULA_STL, sample_seed=5).samples(4000)
         completion = apply_transform(invert_rigid(truth), whole)  # the bone in the US frame
     # the flips alone: the 40 mm patch counts as a whole cloud (no patch starts: below)
-    config = HypothesisConfig(patch_max_share=0.05)
-    result = search_hypotheses(us, start, fibula_target, completion, config)
+    config = SearchConfig(patch_max_share=0.05)
+    result = search_poses(us, start, fibula_target, completion, config)
     rte, rre = _errors(result.T_ct_us, truth, us)
     assert rte < 2.0 and rre < 2.0, (rte, rre, result.chosen, result.scores)
     assert result.chosen != "network" and not result.ambiguous
@@ -123,19 +123,19 @@ def test_flipped_start_on_the_distal_patch_is_recovered(fibula_target, distal_pa
     bases = 2 if with_completion else 1  # the network's pose (+ the principal-axes solve)
     slides = len(slide_offsets_mm(fibula_target, config))
     assert result.starts_tried == bases * 8 * 2 * slides
-    assert len(result.hypotheses) == config.refine_top
-    assert result.hypotheses[0].name == "network"
+    assert len(result.candidates) == config.refine_top
+    assert result.candidates[0].name == "network"
     # the unflipped network pose itself ends up far away and scores clearly worse
-    network = next(h for h in result.hypotheses if h.name == "network")
+    network = next(h for h in result.candidates if h.name == "network")
     assert _errors(network.T_ct_us, truth, us)[1] > 90.0
     assert network.score_mm > result.best.score_mm + 0.5
 
 
 def test_score_and_confidence_follow_their_definitions(fibula_target, distal_patch):
     us, truth, ct_patch = distal_patch
-    config = HypothesisConfig(icp_points=1024)
+    config = SearchConfig(icp_points=1024)
     start = _perturb(truth, ct_patch.mean(axis=0), degrees=3.0, mm=2.0, seed=3)
-    result = search_hypotheses(us, start, fibula_target, config=config)
+    result = search_poses(us, start, fibula_target, config=config)
     # the score: trimmed mean distance to the tangent plane of the nearest CT point (scipy's
     # KD-tree here) of the ICP subset of the US points (the documented uniform subset: seed 0,
     # in sweep order)
@@ -145,7 +145,7 @@ def test_score_and_confidence_follow_their_definitions(fibula_target, distal_pat
     keep = len(sub_mm) - int(config.score_trim * len(sub_mm))
     mesh = pv.read(FIBULA_STL)
     assert result.polished and result.polished[0] == result.chosen
-    for h in result.hypotheses:
+    for h in result.candidates:
         moved = apply_transform(h.T_ct_us, sub_mm)
         if h.polish is None:
             idx = tree.query(moved)[1]
@@ -165,7 +165,7 @@ def test_score_and_confidence_follow_their_definitions(fibula_target, distal_pat
         rte, rre = _errors(h.T_ct_us, best.T_ct_us, us)
         return rre > config.distinct_deg or rte > config.distinct_mm
 
-    distinct = [h for h in result.hypotheses if h.name != best.name and different(h)]
+    distinct = [h for h in result.candidates if h.name != best.name and different(h)]
     runner = min(distinct, key=lambda h: h.score_mm)
     assert result.runner_up == runner.name
     assert_close(result.score_gap_mm, runner.score_mm - best.score_mm, atol=1e-12)
@@ -191,38 +191,38 @@ def test_cylinder_patch_is_flagged_ambiguous():
     patch = np.column_stack([12.0 * np.cos(theta), 12.0 * np.sin(theta), z])
     T_us_ct = _rigid([-40.0, 10.0, 75.0], [100.0, 20.0, -50.0])
     us, truth = apply_transform(T_us_ct, patch), invert_rigid(T_us_ct)
-    result = search_hypotheses(us, truth, target)
+    result = search_poses(us, truth, target)
     assert result.ambiguous, result.to_json()
     assert result.runner_up is not None and result.score_gap_mm < 0.05
     assert result.confidence < 0.2
     # the runner-up is a genuinely different pose (e.g. turned about the axis), not a duplicate
-    runner = next(h for h in result.hypotheses if h.name == result.runner_up)
+    runner = next(h for h in result.candidates if h.name == result.runner_up)
     rte, rre = _errors(runner.T_ct_us, result.T_ct_us, us)
     assert rre > 10.0 or rte > 5.0
-    # every hypothesis fits the cylinder (the patch lies on it in all of these poses)
+    # every candidate fits the cylinder (the patch lies on it in all of these poses)
     assert max(result.scores.values()) < 0.05
     # ambiguous: a second round from the interleaved grid was searched too (twice the starts
-    # of the first, its hypotheses named by the half steps)
-    config = HypothesisConfig()
-    first_round = (len(build_hypotheses(truth, target, None, config))
+    # of the first, its candidates named by the half steps)
+    config = SearchConfig()
+    first_round = (len(build_starts(truth, target, None, config))
                    + len(patch_orientation_starts(us, target, config)))
     assert result.starts_tried == 2 * first_round
     second = ("rot22.5", "+turned")  # the half-step turns of the grid and of the patch starts
-    assert any(any(s in h.name for s in second) for h in result.hypotheses)
+    assert any(any(s in h.name for s in second) for h in result.candidates)
     # an ambiguous result says where the runner-up puts the sweep and what to scan
-    runner = next(h for h in result.hypotheses if h.name == result.runner_up)
+    runner = next(h for h in result.candidates if h.name == result.runner_up)
     advice = result.advice
     assert advice is not None and result.to_json()["advice"] == advice
     assert_close(advice["turn_deg"], _errors(result.T_ct_us, runner.T_ct_us, us)[1], atol=1e-6)
     assert "sweep" in advice["advice"]
 
 
-# --- hypotheses, refinement, options --------------------------------------------------------
+# --- starts, refinement, options -------------------------------------------------------------
 
-def test_the_hypotheses_built(fibula_target):
+def test_the_starts_built(fibula_target):
     T = _rigid([10.0, 0.0, 0.0], [1.0, 2.0, 3.0])
-    no_slides = HypothesisConfig(shaft_rotations=4, slide_step_mm=0)
-    starts = build_hypotheses(T, fibula_target, None, no_slides, T_coarse=np.eye(4))
+    no_slides = SearchConfig(shaft_rotations=4, slide_step_mm=0)
+    starts = build_starts(T, fibula_target, None, no_slides, T_coarse=np.eye(4))
     assert list(starts)[0] == "network" and "coarse" in starts
     assert len(starts) == 2 * 4 * 2  # 2 bases x dihedral group of 4 rotations x flips
     assert_close(starts["network"], T, atol=0)
@@ -235,47 +235,47 @@ def test_the_hypotheses_built(fibula_target):
         R = G[:3, :3]
         assert_close(R.T @ R, np.eye(3), atol=1e-9, what=name)
         assert np.linalg.det(R) > 0
-    only = build_hypotheses(T, fibula_target, None,
-                            HypothesisConfig(shaft_rotations=1, slide_step_mm=0))
+    only = build_starts(T, fibula_target, None,
+                        SearchConfig(shaft_rotations=1, slide_step_mm=0))
     assert list(only) == ["network", "network+flip"]
     # the principal-axes solve of the CT cloud against itself, flipped and turned: the identity
     # is one of its 4 proper sign choices (pca, pca+flip, pca+rot180, pca+flip+rot180)
     completion = fibula_target.points
-    with_pca = build_hypotheses(T, fibula_target, completion, no_slides)
+    with_pca = build_starts(T, fibula_target, completion, no_slides)
     assert len(with_pca) == 2 * 4 * 2
     assert min(np.abs(with_pca[n] - np.eye(4)).max() for n in
                ("pca", "pca+flip", "pca+rot180", "pca+flip+rot180")) < 1e-6
     # slides: multiples of the step along the long axis, up to half the CT's length
-    config = HypothesisConfig(slide_step_mm=20.0)
+    config = SearchConfig(slide_step_mm=20.0)
     slides = slide_offsets_mm(fibula_target, config)
     along = (fibula_target.points - c) @ axes[:, 0]
     half_length = (along.max() - along.min()) / 2
     assert slides[0] == 0 and np.abs(slides).max() <= half_length < np.abs(slides).max() + 20
     assert np.allclose(np.sort(slides), np.arange(-len(slides) // 2 + 1, len(slides) // 2 + 1)
                        * 20.0)
-    slid = build_hypotheses(T, fibula_target, completion, config)
+    slid = build_starts(T, fibula_target, completion, config)
     assert len(slid) == 2 * 8 * 2 * len(slides)
     move = slid["network+flip+slide40"][:3, 3] - slid["network+flip"][:3, 3]
     assert abs(np.linalg.norm(move) - 40.0) < 1e-9
     assert_close(slid["network+slide-20"][:3, :3], slid["network"][:3, :3], atol=1e-12)
-    assert list(slide_offsets_mm(fibula_target, HypothesisConfig(slide_step_mm=0))) == [0.0]
+    assert list(slide_offsets_mm(fibula_target, SearchConfig(slide_step_mm=0))) == [0.0]
     # the interleaved grid of the second round: rotations and slides shifted by half a step
-    shifted = build_hypotheses(T, fibula_target, completion, config, grid_offset=0.5)
+    shifted = build_starts(T, fibula_target, completion, config, grid_offset=0.5)
     assert len(shifted) == len(slid) and not set(shifted) & set(slid)
     half_turn = shifted["network+rot22.5+slide10"] @ invert_rigid(slid["network"])
     assert abs(np.degrees(Rotation.from_matrix(half_turn[:3, :3]).magnitude()) - 22.5) < 1e-6
     assert "network+flip+rot337.5+slide-190" in shifted
-    assert len(slide_offsets_mm(fibula_target, HypothesisConfig(slide_range_mm=30.0))) == 7
+    assert len(slide_offsets_mm(fibula_target, SearchConfig(slide_range_mm=30.0))) == 7
 
 
 def test_screening_ranks_the_true_basin_first(fibula_target, distal_patch):
     """Of hundreds of starts, the screening keeps the network's own (bad) start first and one
     near the truth among the few it keeps; without ``refine_top`` it keeps all, unmoved."""
     us, truth, ct_patch = distal_patch
-    config = HypothesisConfig()
+    config = SearchConfig()
     bad_start = rotation_about(fibula_target.centre, fibula_target.axes[:, 1], math.pi) @ \
         _perturb(truth, ct_patch.mean(axis=0), degrees=25.0, mm=30.0, seed=5)
-    starts = build_hypotheses(bad_start, fibula_target, None, config)
+    starts = build_starts(bad_start, fibula_target, None, config)
     stack = np.stack(list(starts.values()))
     kept, screened = screen_starts(us[::10], stack, fibula_target, config)
     assert len(kept) == config.refine_top and kept[0] == 0
@@ -283,7 +283,7 @@ def test_screening_ranks_the_true_basin_first(fibula_target, distal_patch):
     errors = [_errors(T, truth, us) for T in screened[1:]]
     assert min(rre for _, rre in errors) < 5.0 and min(rte for rte, _ in errors) < 5.0, errors
     everything, unmoved = screen_starts(us[::10], stack, fibula_target,
-                                        HypothesisConfig(refine_top=0))
+                                        SearchConfig(refine_top=0))
     assert np.array_equal(everything, np.arange(len(stack))) and unmoved is stack
 
 
@@ -316,7 +316,7 @@ def test_on_a_symmetric_cylinder_every_turn_ties_and_the_lowest_score_wins():
     truth = invert_rigid(_rigid([-40.0, 10.0, 75.0], [100.0, 20.0, -50.0]))
     start = rotation_about(np.zeros(3), [0.0, 0.0, 1.0], math.radians(40.0)) @ truth
     us = apply_transform(invert_rigid(truth), patch)
-    result = search_hypotheses(us, start, target)
+    result = search_poses(us, start, target)
     assert result.ambiguous
     # the lowest score (chosen on the quick polish's scores; all fit the cylinder to ~0.01 mm)
     assert result.scores[result.chosen] <= min(result.scores.values()) + 0.01
@@ -351,7 +351,7 @@ def test_polish_gates_out_false_echoes(fibula_target):
     us = apply_transform(invert_rigid(truth), patch)
     start = _perturb(truth, patch.mean(axis=0), degrees=3.0, mm=2.0, seed=4)
 
-    polished = search_hypotheses(us, start, fibula_target)
+    polished = search_poses(us, start, fibula_target)
     rte, rre = _errors(polished.T_ct_us, truth, us)
     assert rte < 0.1 and rre < 0.2, (rte, rre)
     info = polished.polish
@@ -360,7 +360,7 @@ def test_polish_gates_out_false_echoes(fibula_target):
     assert polished.chosen in polished.polished and polished.to_json()["polish"] == info
 
     # the refinement alone (the network's start, before the polish) stays off the truth
-    config = HypothesisConfig()
+    config = SearchConfig()
     _, _, refined, _ = refine_starts(us_subset(us, config.icp_points), {"network": start},
                                      fibula_target, config, keep_first=True)
     refined = refined[0]
@@ -372,7 +372,7 @@ def test_polish_gates_out_false_echoes(fibula_target):
 
     bare = SurfaceCloud(fibula_target.points, normals=fibula_target.normals)
     assert bare.surface is None
-    assert search_hypotheses(us, start, bare).polish is None
+    assert search_poses(us, start, bare).polish is None
 
 
 def test_random_subset_keeps_the_sweeps_share_of_false_echoes(fibula_target):
@@ -381,7 +381,7 @@ def test_random_subset_keeps_the_sweeps_share_of_false_echoes(fibula_target):
     trimmed refinement stays on the truth (identity: the sweeps are in the CT frame)."""
     from comreg_core.simulation import simulate_sweeps
 
-    config = HypothesisConfig()
+    config = SearchConfig()
     for sweep in simulate_sweeps(FIBULA_STL, 3, seed=5):
         cloud = sweep.points
         off = lambda pts: float((fibula_target.surface.closest(pts)[2] > 2.0).mean())
@@ -425,20 +425,20 @@ def test_target_from_points_estimates_normals():
     ("facing_penalty_mm", -1.0),
 ])
 def test_config_validation(key, value):
-    with pytest.raises(ConfigError, match=f"hypotheses.{key}"):
-        HypothesisConfig(**{key: value})
+    with pytest.raises(ConfigError, match=f"search.{key}"):
+        SearchConfig(**{key: value})
 
 
 def test_config_from_settings():
-    assert as_hypothesis_config(None) == HypothesisConfig()
-    assert as_hypothesis_config(True).enabled and not as_hypothesis_config(False).enabled
-    assert as_hypothesis_config({"shaft_rotations": 6}).shaft_rotations == 6
+    assert as_search_config(None) == SearchConfig()
+    assert as_search_config(True).enabled and not as_search_config(False).enabled
+    assert as_search_config({"shaft_rotations": 6}).shaft_rotations == 6
     with pytest.raises(ConfigError, match="Unknown config key"):
-        as_hypothesis_config({"flips": True})
+        as_search_config({"flips": True})
     with pytest.raises(ConfigError, match="must be an integer"):
-        as_hypothesis_config({"shaft_rotations": "six"})
-    with pytest.raises(ConfigError, match="hypotheses setting"):
-        as_hypothesis_config(3)
+        as_search_config({"shaft_rotations": "six"})
+    with pytest.raises(ConfigError, match="search setting"):
+        as_search_config(3)
 
 
 #: The removed switches as every registration folder's config.yaml recorded them (defaults),
@@ -453,10 +453,40 @@ def test_old_registration_configs_load_when_they_hold_what_survived(tmp_path):
     from comreg_core.registration.search.config import load_register_config
 
     path = tmp_path / "config.yaml"
-    old = {"hypotheses": {**OLD_KEYS, "shaft_rotations": 6}, "inputs": {"seed": 0}}
+    old = {"search": {**OLD_KEYS, "shaft_rotations": 6}, "inputs": {"seed": 0}}
     path.write_text(yaml.safe_dump(old))
-    assert load_register_config(path).hypotheses == HypothesisConfig(shaft_rotations=6)
-    assert as_hypothesis_config({**OLD_KEYS, "include_coarse": False}) == HypothesisConfig()
+    assert load_register_config(path).search == SearchConfig(shaft_rotations=6)
+    assert as_search_config({**OLD_KEYS, "include_coarse": False}) == SearchConfig()
+
+
+def test_the_search_section_under_its_older_name_is_read_with_one_warning(tmp_path, caplog):
+    """``hypotheses:`` (the section's name in earlier registration folders and configs) reads
+    as ``search:``, for ``register`` and ``evaluate`` alike, with one warning per file; a file
+    with both is refused."""
+    import logging
+
+    import yaml
+
+    from comreg_core.evaluation.methods import load_evaluate_config
+    from comreg_core.registration.search.config import load_register_config
+
+    old, new = tmp_path / "old.yaml", tmp_path / "new.yaml"
+    old.write_text(yaml.safe_dump({"hypotheses": {**OLD_KEYS, "shaft_rotations": 6},
+                                   "inputs": {"seed": 0}}))
+    new.write_text(yaml.safe_dump({"search": {"shaft_rotations": 6}}))
+    with caplog.at_level(logging.WARNING, logger="comreg_core.config"):
+        for _ in range(3):
+            assert load_register_config(old).search == SearchConfig(shaft_rotations=6)
+            assert load_evaluate_config(old).search == SearchConfig(shaft_rotations=6)
+        assert load_register_config(new) == load_register_config(old)
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 1 and "'hypotheses:' is now called 'search:'" in warnings[0]
+    off = load_register_config(old, {"search": {"enabled": False}}).search
+    assert off == SearchConfig(shaft_rotations=6, enabled=False)
+    both = tmp_path / "both.yaml"
+    both.write_text(yaml.safe_dump({"hypotheses": {}, "search": {}}))
+    with pytest.raises(ConfigError, match="both a 'hypotheses:' and a 'search:' section"):
+        load_register_config(both)
 
 
 @pytest.mark.parametrize("key, value", [
@@ -465,16 +495,16 @@ def test_old_registration_configs_load_when_they_hold_what_survived(tmp_path):
     ("patch_orientations", 12), ("polish", "yes"), ("include_coarse", "no"),
 ])
 def test_removed_options_are_refused_with_a_clear_error(key, value):
-    with pytest.raises(ConfigError, match=rf"'hypotheses\.{key}' = .* has been removed"):
-        as_hypothesis_config({key: value})
+    with pytest.raises(ConfigError, match=rf"'search\.{key}' = .* has been removed"):
+        as_search_config({key: value})
 
 
 @pytest.mark.parametrize("count", [0, 2, 5])
 def test_too_few_us_points_is_a_clear_error(fibula_target, count):
     from comreg_core.errors import InvalidGeometryError
 
-    with pytest.raises(InvalidGeometryError, match="need at least 6"):
-        search_hypotheses(fibula_target.points[:count], np.eye(4), fibula_target)
+    with pytest.raises(InvalidGeometryError, match="needs at least 6"):
+        search_poses(fibula_target.points[:count], np.eye(4), fibula_target)
 
 
 def test_principal_axes_pose_puts_the_largest_spread_along_the_bone(fibula_target):
@@ -498,7 +528,7 @@ def test_patch_starts_cover_all_rotations(fibula_target, distal_patch):
     from comreg_core.registration.search.search import is_patch
 
     us, _, _ = distal_patch
-    config = HypothesisConfig()
+    config = SearchConfig()
     starts = patch_orientation_starts(us, fibula_target, config)
     slides = len(slide_offsets_mm(fibula_target, config))
     assert is_patch(us, fibula_target, config) and len(starts) == PATCH_ORIENTATIONS * slides
@@ -515,7 +545,7 @@ def test_patch_starts_cover_all_rotations(fibula_target, distal_patch):
     assert not is_patch(whole, fibula_target, config)
     assert patch_orientation_starts(whole, fibula_target, config) == {}
     # a lower patch_max_share counts the 40 mm cloud as whole: no patch starts
-    assert patch_orientation_starts(us, fibula_target, HypothesisConfig(
+    assert patch_orientation_starts(us, fibula_target, SearchConfig(
         patch_max_share=0.05)) == {}
 
 
@@ -538,9 +568,9 @@ def test_short_sweep_whose_own_axes_mislead_registers(shared_data):
     T_p = sample_initial_pose(evaluation_rng(0, STREAM_POSES, 19), "paper",
                               surface.bbox_centre)
     us, truth = apply_transform(T_p, sweep.points), invert_rigid(T_p)
-    without = Registrar.from_ct(FIBULA_STL, hypotheses={"patch_max_share": 0.05}).register(us)
+    without = Registrar.from_ct(FIBULA_STL, search={"patch_max_share": 0.05}).register(us)
     assert _errors(without.T_ct_us, truth, us)[1] > 30.0
     result = Registrar.from_ct(FIBULA_STL).register(us)
     rte, rre = _errors(result.T_ct_us, truth, us)
-    assert rte < 1.0 and rre < 1.0, (rte, rre, result.hypotheses.chosen)
-    assert result.hypotheses.chosen.startswith("patch") and not result.hypotheses.ambiguous
+    assert rte < 1.0 and rre < 1.0, (rte, rre, result.search.chosen)
+    assert result.search.chosen.startswith("patch") and not result.search.ambiguous

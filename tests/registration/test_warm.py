@@ -39,9 +39,9 @@ def test_a_warm_start_finds_the_full_search_pose_from_few_poses(grown_sweep):
         assert rotation_error_deg(result.T_ct_us, T_truth) < 1.0
     assert translation_error_mm(warm.T_ct_us, full.T_ct_us, centroid) < 0.2
     assert warm.info["warm_start"] and not full.info["warm_start"]
-    assert warm.hypotheses.starts_tried <= WARM_TOP < full.hypotheses.starts_tried
-    assert warm.hypotheses.chosen == earlier.hypotheses.chosen
-    assert 0.0 <= warm.confidence <= 1.0 and warm.hypotheses.polish is not None
+    assert warm.search.starts_tried <= WARM_TOP < full.search.starts_tried
+    assert warm.search.chosen == earlier.search.chosen
+    assert 0.0 <= warm.confidence <= 1.0 and warm.search.polish is not None
     assert warm.n_points == len(grown) and warm.residuals["median"] < 0.5
     # without residuals (live updates): the same pose, bit for bit, and no distances measured
     quiet = registrar.register(grown, warm_start=earlier, residuals=False)
@@ -53,4 +53,4 @@ def test_a_warm_start_needs_the_search(grown_sweep):
     registrar = Registrar.from_ct(FIBULA_STL)
     earlier = registrar.register(first)
     with pytest.raises(ComRegError, match="warm start needs the pose search"):
-        registrar.register(grown, warm_start=replace(earlier, hypotheses=None))
+        registrar.register(grown, warm_start=replace(earlier, search=None))

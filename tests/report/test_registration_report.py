@@ -80,10 +80,10 @@ def test_metrics_are_labelled_in_words_with_units_apart(tmp_path, fibula, monkey
     result = json.loads((out / "result.json").read_text(encoding="utf-8"))
     result["timings_s"] = {"preprocess": 0.01, "completion_and_coarse_pose": 0.2,
                            "some_new_stage": 0.05, "total": 0.5}
-    result["hypotheses"] = {"ambiguous": False, "confidence": 0.8, "chosen": "network+rot45",
-                            "runner_up": "flip", "score_mm": 0.31, "score_gap_mm": 0.6,
-                            "polish": {"moved_mm": 0.1, "iterations": 3,
-                                       "inlier_fraction": 0.95, "rmse_mm": 0.4}}
+    result["search"] = {"ambiguous": False, "confidence": 0.8, "chosen": "network+rot45",
+                        "runner_up": "flip", "score_mm": 0.31, "score_gap_mm": 0.6,
+                        "polish": {"moved_mm": 0.1, "iterations": 3,
+                                   "inlier_fraction": 0.95, "rmse_mm": 0.4}}
     (out / "result.json").write_text(json.dumps(result), encoding="utf-8")
     truth = "ICP from the recorded tracking (pseudo ground truth, as in the paper)"
     metrics = {"registration": {
@@ -125,8 +125,8 @@ def test_metrics_are_labelled_in_words_with_units_apart(tmp_path, fibula, monkey
     alone = "Further random starts, the pose search alone (against the same truth) / "
     assert table[alone + "Success rate"] == ("100.000", "%")
     assert table[alone + "Median rotation error (RRE)"] == ("1.000", "deg")
-    assert table["Pose check / Trimmed mean distance of the kept pose"] == ("0.310", "mm")
-    assert table["Pose check / Confidence (0-1; below 0.3 is ambiguous)"] == ("0.800", "")
+    assert table["Pose search / Trimmed mean distance of the kept pose"] == ("0.310", "mm")
+    assert table["Pose search / Confidence (0-1; below 0.3 is ambiguous)"] == ("0.800", "")
     assert table["Time / Registration in all"] == ("0.500", "s")
     assert table["Time / Completion and coarse pose (network)"] == ("0.200", "s")
     assert table["Time / Some new stage"] == ("0.050", "s")

@@ -208,7 +208,7 @@ def test_two_processes_match_one_with_the_same_global_batch(tmp_path, monkeypatc
     write_points(PointCloud(points[points[:, 2] > np.percentile(points[:, 2], 70)]),
                  tmp_path / "us.ply")
     result = CliRunner().invoke(app, ["register", str(tmp_path / "us.ply"), "--model", str(run),
-                                      "--ct", str(FIBULA_STL), "--no-hypotheses", "--device",
+                                      "--ct", str(FIBULA_STL), "--no-search", "--device",
                                       "cpu", "--out", str(tmp_path / "reg")])
     assert result.exit_code == 0, result.output
     T = np.asarray(yaml.safe_load((tmp_path / "reg" / "result.json").read_text())["T_ct_us"])

@@ -28,9 +28,9 @@ def test_exported_model_is_smaller_and_registers_like_the_run(tmp_path_factory, 
                     original.normalization)
     sample = validation_samples(ct, original.config.simulation, "paper", 7, 1)[0]
     points = original.normalization.points_to_mm(sample.source)
-    # the network pass itself (the hypotheses stage may pick another of two near-equal poses)
-    a = original.register(points, hypotheses=False)
-    b = copy.register(points, hypotheses=False)
+    # the network pass itself (the pose search may pick another of two near-equal poses)
+    a = original.register(points, search=False)
+    b = copy.register(points, search=False)
     # float16 weights: the same registration up to rounding (mm, degrees)
     assert np.abs(a.T_ct_us[:3, 3] - b.T_ct_us[:3, 3]).max() < 1.0
     assert rotation_error_deg(a.T_ct_us, b.T_ct_us) < 1.0

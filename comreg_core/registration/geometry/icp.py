@@ -11,7 +11,7 @@ the ``icp-gt`` baseline and the verdict's refit: a batch of one or a few).
 No gradient and no torch: the network's own differentiable ICP is
 :func:`comreg_core.model.diff_icp.differentiable_icp`. Point-to-plane converges along a shaft,
 where the surface slides under the points, in a few iterations; point-to-point ICP crawls there
-(``tests/benchmarks/bench_hypotheses.py``).
+(``tests/benchmarks/bench_search.py``).
 """
 
 from __future__ import annotations

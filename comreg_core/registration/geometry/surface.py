@@ -388,12 +388,6 @@ class SurfaceCloud:
         return d
 
 
-def spread_mm(along: np.ndarray) -> float:
-    """The length (mm) a sweep spans along one axis, robust to stray points: the 5th to 95th
-    percentile of its points' positions ``along`` ``(N,)`` (mm) on that axis."""
-    return float(np.percentile(along, 95) - np.percentile(along, 5))
-
-
 def ct_length_mm(target: SurfaceCloud) -> float:
     """The CT bone's extent along its long axis (mm): of ``target``'s points along
     ``axes[:, 0]``."""

@@ -31,9 +31,9 @@ from typing import Any, Callable
 import numpy as np
 
 from comreg_core.errors import ComRegError
+from comreg_core.registration.geometry.extent import extent_share
 from comreg_core.registration.geometry.metrics import rotation_error_deg
-from comreg_core.registration.geometry.surface import principal_frame, spread_mm
-from comreg_core.transforms import apply_transform, project
+from comreg_core.transforms import apply_transform
 
 #: Clinical tolerance: target error over the sweep (mm) and rotation (deg).
 TOLERANCE_MM = 4.0
@@ -72,13 +72,13 @@ def same_answer(T_a: np.ndarray, T_b: np.ndarray, points_us: np.ndarray) -> bool
     return distance <= TOLERANCE_MM and angle <= TOLERANCE_DEG
 
 
-def clinical_competitor(hypotheses, points_us: np.ndarray,
+def clinical_competitor(search, points_us: np.ndarray,
                         allowed: Callable[[np.ndarray], bool] | None = None
                         ) -> dict[str, Any]:
     """The competitor of a search result (module docstring).
 
     Args:
-        hypotheses: a :class:`~comreg_core.registration.search.scoring.HypothesisResult`.
+        search: a :class:`~comreg_core.registration.search.scoring.SearchResult`.
         points_us: ``(n, 3)`` the US points the search registered (US frame, mm).
         allowed: which poses ``(4, 4)`` a prior allows (None: all).
 
@@ -88,8 +88,8 @@ def clinical_competitor(hypotheses, points_us: np.ndarray,
         ``centroid_ct``: where it puts the US points' centroid in the CT (mm); ``T_ct_us``: its
         pose ``(4, 4)``.
     """
-    chosen = hypotheses.best
-    for h in sorted(hypotheses.hypotheses, key=lambda h: h.score_mm):
+    chosen = search.best
+    for h in sorted(search.candidates, key=lambda h: h.score_mm):
         if h.name == chosen.name or not math.isfinite(h.score_mm):
             continue
         if allowed is not None and not allowed(h.T_ct_us):
@@ -105,14 +105,6 @@ def clinical_competitor(hypotheses, points_us: np.ndarray,
                 "T_ct_us": [[float(x) for x in row] for row in h.T_ct_us]}
     return {"name": None, "score_mm": None, "margin": 1.0, "distance_mm": None,
             "rotation_deg": None, "centroid_ct": None, "T_ct_us": None}
-
-
-def extent_share(points_us: np.ndarray, ct_length_mm: float) -> float:
-    """The sweep's spread along its largest principal axis (5th-95th percentile, mm) over the
-    CT's length, clipped to [0, 1]."""
-    centre, axes = principal_frame(points_us)
-    spread = spread_mm(project(points_us - centre, axes[:, 0]))
-    return float(np.clip(spread / max(ct_length_mm, 1e-9), 0.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -329,11 +321,11 @@ def reliability_table(p: np.ndarray, correct: np.ndarray,
     return rows
 
 
-def result_evidence(hypotheses, points_us: np.ndarray, ct_length_mm: float,
+def result_evidence(search, points_us: np.ndarray, ct_length_mm: float,
                     allowed: Callable[[np.ndarray], bool] | None = None
                     ) -> tuple[dict[str, Any], float]:
     """The competitor (:func:`clinical_competitor`) and the extent share
     (:func:`extent_share`) of a search result for ``(n, 3)`` US points: what
     :meth:`Calibration.p_correct` takes."""
-    return (clinical_competitor(hypotheses, points_us, allowed),
+    return (clinical_competitor(search, points_us, allowed),
             extent_share(points_us, ct_length_mm))

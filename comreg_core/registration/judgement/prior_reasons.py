@@ -28,7 +28,7 @@ def prior_record(prior: Prior, T_ct_us: np.ndarray, centroid: np.ndarray, search
     ``init_file``, ``space``, ``T_init``, ``max_deg``, ``max_mm`` (null without ``T_init``),
     ``landmarks`` (each with its ``error_mm``), ``rotation_from_init_deg``,
     ``shift_from_init_mm``, ``within``, ``at_edge``, ``best_outside`` (the best-scoring
-    hypothesis of ``search``, a :class:`~comreg_core.registration.search.scoring.HypothesisResult`,
+    candidate of ``search``, a :class:`~comreg_core.registration.search.scoring.SearchResult`,
     that the prior rules out, with its ``lead`` over the chosen one, or null) and ``reasons``
     (sentences for the verdict: see the module docstring; a pose outside counts when it leads
     by ``min_confidence``, as the search's confidence measures a lead)."""
@@ -56,7 +56,7 @@ def prior_record(prior: Prior, T_ct_us: np.ndarray, centroid: np.ndarray, search
                        ": the prior may exclude the true pose.")
     best_outside = None
     if search is not None:
-        best_outside = _best_outside(prior, centroid, search.hypotheses)
+        best_outside = _best_outside(prior, centroid, search.candidates)
         chosen = search.best.score_mm
         if best_outside is not None and math.isfinite(chosen):
             lead = max(chosen - best_outside["score_mm"], 0.0) / max(chosen, score_floor_mm)
@@ -78,8 +78,8 @@ def prior_record(prior: Prior, T_ct_us: np.ndarray, centroid: np.ndarray, search
             "reasons": reasons}
 
 
-def _best_outside(prior: Prior, centroid, hypotheses) -> dict[str, Any] | None:
-    outside = [h for h in hypotheses if math.isfinite(h.score_mm)
+def _best_outside(prior: Prior, centroid, candidates) -> dict[str, Any] | None:
+    outside = [h for h in candidates if math.isfinite(h.score_mm)
                and not prior.allows(h.T_ct_us[None], centroid)[0]]
     if not outside:
         return None

@@ -1,7 +1,7 @@
 """What would resolve an ambiguous registration: where the competing pose puts the sweep.
 
 When another, clearly different pose fits the US points nearly as well as the chosen one
-(:attr:`HypothesisResult.ambiguous`), the geometry of this sweep cannot tell them apart; more
+(:attr:`SearchResult.ambiguous`), the geometry of this sweep cannot tell them apart; more
 sweep can. :func:`ambiguity_advice` describes the runner-up against the chosen pose in the CT's
 own terms (how far along the bone's long axis it puts the sweep, how far it turns it) and says
 what to scan: along the bone towards the nearer end when the poses differ by a slide, another
@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from comreg_core.registration.geometry.extent import extent_bounds_mm
 from comreg_core.registration.geometry.metrics import rotation_error_deg
 from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import apply_transform, space_change
@@ -92,7 +93,7 @@ def scan_advice(points_ct: np.ndarray, target, space: str = "LPS") -> str:
     along_ct = (target.points - target.centre) @ axis
     lo, hi = float(along_ct.min()), float(along_ct.max())
     along = (points_ct - target.centre) @ axis
-    a, b = float(np.percentile(along, 5)), float(np.percentile(along, 95))
+    a, b = extent_bounds_mm(along)
     plus, minus = end_names(space_change(space, "LPS")[:3, :3] @ axis)
     towards_plus = 0.5 * (a + b) > 0.5 * (lo + hi)
     if towards_plus and hi - b < END_REACHED_MM:

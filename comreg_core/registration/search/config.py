@@ -1,4 +1,4 @@
-"""Settings of the pose search (:mod:`comreg_core.registration.search.search`): the ``hypotheses``
+"""Settings of the pose search (:mod:`comreg_core.registration.search.search`): the ``search``
 section of a registration config (``comreg register/evaluate --config FILE``)."""
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import ClassVar
 
 from comreg_core.config import ConfigError, RetiredCheck, from_dict, load_config, require
+from comreg_core.registration.geometry.extent import PATCH_MAX_SHARE
 
 #: The polish stops once an update moves no US point by more than this (mm), or once its
 #: RMS has stalled for :data:`~comreg_core.registration.geometry.icp.POLISH_PATIENCE`
@@ -16,17 +17,13 @@ POLISH_TOLERANCE_MM = 0.01
 #: US points and most iterations of the quick polish that compares poses tied with the best.
 QUICK_POLISH_POINTS = 512
 QUICK_POLISH_ITERATIONS = 30
-#: Sweeps spanning less than this share of the CT's length (5th-95th percentile along its
-#: long axis) get the slide probe (``HypothesisConfig.slide_probe_mm``); whole clouds do not
-#: need it.
-SLIDE_PROBE_MAX_SHARE = 0.8
 #: A slid pose replaces the chosen one when its exact score is lower by at least this share
 #: (less is noise: the same basin, polished from elsewhere).
 SLIDE_PROBE_GAIN = 0.02
 
 
 @dataclass(frozen=True)
-class HypothesisConfig:
+class SearchConfig:
     """Settings of the pose search (steps in :mod:`comreg_core.registration.search.search`).
 
     The search always builds every kind of start (the network's pose, its coarse pose and the
@@ -34,18 +31,18 @@ class HypothesisConfig:
     orientations over all rotations), always polishes the best pose and those tied with it on
     the mesh (when there is one), and always gives an ambiguous result a second round: the
     switches that turned these off were removed (:data:`RETIRED_KEYS`). What is left is the
-    stage itself and numbers a user sets to trade time for reach or to match
+    search itself and numbers a user sets to trade time for reach or to match
     their data; each says why.
 
     Attributes:
-        enabled: run the stage at all. False = the paper's plain pipeline (network + ICP only:
-            ``comreg register --no-hypotheses``, the ``comreg-plain`` method), to reproduce the
+        enabled: run the search at all. False = the paper's plain pipeline (network + ICP only:
+            ``comreg register --no-search``, the ``comreg-plain`` method), to reproduce the
             paper or to compare against it.
         shaft_rotations: rotations about the long axis per base, ``360 / shaft_rotations``
             deg apart, the base included (1 = only the base). Fewer for a faster search when
             the starts are known to be near the truth about the shaft; more when they may be
             far off (the second round halves the spacing only for ambiguous results).
-        slide_step_mm: also try each rotation hypothesis slid along its long axis in steps of
+        slide_step_mm: also try each rotation slid along its long axis in steps of
             this (mm; suffix ``+slide16`` etc.; 0 = no slides). Coarser (or 0) for a faster
             search when the sweep's place along the bone is known; finer when the bone's
             shaft has features shorter than 8 mm that fix the place.
@@ -61,12 +58,12 @@ class HypothesisConfig:
             the best screened distinct others); 0 = all of them, unscreened (only for a small
             grid: every start then gets the full ICP). More when the right basin ranks low
             after the screening, at the cost of a larger refinement batch.
-        icp_points: US points in the hypotheses' ICP and score: a seeded uniform subset of
+        icp_points: US points in the search's ICP and score: a seeded uniform subset of
             the US cloud, kept in sweep order: it keeps the sweep's own share of false echoes
             (a farthest-point subset picks isolated false echoes first: on simulated fibula
             sweeps 10-15 % of it instead of ~3 %, more than ``icp_trim`` drops). More for a
             noisy or sparse sweep (less noise in the score), at linear cost
-            (``tests/benchmarks/bench_hypotheses.py`` compares 2048 and 4096).
+            (``tests/benchmarks/bench_search.py`` compares 2048 and 4096).
         target_points: area-uniform CT surface samples: the ICP target and the score's cloud.
             Denser for a small bone or a fine CT mesh (the samples' spacing should stay well
             under the features that tell poses apart), sparser for a very large bone.
@@ -75,7 +72,7 @@ class HypothesisConfig:
         icp_schedule: its coarse stages before, ``(US points, iterations)`` each. Both: more
             when refined poses stop short of their basin's minimum (a long bone, starts far
             off), fewer for speed.
-        icp_margin_mm: after each stage only the hypotheses whose residual (trimmed RMS, mm)
+        icp_margin_mm: after each stage only the poses whose residual (trimmed RMS, mm)
             is within this of the best go on (the others are far behind; this only saves
             time). Larger when the US cloud is noisy enough that the right pose's residual
             can trail a wrong one's by more than 1 mm before the last stage.
@@ -99,8 +96,10 @@ class HypothesisConfig:
         score_floor_mm: score differences are measured relative to at least this (mm) in the
             confidence: below it they are noise (step 6). Raise it for a coarse CT mesh or
             noisy US points, where near-perfect fits differ by more than 0.05 mm by chance.
-        patch_max_share: a US cloud whose largest spread is under this share of the CT's
-            length is a *patch* (a short sweep): it also gets 60 orientations spread evenly
+        patch_max_share: a US cloud whose extent share (its 5th-95th percentile spread along
+            its largest principal axis over the CT's length,
+            :mod:`comreg_core.registration.geometry.extent`) is under this is a *patch* (a
+            short sweep): it also gets 60 orientations spread evenly
             over all rotations (scipy's icosahedral group) as starts, each with the patch's
             centroid on the CT's centre and slid along the long axis (a short sweep's own
             axes say little about the bone's: on simulated 40-50 mm one-face fibula sweeps,
@@ -119,12 +118,13 @@ class HypothesisConfig:
             this to its distance in every score (screening, refinement, polish): a pose the
             beams could not have seen loses to one they could, whatever its fit; 0 = off, for
             beam origins that cannot be trusted (a doubtful probe calibration).
-        slide_probe_mm: a partial sweep (spanning less than :data:`SLIDE_PROBE_MAX_SHARE`
-            of the CT's length) has its chosen pose polished again from this far along the
+        slide_probe_mm: a partial sweep (spanning less than
+            :data:`~comreg_core.registration.geometry.extent.SLIDE_PROBE_MAX_SHARE` of the CT's
+            length) has its chosen pose polished again from this far along the
             CT's long axis, both ways, and the better-scoring pose kept: a shaft's surface
             slides under the points, and the search can stop in the basin next to the right
-            one (on the real fibula sweep's first 28-30 frames, 4.5 mm off with a 16 % worse
-            score than the pose 0.2 mm from the pseudo ground truth). 0 = off.
+            one (on the real fibula sweep's first 29-30 frames, 3.8 mm off with a 16-17 % worse
+            score than the probed pose, 0.7 mm from the pseudo ground truth). 0 = off.
         min_confidence: a result is ambiguous when its confidence is below this (a different
             pose scores within ``1 / (1 - min_confidence)`` times the chosen one's score, or
             within ``min_confidence * score_floor_mm`` of it). Higher flags more results for
@@ -155,7 +155,7 @@ class HypothesisConfig:
     score_floor_mm: float = 0.05
     min_confidence: float = 0.3
     facing_penalty_mm: float = 5.0
-    patch_max_share: float = 0.5
+    patch_max_share: float = PATCH_MAX_SHARE
     patch_min_confidence: float = 0.5
     slide_probe_mm: float = 5.0
 
@@ -177,71 +177,77 @@ class HypothesisConfig:
     }
 
     def __post_init__(self) -> None:
-        require(isinstance(self.enabled, bool), "hypotheses.enabled", "must be true or false")
-        require(self.shaft_rotations >= 1, "hypotheses.shaft_rotations", "must be at least 1")
-        require(self.shaft_rotations <= 36, "hypotheses.shaft_rotations",
+        require(isinstance(self.enabled, bool), "search.enabled", "must be true or false")
+        require(self.shaft_rotations >= 1, "search.shaft_rotations", "must be at least 1")
+        require(self.shaft_rotations <= 36, "search.shaft_rotations",
                 "must be at most 36 (10 deg apart)")
-        require(self.slide_step_mm >= 0, "hypotheses.slide_step_mm", "must be 0 (off) or more")
+        require(self.slide_step_mm >= 0, "search.slide_step_mm", "must be 0 (off) or more")
         require(self.slide_range_mm is None or self.slide_range_mm >= 0,
-                "hypotheses.slide_range_mm", "must be 0 or more (or null: half the CT length)")
-        require(self.screen_points >= 6, "hypotheses.screen_points", "must be at least 6")
-        require(self.screen_iterations >= 0, "hypotheses.screen_iterations", "must be 0 or more")
-        require(self.screen_score_points >= 3, "hypotheses.screen_score_points",
+                "search.slide_range_mm", "must be 0 or more (or null: half the CT length)")
+        require(self.screen_points >= 6, "search.screen_points", "must be at least 6")
+        require(self.screen_iterations >= 0, "search.screen_iterations", "must be 0 or more")
+        require(self.screen_score_points >= 3, "search.screen_score_points",
                 "must be at least 3")
-        require(self.refine_top >= 0, "hypotheses.refine_top", "must be 0 (all) or more")
-        require(self.icp_points >= 3, "hypotheses.icp_points", "must be at least 3")
-        require(self.target_points >= 100, "hypotheses.target_points", "must be at least 100")
-        require(self.icp_iterations >= 0, "hypotheses.icp_iterations", "must be 0 or more")
+        require(self.refine_top >= 0, "search.refine_top", "must be 0 (all) or more")
+        require(self.icp_points >= 3, "search.icp_points", "must be at least 3")
+        require(self.target_points >= 100, "search.target_points", "must be at least 100")
+        require(self.icp_iterations >= 0, "search.icp_iterations", "must be 0 or more")
         require(all(p >= 6 and it >= 0 for p, it in self.icp_schedule),
-                "hypotheses.icp_schedule", "needs at least 6 points and 0 or more iterations "
+                "search.icp_schedule", "needs at least 6 points and 0 or more iterations "
                 "per stage")
-        require(self.icp_margin_mm > 0, "hypotheses.icp_margin_mm", "must be positive")
-        require(0.0 <= self.icp_trim < 1.0, "hypotheses.icp_trim", "must be in [0, 1)")
-        require(0.0 <= self.score_trim < 1.0, "hypotheses.score_trim", "must be in [0, 1)")
-        require(self.distinct_deg > 0, "hypotheses.distinct_deg", "must be positive")
-        require(self.distinct_mm > 0, "hypotheses.distinct_mm", "must be positive")
-        require(self.polish_top >= 1, "hypotheses.polish_top", "must be at least 1")
-        require(self.score_floor_mm > 0, "hypotheses.score_floor_mm", "must be positive (mm)")
-        require(self.polish_max_distance_mm > 0, "hypotheses.polish_max_distance_mm",
+        require(self.icp_margin_mm > 0, "search.icp_margin_mm", "must be positive")
+        require(0.0 <= self.icp_trim < 1.0, "search.icp_trim", "must be in [0, 1)")
+        require(0.0 <= self.score_trim < 1.0, "search.score_trim", "must be in [0, 1)")
+        require(self.distinct_deg > 0, "search.distinct_deg", "must be positive")
+        require(self.distinct_mm > 0, "search.distinct_mm", "must be positive")
+        require(self.polish_top >= 1, "search.polish_top", "must be at least 1")
+        require(self.score_floor_mm > 0, "search.score_floor_mm", "must be positive (mm)")
+        require(self.polish_max_distance_mm > 0, "search.polish_max_distance_mm",
                 "must be positive (mm)")
-        require(self.slide_probe_mm >= 0, "hypotheses.slide_probe_mm", "must be >= 0")
-        require(self.polish_iterations >= 1, "hypotheses.polish_iterations",
+        require(self.slide_probe_mm >= 0, "search.slide_probe_mm", "must be >= 0")
+        require(self.polish_iterations >= 1, "search.polish_iterations",
                 "must be at least 1")
-        require(0.0 <= self.min_confidence < 1.0, "hypotheses.min_confidence",
+        require(0.0 <= self.min_confidence < 1.0, "search.min_confidence",
                 "must be in [0, 1)")
-        require(self.facing_penalty_mm >= 0, "hypotheses.facing_penalty_mm",
+        require(self.facing_penalty_mm >= 0, "search.facing_penalty_mm",
                 "must be 0 (off) or more (mm)")
-        require(0.0 < self.patch_max_share <= 1.0, "hypotheses.patch_max_share",
+        require(0.0 < self.patch_max_share <= 1.0, "search.patch_max_share",
                 "must be in (0, 1]")
-        require(0.0 <= self.patch_min_confidence < 1.0, "hypotheses.patch_min_confidence",
+        require(0.0 <= self.patch_min_confidence < 1.0, "search.patch_min_confidence",
                 "must be in [0, 1)")
 
 
-def as_hypothesis_config(value) -> HypothesisConfig:
-    """``None``/``True`` -> the defaults, ``False`` -> turned off, a :class:`HypothesisConfig`
+def as_search_config(value) -> SearchConfig:
+    """``None``/``True`` -> the defaults, ``False`` -> turned off, a :class:`SearchConfig`
     or a mapping of its keys -> that config."""
     if value is None or value is True:
-        return HypothesisConfig()
+        return SearchConfig()
     if value is False:
-        return HypothesisConfig(enabled=False)
-    if isinstance(value, HypothesisConfig):
+        return SearchConfig(enabled=False)
+    if isinstance(value, SearchConfig):
         return value
     if isinstance(value, dict):
-        return from_dict(HypothesisConfig, value, "hypotheses")
-    raise ConfigError(f"Cannot use a {type(value).__name__} as the hypotheses setting.",
-                      "Pass True, False, a HypothesisConfig or a mapping of its keys.")
+        return from_dict(SearchConfig, value, "search")
+    raise ConfigError(f"Cannot use a {type(value).__name__} as the search setting.",
+                      "Pass True, False, a SearchConfig or a mapping of its keys.")
 
 
 @dataclass(frozen=True)
 class RegisterConfig:
-    """The settings of ``comreg register --config FILE``: section ``hypotheses:`` (the pose
-    search, :class:`HypothesisConfig`). A registration's own ``config.yaml`` is such a file
-    (its ``inputs:`` record is ignored when it is read back)."""
+    """The settings of ``comreg register --config FILE``: section ``search:`` (the pose
+    search, :class:`SearchConfig`; a file's ``hypotheses:``, its older name, is read as
+    ``search:``). A registration's own ``config.yaml`` is such a file (its ``inputs:`` record
+    is ignored when it is read back)."""
 
-    hypotheses: HypothesisConfig = field(default_factory=HypothesisConfig)
+    search: SearchConfig = field(default_factory=SearchConfig)
+
+
+#: Sections read under their new name: ``hypotheses:`` is the pose search's older name.
+RENAMED_SECTIONS = {"hypotheses": "search"}
 
 
 def load_register_config(path: str | Path | None = None,
                          overrides: dict | None = None) -> RegisterConfig:
     """:class:`RegisterConfig` from a YAML file (None: the defaults) and ``overrides``."""
-    return load_config(RegisterConfig, path, overrides, ignore=("inputs",))
+    return load_config(RegisterConfig, path, overrides, ignore=("inputs",),
+                       renamed=RENAMED_SECTIONS)

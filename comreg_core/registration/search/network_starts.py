@@ -16,20 +16,20 @@ from dataclasses import replace
 import numpy as np
 
 from comreg_core.registration.search.advice import choice_evidence
-from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.icp import apply_poses, coarse_to_fine_icp
 from comreg_core.registration.search.polish import polish_pose
 from comreg_core.registration.search.priors import Prior
-from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult, choose,
+from comreg_core.registration.search.scoring import (Candidate, SearchResult, choose,
                                                      runner_up, score_poses, tied)
 from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
 
 
-def add_network_starts(result: HypothesisResult, starts: dict[str, np.ndarray],
-                       us_points: np.ndarray, target: SurfaceCloud, config: HypothesisConfig,
+def add_network_starts(result: SearchResult, starts: dict[str, np.ndarray],
+                       us_points: np.ndarray, target: SurfaceCloud, config: SearchConfig,
                        *, subset_indices: np.ndarray, beam_origins: np.ndarray | None = None,
-                       prior: Prior | None = None, space: str = "LPS") -> HypothesisResult:
+                       prior: Prior | None = None, space: str = "LPS") -> SearchResult:
     """``result`` (the search alone's) with the network's ``starts`` ``{name: T_ct_us (4, 4)
     mm}`` tried too (module docstring).
 
@@ -65,34 +65,34 @@ def add_network_starts(result: HypothesisResult, starts: dict[str, np.ndarray],
                                                                 origins=origins)
         if prior is not None and not prior.allows(poses[best][None], centroid)[0]:
             best = None  # the polish took it out of the prior
-    extra = tuple(Hypothesis(n, starts[n], poses[i], float(scores[i]), float(rmse[i]),
-                             polishes[i]) for i, n in enumerate(names))
-    merged = replace(result, hypotheses=result.hypotheses + extra,
+    extra = tuple(Candidate(n, starts[n], poses[i], float(scores[i]), float(rmse[i]),
+                            polishes[i]) for i, n in enumerate(names))
+    merged = replace(result, candidates=result.candidates + extra,
                      starts_tried=result.starts_tried + len(names))
     chosen_score = result.best.score_mm
     if best is None or scores[best] >= chosen_score or tied(scores[best], chosen_score, config):
         return merged
-    return _rechosen(merged, len(result.hypotheses) + best, pts, centroid, target, config,
+    return _rechosen(merged, len(result.candidates) + best, pts, centroid, target, config,
                      prior, space)
 
 
-def _rechosen(result: HypothesisResult, chosen: int, pts: np.ndarray, centroid: np.ndarray,
-              target: SurfaceCloud, config: HypothesisConfig, prior: Prior | None,
-              space: str) -> HypothesisResult:
-    """``result`` with its hypothesis ``chosen`` (index) as the choice: the runner-up,
-    confidence, ambiguity and advice found again among all its hypotheses."""
-    hyps = result.hypotheses
-    poses = np.stack([h.T_ct_us for h in hyps])
-    scores = np.array([h.score_mm for h in hyps])
+def _rechosen(result: SearchResult, chosen: int, pts: np.ndarray, centroid: np.ndarray,
+              target: SurfaceCloud, config: SearchConfig, prior: Prior | None,
+              space: str) -> SearchResult:
+    """``result`` with its candidate ``chosen`` (index) as the choice: the runner-up,
+    confidence, ambiguity and advice found again among all its candidates."""
+    cands = result.candidates
+    poses = np.stack([h.T_ct_us for h in cands])
+    scores = np.array([h.score_mm for h in cands])
     placed = apply_poses(poses, centroid[None])[:, 0]
-    others = np.array([i for i in range(len(hyps)) if i != chosen], dtype=np.int64)
+    others = np.array([i for i in range(len(cands)) if i != chosen], dtype=np.int64)
     if prior is not None and len(others):
         others = others[prior.allows(poses[others], centroid)]
     runner = runner_up(poses, placed, scores, chosen, others, config)
     confidence, ambiguous, advice = choice_evidence(poses, scores, chosen, runner, config,
                                                     centroid, target, space)
-    return replace(result, T_ct_us=poses[chosen], chosen=hyps[chosen].name,
-                   runner_up=None if runner is None else hyps[runner].name,
+    return replace(result, T_ct_us=poses[chosen], chosen=cands[chosen].name,
+                   runner_up=None if runner is None else cands[runner].name,
                    score_gap_mm=None if runner is None else float(scores[runner]
                                                                   - scores[chosen]),
                    confidence=confidence, ambiguous=ambiguous, advice=advice)

@@ -12,21 +12,21 @@ import numpy as np
 
 from comreg_core.registration.search.config import (POLISH_TOLERANCE_MM, QUICK_POLISH_ITERATIONS,
                                                     QUICK_POLISH_POINTS, SLIDE_PROBE_GAIN,
-                                                    SLIDE_PROBE_MAX_SHARE, HypothesisConfig)
+                                                    SearchConfig)
+from comreg_core.registration.geometry.extent import SLIDE_PROBE_MAX_SHARE, extent_mm
 from comreg_core.registration.geometry.icp import (POLISH_PATIENCE, apply_poses,
                                                    point_to_plane_icp, strided)
 from comreg_core.registration.geometry.metrics import rotation_error_deg
 from comreg_core.registration.search.scoring import (choose, polish_candidates, runner_up,
                                                      trimmed_mean)
-from comreg_core.registration.geometry.surface import (SurfaceCloud, ct_length_mm, facing_away,
-                                                       spread_mm)
+from comreg_core.registration.geometry.surface import SurfaceCloud, ct_length_mm, facing_away
 from comreg_core.transforms import apply_transform, matmul, project
 
 
 def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.ndarray,
                       scores: np.ndarray, polishes: list[dict[str, Any] | None],
                       target: SurfaceCloud,
-                      config: HypothesisConfig, *, origins: np.ndarray | None = None,
+                      config: SearchConfig, *, origins: np.ndarray | None = None,
                       within: Callable[[np.ndarray], np.ndarray] | None = None,
                       slide_probe: bool = True) -> tuple[int, int | None]:
     """Steps 5-6 of the search: polish the poses tied with the best (``poses``
@@ -82,7 +82,7 @@ def choose_and_polish(subset_mm: np.ndarray, centroid: np.ndarray, poses: np.nda
 
 
 def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, score: float,
-                 previous: dict[str, Any], target: SurfaceCloud, config: HypothesisConfig, *,
+                 previous: dict[str, Any], target: SurfaceCloud, config: SearchConfig, *,
                  origins: np.ndarray | None = None
                  ) -> tuple[np.ndarray, float, dict[str, Any]] | None:
     """The slide probe (``config.slide_probe_mm``) of ``T`` ``(4, 4)``, the polished chosen
@@ -93,13 +93,14 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
     :data:`SLIDE_PROBE_GAIN` lower: ``(pose, exact score, polish record)``, the record with
     ``slid_mm``, ``probe_shift_mm`` (of the US centroid from ``T``) and ``moved_mm`` (from
     before the first polish, as the norms combine). None otherwise, when the sweep spans at
-    least :data:`SLIDE_PROBE_MAX_SHARE` of the CT's length (a whole cloud; the span is
-    :func:`~comreg_core.registration.geometry.surface.spread_mm`'s, so that a few stray points do not
-    make a partial sweep whole), or when ``slide_probe_mm`` is 0."""
+    least :data:`~comreg_core.registration.geometry.extent.SLIDE_PROBE_MAX_SHARE` of the CT's
+    length along its long axis (a whole cloud; the sweep's
+    :func:`~comreg_core.registration.geometry.extent.extent_mm` along that axis, so that a few
+    stray points do not make a partial sweep whole), or when ``slide_probe_mm`` is 0."""
     if config.slide_probe_mm <= 0:
         return None
     axis = target.axes[:, 0]
-    span = spread_mm(project(apply_transform(T, subset_mm), axis))
+    span = extent_mm(apply_transform(T, subset_mm), axis)
     if span >= SLIDE_PROBE_MAX_SHARE * ct_length_mm(target):
         return None
     best = None
@@ -124,12 +125,12 @@ def probe_slides(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray, sco
 
 
 def polish_pose(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,
-                target: SurfaceCloud, config: HypothesisConfig, *, quick: bool = False,
+                target: SurfaceCloud, config: SearchConfig, *, quick: bool = False,
                 after: dict[str, Any] | None = None, origins: np.ndarray | None = None
                 ) -> tuple[np.ndarray, float, dict[str, Any]]:
     """Step 5 of the search for one pose ``T`` ``(4, 4)``: the polished pose, its
     exact score (trimmed mean distance of ``subset_mm`` ``(n, 3)`` to the mesh, mm) and the
-    polish's record (:attr:`~comreg_core.registration.search.scoring.Hypothesis.polish`;
+    polish's record (:attr:`~comreg_core.registration.search.scoring.Candidate.polish`;
     ``moved_mm`` of the US ``centroid`` ``(3,)``).
     ``quick``: on :data:`QUICK_POLISH_POINTS`
     strided points and at most :data:`QUICK_POLISH_ITERATIONS` (to compare tied poses);
@@ -164,7 +165,7 @@ def polish_pose(subset_mm: np.ndarray, centroid: np.ndarray, T: np.ndarray,
 
 
 def halves_disagreement_deg(subset_mm: np.ndarray, T: np.ndarray, target: SurfaceCloud,
-                            config: HypothesisConfig, *, origins: np.ndarray | None = None
+                            config: SearchConfig, *, origins: np.ndarray | None = None
                             ) -> float:
     """How far apart (deg) the rotations lie that the two halves of a sweep fit best: the US
     points ``subset_mm`` ``(n, 3)`` (beam ``origins`` ``(n, 3)`` or None) are split at their

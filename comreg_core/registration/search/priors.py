@@ -14,7 +14,7 @@ What it means (:meth:`Prior.allows`): a pose ``T`` is *within the prior* when
   ``T_init`` places it (``|T c - T_init c|``); and
 - it puts every US landmark within its tolerance of its CT landmark (``|T us - ct|``).
 
-How the pose search uses it (:func:`comreg_core.registration.search.search.search_hypotheses`):
+How the pose search uses it (:func:`comreg_core.registration.search.search.search_poses`):
 
 1. **Starts.** With ``T_init`` they replace the global grid and the patch orientations:
    ``T_init`` turned about the US centroid it places by shells of angles up to ``max_deg``

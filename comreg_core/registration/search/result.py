@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from comreg_core.registration.search.scoring import HypothesisResult
+from comreg_core.registration.search.scoring import SearchResult
 
 #: Registered points within this distance (mm) of the CT surface count as inliers.
 INLIER_MM = 2.0
@@ -32,17 +32,18 @@ class RegistrationResult:
             ``median``, ``p90``, ``p95``, ``max``, ``rmse``, and ``inlier_fraction`` (share
             within :data:`INLIER_MM`).
         icp_rmse: the final RMS residual (mm) of the ICP that produced ``T_ct_us``: the
-            network's (weighted, normalised units x CT scale), or with hypotheses the
-            polish's RMS distance of the matched points to the mesh (the chosen hypothesis'
+            network's (weighted, normalised units x CT scale), or with the pose search the
+            polish's RMS distance of the matched points to the mesh (the chosen candidate's
             point-to-plane residual when there was no polish).
         n_points: points in the US cloud.
-        hypotheses: the :class:`~comreg_core.registration.HypothesisResult` (chosen hypothesis,
-            every score, runner-up, gap, confidence, ambiguous), None when the stage was off.
+        search: the pose search's :class:`~comreg_core.registration.SearchResult` (chosen
+            candidate, every score, runner-up, gap, confidence, ambiguous), None when it was
+            off.
         info: JSON-able extras (what the evaluation harness records per trial): the coarse
-            pose, timings, residuals, ``hypotheses`` (the block of :meth:`to_json`, None when
-            off) and, when the stage ran, ``ambiguous`` and ``confidence``.
+            pose, timings, residuals, ``search`` (the block of :meth:`to_json`, None when
+            off) and, when the search ran, ``ambiguous`` and ``confidence``.
 
-    ``confidence`` and ``ambiguous`` (properties) are those of ``hypotheses``, None when off.
+    ``confidence`` and ``ambiguous`` (properties) are those of ``search``, None when off.
     """
 
     T_ct_us: np.ndarray
@@ -56,31 +57,31 @@ class RegistrationResult:
     residuals: dict[str, float]
     icp_rmse: float
     n_points: int
-    hypotheses: HypothesisResult | None = None
+    search: SearchResult | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
     def confidence(self) -> float | None:
-        """:attr:`HypothesisResult.confidence` in [0, 1]; None without the hypotheses stage."""
-        return None if self.hypotheses is None else self.hypotheses.confidence
+        """:attr:`SearchResult.confidence` in [0, 1]; None without the pose search."""
+        return None if self.search is None else self.search.confidence
 
     @property
     def ambiguous(self) -> bool | None:
-        """:attr:`HypothesisResult.ambiguous`; None without the hypotheses stage."""
-        return None if self.hypotheses is None else self.hypotheses.ambiguous
+        """:attr:`SearchResult.ambiguous`; None without the pose search."""
+        return None if self.search is None else self.search.ambiguous
 
     def to_json(self) -> dict[str, Any]:
         """The ``result.json`` content (without file names). ``confidence`` and ``ambiguous``
-        are at the top level (null when the hypotheses stage was off); ``hypotheses`` holds the
-        details (null when off): ``chosen``, ``runner_up``, ``score_mm``, ``score_gap_mm``,
-        ``confidence``, ``ambiguous``, ``scores_mm`` (every hypothesis)."""
+        are at the top level (null when the pose search was off); ``search`` holds the details
+        (null when off): ``chosen``, ``runner_up``, ``score_mm``, ``score_gap_mm``,
+        ``confidence``, ``ambiguous``, ``scores_mm`` (every candidate)."""
         return {
             "T_ct_us": self.T_ct_us.tolist(), "T_ct_us_coarse": self.T_ct_us_coarse.tolist(),
             "timings_s": self.timings, "runtime_s": self.runtime_s, "device": self.device,
             "seed": self.seed, "n_points": self.n_points, "residuals_mm": self.residuals,
             "icp_rmse_mm": self.icp_rmse, "confidence": self.confidence,
             "ambiguous": self.ambiguous,
-            "hypotheses": None if self.hypotheses is None else self.hypotheses.to_json(),
+            "search": None if self.search is None else self.search.to_json(),
             "warnings": list(self.info.get("warnings", [])),
         }
 

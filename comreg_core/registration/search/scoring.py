@@ -15,18 +15,18 @@ from typing import Any
 
 import numpy as np
 
-from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.icp import apply_poses
 
 
 def trimmed_mean(distances: np.ndarray, trim: float) -> np.ndarray:
     """``(B,)`` mean of the smallest ``1 - trim`` share (at least one) of each row of ``(B, n)``
-    distances: the hypotheses' score."""
+    distances: the candidates' score."""
     n = distances.shape[1]
     return np.sort(distances, axis=1)[:, :max(1, n - int(trim * n))].mean(axis=1)
 
 
-def score_poses(poses: np.ndarray, points: np.ndarray, target, config: HypothesisConfig, *,
+def score_poses(poses: np.ndarray, points: np.ndarray, target, config: SearchConfig, *,
                 origins: np.ndarray | None = None, approximate: bool = False) -> np.ndarray:
     """``(B,)`` scores (mm) of ``(B, 4, 4)`` poses for ``(n, 3)`` US points: the trimmed mean of
     their distances to the CT cloud ``target`` (:meth:`SurfaceCloud.surface_distances`), each
@@ -40,7 +40,7 @@ def score_poses(poses: np.ndarray, points: np.ndarray, target, config: Hypothesi
 
 
 def same_pose(poses: np.ndarray, centroids: np.ndarray, i: int, others: np.ndarray,
-               config: HypothesisConfig, *, rotation_only: bool = False) -> np.ndarray:
+               config: SearchConfig, *, rotation_only: bool = False) -> np.ndarray:
     """Which of the poses ``others`` (indices) are the same pose as pose ``i``: rotated apart by
     at most ``distinct_deg`` and, unless ``rotation_only``, placing the US centroid within
     ``distinct_mm``. ``poses`` ``(B, 4, 4)``, ``centroids`` ``(B, 3)`` mm (the US centroid
@@ -52,7 +52,7 @@ def same_pose(poses: np.ndarray, centroids: np.ndarray, i: int, others: np.ndarr
     return same
 
 
-def confidence_over(score: float, others: np.ndarray | float, config: HypothesisConfig):
+def confidence_over(score: float, others: np.ndarray | float, config: SearchConfig):
     """How clearly a pose scoring ``score`` beats poses scoring ``others`` (mm): ``max(other -
     score, 0) / max(other, score_floor_mm)``, in [0, 1] (module docstring, step 6)."""
     others = np.asarray(others, dtype=np.float64)
@@ -62,11 +62,11 @@ def confidence_over(score: float, others: np.ndarray | float, config: Hypothesis
 #: Two scores are *tied* when the worse leads the better by less than this share of itself
 #: (confidence below it): far above floating-point noise (1e-15) and far below the smallest
 #: lead that counts as evidence (``min_confidence``, 0.3). A decision between tied scores is
-#: made by the order of the hypotheses (fixed by the input's shape), never by their last bits.
+#: made by the order of the candidates (fixed by the input's shape), never by their last bits.
 SCORE_TIE_SHARE = 1e-3
 
 
-def tied(score: float, other: float, config: HypothesisConfig) -> bool:
+def tied(score: float, other: float, config: SearchConfig) -> bool:
     """Whether two scores (mm) are a tie (:data:`SCORE_TIE_SHARE`)."""
     low, high = min(score, other), max(score, other)
     return bool(confidence_over(low, high, config) < SCORE_TIE_SHARE)
@@ -86,7 +86,7 @@ def choose(scores: np.ndarray, eligible: np.ndarray, score_floor_mm: float = 0.0
 
 
 def runner_up(poses: np.ndarray, placed: np.ndarray, scores: np.ndarray, best: int,
-              candidates: np.ndarray, config: HypothesisConfig) -> int | None:
+              candidates: np.ndarray, config: SearchConfig) -> int | None:
     """The best-scoring of ``candidates`` (indices, ``best`` excluded by the caller) that is a
     different pose from ``best`` (:func:`same_pose`), or None. ``poses`` ``(B, 4, 4)``,
     ``placed`` ``(B, 3)`` US centroids, ``scores`` ``(B,)`` mm."""
@@ -96,7 +96,7 @@ def runner_up(poses: np.ndarray, placed: np.ndarray, scores: np.ndarray, best: i
 
 
 def polish_candidates(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray,
-                       config: HypothesisConfig) -> list[int]:
+                       config: SearchConfig) -> list[int]:
     """The poses worth polishing: the best-scoring one and the distinct poses tied with it
     (confidence below ``min_confidence``), the network's own pose (index 0) next if it is tied,
     then by increasing score, at most ``polish_top``."""
@@ -114,8 +114,8 @@ def polish_candidates(scores: np.ndarray, poses: np.ndarray, placed: np.ndarray,
 
 
 @dataclass(frozen=True)
-class Hypothesis:
-    """One refined hypothesis: ``name``, its start ``T_start`` and refined ``T_ct_us``
+class Candidate:
+    """One refined candidate: ``name``, its start ``T_start`` and refined ``T_ct_us``
     (``(4, 4)`` mm, after the polish when polished), ``score_mm`` (trimmed mean distance to the
     CT, mm; exact distances to the mesh when polished), the refinement ICP's final
     ``icp_rmse_mm``, and ``polish``: ``{"iterations", "inlier_fraction", "rmse_mm"
@@ -132,18 +132,18 @@ class Hypothesis:
 
 
 @dataclass(frozen=True)
-class HypothesisResult:
-    """The outcome of :func:`search_hypotheses` (module docstring for the definitions).
+class SearchResult:
+    """The outcome of :func:`search_poses` (module docstring for the definitions).
 
     Attributes:
-        T_ct_us: ``(4, 4)`` mm, the chosen hypothesis' refined (and polished) pose.
+        T_ct_us: ``(4, 4)`` mm, the chosen candidate's refined (and polished) pose.
         chosen: its name.
         runner_up: the best-scoring genuinely different pose's name, None if there is none.
         score_gap_mm: ``score(runner_up) - score(chosen)`` (mm), None without a runner-up.
         confidence: ``max(score_gap_mm, 0) / max(score(runner_up), score_floor_mm)`` in
             [0, 1]; 1.0 without a runner-up.
         ambiguous: ``confidence < min_confidence`` (``patch_min_confidence`` for a patch).
-        hypotheses: every refined :class:`Hypothesis`, in generation order.
+        candidates: every refined :class:`Candidate`, in generation order.
         starts_tried: start poses built and screened before the best ``refine_top`` were refined.
         advice: when ambiguous, where the runner-up puts the sweep and what to scan to tell the
             poses apart (:func:`comreg_core.registration.search.advice.ambiguity_advice`), else None.
@@ -157,32 +157,32 @@ class HypothesisResult:
     score_gap_mm: float | None
     confidence: float
     ambiguous: bool
-    hypotheses: tuple[Hypothesis, ...] = field(default=())
+    candidates: tuple[Candidate, ...] = field(default=())
     starts_tried: int = 0
     advice: dict[str, Any] | None = None
     patch: bool = False
 
     @property
     def polish(self) -> dict[str, Any] | None:
-        """The chosen pose's polish (:attr:`Hypothesis.polish`), None when it was not run."""
+        """The chosen pose's polish (:attr:`Candidate.polish`), None when it was not run."""
         return self.best.polish
 
     @property
     def polished(self) -> list[str]:
-        """Names of the polished hypotheses (the best and those tied with it)."""
-        return [h.name for h in self.hypotheses if h.polish is not None]
+        """Names of the polished candidates (the best and those tied with it)."""
+        return [h.name for h in self.candidates if h.polish is not None]
 
     @property
     def scores(self) -> dict[str, float]:
-        """``{name: score_mm}`` of every hypothesis."""
-        return {h.name: h.score_mm for h in self.hypotheses}
+        """``{name: score_mm}`` of every candidate."""
+        return {h.name: h.score_mm for h in self.candidates}
 
     @property
-    def best(self) -> Hypothesis:
-        return next(h for h in self.hypotheses if h.name == self.chosen)
+    def best(self) -> Candidate:
+        return next(h for h in self.candidates if h.name == self.chosen)
 
     def to_json(self) -> dict[str, Any]:
-        """JSON-able summary (``result.json``'s ``hypotheses`` block)."""
+        """JSON-able summary (``result.json``'s ``search`` block)."""
         return {"chosen": self.chosen, "runner_up": self.runner_up,
                 "score_mm": self.best.score_mm, "score_gap_mm": self.score_gap_mm,
                 "confidence": self.confidence, "ambiguous": self.ambiguous,

@@ -7,14 +7,14 @@ from __future__ import annotations
 import numpy as np
 
 from comreg_core.registration.geometry import kernels
-from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.icp import apply_poses, strided
 from comreg_core.registration.search.scoring import same_pose
 from comreg_core.registration.geometry.surface import SurfaceCloud
 
 
 def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceCloud,
-                  config: HypothesisConfig, *, keep_first: bool = True,
+                  config: SearchConfig, *, keep_first: bool = True,
                   origins: np.ndarray | None = None, within=None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Pick the starts worth a full ICP: ``screen_iterations`` of point-to-plane ICP on
@@ -59,7 +59,7 @@ def screen_starts(us_points: np.ndarray, starts: np.ndarray, target: SurfaceClou
     return kept, screened
 
 
-def _screen_compiled(us_points, starts, target: SurfaceCloud, config: HypothesisConfig,
+def _screen_compiled(us_points, starts, target: SurfaceCloud, config: SearchConfig,
                      sub: np.ndarray, sub_origins: np.ndarray | None
                      ) -> tuple[np.ndarray, np.ndarray]:
     """The screening's ICP and quick score by the compiled kernels: ``(B, 4, 4)`` screened

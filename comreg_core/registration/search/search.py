@@ -35,7 +35,7 @@ as it is):
 Standalone (no network needed)::
 
     target = CTSurface("fibula.stl").cloud(20_000)
-    result = search_hypotheses(us_points, T_start, target)   # mm in, mm out
+    result = search_poses(us_points, T_start, target)   # mm in, mm out
     result.T_ct_us, result.chosen, result.confidence, result.ambiguous
 
 :class:`comreg_core.register.Registrar` runs it from the ``pca`` base (or the prior's); with a
@@ -53,16 +53,17 @@ import numpy as np
 
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration.search.advice import choice_evidence
-from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.icp import coarse_to_fine_icp
 from comreg_core.registration.search.polish import choose_and_polish
 from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.screening import screen_starts
-from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult, confidence_over,
+from comreg_core.registration.search.scoring import (Candidate, SearchResult, confidence_over,
                                                      score_poses)
+from comreg_core.registration.geometry.extent import extent_share
 from comreg_core.registration.geometry.surface import SurfaceCloud, ct_length_mm, principal_frame
 from comreg_core.transforms import (apply_transform, as_points, check_rigid, matmul,
-                                    orthonormalize, project, rotate)
+                                    orthonormalize, rotate)
 
 
 def rotation_about(centre: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -88,26 +89,27 @@ def principal_axes_pose(points_us: np.ndarray, target: SurfaceCloud) -> np.ndarr
     return T
 
 
-def build_hypotheses(T_start: np.ndarray, target: SurfaceCloud,
-                     completion: np.ndarray | None = None,
-                     config: HypothesisConfig | None = None, *,
-                     T_coarse: np.ndarray | None = None,
-                     grid_offset: float = 0.0, start_name: str = "network"
-                     ) -> dict[str, np.ndarray]:
-    """The start poses ``{name: T_ct_us (4, 4) mm}`` of the hypotheses (module docstring).
+def build_starts(T_start: np.ndarray, target: SurfaceCloud,
+                 completion: np.ndarray | None = None,
+                 config: SearchConfig | None = None, *,
+                 T_coarse: np.ndarray | None = None,
+                 grid_offset: float = 0.0, start_name: str = "network"
+                 ) -> dict[str, np.ndarray]:
+    """The start poses ``{name: T_ct_us (4, 4) mm}`` of the grid around each base (module
+    docstring).
 
     Args:
         T_start: ``(4, 4)`` mm, the pose the alternatives are built around.
         target: the CT side (its principal frame is used without a completion).
         completion: ``(M, 3)`` mm, the completed bone in the US frame, or None.
-        config: settings (default :class:`HypothesisConfig`).
+        config: settings (default :class:`SearchConfig`).
         T_coarse: ``(4, 4)`` mm, the network's coarse pose (a base too), or None.
         grid_offset: shift of the rotations and slides, as a share of their steps (0.5: the
             grid interleaved with the default one; the bases themselves are not included).
         start_name: the name of ``T_start``'s base (``"pca"`` when the search runs without a
             network, from :func:`principal_axes_pose`).
     """
-    cfg = config or HypothesisConfig()
+    cfg = config or SearchConfig()
     bases = {start_name: check_rigid(T_start)}
     if T_coarse is not None:
         bases["coarse"] = check_rigid(T_coarse)
@@ -146,16 +148,15 @@ def slid_starts(name: str, T: np.ndarray, slides: np.ndarray, axis: np.ndarray
 PATCH_ORIENTATIONS = 60
 
 
-def is_patch(points_us: np.ndarray, target: SurfaceCloud, config: HypothesisConfig) -> bool:
-    """Whether ``(N, 3)`` US points (mm) are a patch of the bone: their largest spread along
-    their own principal axes is under ``patch_max_share`` of the CT's length."""
-    _, axes = principal_frame(points_us)
-    spread = float(np.ptp(project(points_us, axes[:, 0])))
-    return spread < config.patch_max_share * ct_length_mm(target)
+def is_patch(points_us: np.ndarray, target: SurfaceCloud, config: SearchConfig) -> bool:
+    """Whether ``(N, 3)`` US points (mm) are a patch of the bone: their extent share
+    (:func:`~comreg_core.registration.geometry.extent.extent_share`) is under
+    ``patch_max_share``."""
+    return extent_share(points_us, ct_length_mm(target)) < config.patch_max_share
 
 
 def patch_orientation_starts(points_us: np.ndarray, target: SurfaceCloud,
-                             config: HypothesisConfig, grid_offset: float = 0.0
+                             config: SearchConfig, grid_offset: float = 0.0
                              ) -> dict[str, np.ndarray]:
     """Starts ``{name: T_ct_us (4, 4) mm}`` that turn a patch (:func:`is_patch`) into
     :data:`PATCH_ORIENTATIONS` orientations spread evenly over all rotations (scipy's
@@ -185,8 +186,8 @@ def patch_orientation_starts(points_us: np.ndarray, target: SurfaceCloud,
     return starts
 
 
-def slide_offsets_mm(target: SurfaceCloud, config: HypothesisConfig) -> np.ndarray:
-    """Slides along the long axis tried per rotation hypothesis (mm, 0 first, then by
+def slide_offsets_mm(target: SurfaceCloud, config: SearchConfig) -> np.ndarray:
+    """Slides along the long axis tried per rotation (mm, 0 first, then by
     increasing size): multiples of ``slide_step_mm`` up to ``slide_range_mm`` (default half
     the CT's length along its long axis); just ``[0]`` when ``slide_step_mm`` is 0."""
     if config.slide_step_mm == 0:
@@ -199,7 +200,7 @@ def slide_offsets_mm(target: SurfaceCloud, config: HypothesisConfig) -> np.ndarr
 
 
 def us_subset(points: np.ndarray, count: int) -> np.ndarray:
-    """``min(count, N)`` of the ``(N, 3)`` US points (mm) for the hypotheses' ICP and score: a
+    """``min(count, N)`` of the ``(N, 3)`` US points (mm) for the candidates' ICP and score: a
     uniform subset (seed 0: the same points every run) kept in sweep order."""
     return points[us_subset_indices(len(points), count)]
 
@@ -211,18 +212,18 @@ def us_subset_indices(n: int, count: int) -> np.ndarray:
     return np.sort(np.random.default_rng(0).choice(n, count, replace=False))
 
 
-def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
-                      completion: np.ndarray | None = None,
-                      config: HypothesisConfig | None = None, *,
-                      T_coarse: np.ndarray | None = None,
-                      start_name: str = "network",
-                      beam_origins: np.ndarray | None = None,
-                      space: str = "LPS", prior: Prior | None = None) -> HypothesisResult:
-    """Build, refine (one batched ICP) and score the pose hypotheses; keep the best.
+def search_poses(us_points: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
+                 completion: np.ndarray | None = None,
+                 config: SearchConfig | None = None, *,
+                 T_coarse: np.ndarray | None = None,
+                 start_name: str = "network",
+                 beam_origins: np.ndarray | None = None,
+                 space: str = "LPS", prior: Prior | None = None) -> SearchResult:
+    """Build, refine (one batched ICP) and score the start poses; keep the best.
 
     An ambiguous result gets a second round from the grid of starts
     interleaved with the first (rotations and slides shifted by half a step), and the choice
-    is made again among the hypotheses of both rounds.
+    is made again among the candidates of both rounds.
 
     Args:
         us_points: ``(N, 3)`` mm, the observed US bone points in their own (US) frame.
@@ -230,10 +231,10 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
         target: the CT side, :class:`SurfaceCloud` (e.g. ``from_mesh``).
         completion: ``(M, 3)`` mm, the completed bone in the US frame (the network's output),
             or None (the CT's principal frame stands in; no principal-axes solve).
-        config: settings (default :class:`HypothesisConfig`; ``enabled`` is not looked at
+        config: settings (default :class:`SearchConfig`; ``enabled`` is not looked at
             here: calling this function runs the stage).
         T_coarse: ``(4, 4)`` mm, the coarse pose before the network's ICP, or None.
-        start_name: the name of ``T_start``'s base (see :func:`build_hypotheses`).
+        start_name: the name of ``T_start``'s base (see :func:`build_starts`).
         beam_origins: ``(N, 3)`` mm, where each US point's beam started (the probe's
             transducer element, US frame), or None. With them every score penalises poses
             under which the CT surface faces away from the probe (``facing_penalty_mm``).
@@ -244,9 +245,9 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
             ambiguous result.
 
     Returns:
-        :class:`HypothesisResult` (all mm).
+        :class:`SearchResult` (all mm).
     """
-    cfg = config or HypothesisConfig()
+    cfg = config or SearchConfig()
     pts, completion, subset_mm, origins = _search_inputs(us_points, completion, beam_origins,
                                                          cfg)
     centroid = pts.mean(axis=0)  # the US centroid, placed by each pose
@@ -274,12 +275,12 @@ def search_hypotheses(us_points: np.ndarray, T_start: np.ndarray, target: Surfac
     return pool.result(best, runner, cfg, centroid, target, space, patch)
 
 
-def _search_inputs(us_points, completion, beam_origins, cfg: HypothesisConfig):
+def _search_inputs(us_points, completion, beam_origins, cfg: SearchConfig):
     """The search's inputs checked: ``(points (N, 3), completion (M, 3) or None, the ICP and
     score subset (n, 3), its beam origins (n, 3) or None)``, all mm."""
     pts = as_points(us_points, "US points")
     if len(pts) < 6:  # 6 point-to-surface constraints for the 6 degrees of freedom
-        raise InvalidGeometryError(f"The US cloud has {len(pts)} points; the hypotheses need at "
+        raise InvalidGeometryError(f"The US cloud has {len(pts)} points; the search needs at "
                                    "least 6.", "Pass a denser US bone surface.")
     if completion is not None:
         completion = as_points(completion, "completion points")
@@ -298,7 +299,7 @@ def _search_inputs(us_points, completion, beam_origins, cfg: HypothesisConfig):
 
 @dataclass
 class _Pool:
-    """The refined hypotheses of the search's rounds so far: names, starts, ``(K, 4, 4)``
+    """The refined candidates of the search's rounds so far: names, starts, ``(K, 4, 4)``
     poses, ``(K,)`` scores and ICP residuals (mm), polish records; starts tried."""
 
     names: list[str] = field(default_factory=list)
@@ -325,29 +326,29 @@ class _Pool:
         self.polishes += [None] * len(names)
 
     def result(self, best: int, runner: int | None,
-               cfg: HypothesisConfig, centroid, target: SurfaceCloud, space: str,
-               patch: bool) -> HypothesisResult:
-        """The :class:`HypothesisResult` choosing ``best`` over ``runner``."""
+               cfg: SearchConfig, centroid, target: SurfaceCloud, space: str,
+               patch: bool) -> SearchResult:
+        """The :class:`SearchResult` choosing ``best`` over ``runner``."""
         gap = None if runner is None else float(self.scores[runner] - self.scores[best])
-        hypotheses = tuple(
-            Hypothesis(n, self.starts[i], self.poses[i], float(self.scores[i]),
-                       float(self.rmse[i]) if math.isfinite(self.rmse[i]) else float("nan"),
-                       self.polishes[i]) for i, n in enumerate(self.names))
+        candidates = tuple(
+            Candidate(n, self.starts[i], self.poses[i], float(self.scores[i]),
+                      float(self.rmse[i]) if math.isfinite(self.rmse[i]) else float("nan"),
+                      self.polishes[i]) for i, n in enumerate(self.names))
         confidence, ambiguous, advice = choice_evidence(self.poses, self.scores, best, runner,
                                                         cfg, centroid, target, space)
-        return HypothesisResult(T_ct_us=self.poses[best], chosen=self.names[best],
-                                runner_up=None if runner is None else self.names[runner],
-                                score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,
-                                hypotheses=hypotheses, starts_tried=self.tried, advice=advice,
-                                patch=patch)
+        return SearchResult(T_ct_us=self.poses[best], chosen=self.names[best],
+                            runner_up=None if runner is None else self.names[runner],
+                            score_gap_mm=gap, confidence=confidence, ambiguous=ambiguous,
+                            candidates=candidates, starts_tried=self.tried, advice=advice,
+                            patch=patch)
 
 
 def round_starts(pts: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
-                 completion: np.ndarray | None, config: HypothesisConfig, *,
+                 completion: np.ndarray | None, config: SearchConfig, *,
                  T_coarse: np.ndarray | None, grid_offset: float, start_name: str,
                  prior: Prior | None = None) -> dict[str, np.ndarray]:
     """The start poses ``{name: T_ct_us (4, 4) mm}`` of one round (``grid_offset`` 0, then
-    0.5): :func:`build_hypotheses` and :func:`patch_orientation_starts`; with a ``prior``, its
+    0.5): :func:`build_starts` and :func:`patch_orientation_starts`; with a ``prior``, its
     starts (:mod:`comreg_core.registration.search.priors`, step 1): around ``T_init``, or the usual
     rotations unslid, moved onto the landmarks; ``T_start`` first unmoved (the network's pose,
     or ``T_init`` without a network)."""
@@ -355,8 +356,8 @@ def round_starts(pts: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
         rotations = prior.init_rotations(pts.mean(axis=0), grid_offset)
     else:
         cfg = config if prior is None else replace(config, slide_step_mm=0.0)
-        rotations = build_hypotheses(T_start, target, completion, cfg, T_coarse=T_coarse,
-                                     grid_offset=grid_offset, start_name=start_name)
+        rotations = build_starts(T_start, target, completion, cfg, T_coarse=T_coarse,
+                                 grid_offset=grid_offset, start_name=start_name)
         rotations.update(patch_orientation_starts(pts, target, cfg, grid_offset))
         if prior is None:
             return rotations
@@ -366,7 +367,7 @@ def round_starts(pts: np.ndarray, T_start: np.ndarray, target: SurfaceCloud,
 
 
 def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: SurfaceCloud,
-                  config: HypothesisConfig, *, keep_first: bool,
+                  config: SearchConfig, *, keep_first: bool,
                   origins: np.ndarray | None = None, within=None
                   ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
     """Steps 2-3 of the module docstring for the start poses ``grid`` ``{name: (4, 4)}``:

@@ -2,14 +2,14 @@
 that registration's poses instead of a full search (live registration while scanning,
 ``comreg live``).
 
-The last result's refined hypotheses (:class:`~comreg_core.registration.search.scoring.
-HypothesisResult`) hold the chosen pose and the poses that competed with it. The warm search
+The last result's refined candidates (:class:`~comreg_core.registration.search.scoring.
+SearchResult`) hold the chosen pose and the poses that competed with it. The warm search
 takes the chosen pose and the best-scoring distinct others (at most ``top``), refines each on
 the grown cloud by a short ICP against the dense CT cloud (:data:`WARM_ITERATIONS` on
 :data:`WARM_POINTS` of the ``icp_points`` subset), scores them on the subset, polishes and chooses as the full search does
 (:func:`~comreg_core.registration.search.polish.choose_and_polish`), so the result carries the same
 confidence, runner-up and evidence for the verdict. No screening and no new starts: a pose that
-was not among the last result's hypotheses cannot be found here; the caller runs a full search
+was not among the last result's candidates cannot be found here; the caller runs a full search
 when the evidence changed (a new region covered, the verdict flipped).
 """
 
@@ -23,11 +23,11 @@ import numpy as np
 
 from comreg_core.errors import ComRegError
 from comreg_core.registration.search.advice import choice_evidence
-from comreg_core.registration.search.config import HypothesisConfig
+from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.icp import apply_poses, point_to_plane_icp, strided
 from comreg_core.registration.search.polish import choose_and_polish
 from comreg_core.registration.search.priors import Prior
-from comreg_core.registration.search.scoring import (Hypothesis, HypothesisResult,
+from comreg_core.registration.search.scoring import (Candidate, SearchResult,
                                                      same_pose, score_poses)
 from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
@@ -42,16 +42,16 @@ WARM_POINTS = 512
 WARM_ITERATIONS = 10
 
 
-def warm_poses(previous: HypothesisResult, centroid: np.ndarray, config: HypothesisConfig,
+def warm_poses(previous: SearchResult, centroid: np.ndarray, config: SearchConfig,
                top: int = WARM_TOP) -> tuple[list[str], np.ndarray]:
     """The names and ``(K, 4, 4)`` poses (mm) a warm search starts from: ``previous``'s chosen
-    pose, then its other hypotheses by increasing score, each distinct from those already
+    pose, then its other candidates by increasing score, each distinct from those already
     taken (``distinct_deg``/``distinct_mm`` at the US ``centroid`` ``(3,)``), ``top`` at most."""
-    if not previous.hypotheses:
-        raise ComRegError("The previous registration has no pose hypotheses to start from.",
-                          "Register it with the pose search (hypotheses on) first.")
+    if not previous.candidates:
+        raise ComRegError("The previous registration has no pose candidates to start from.",
+                          "Register it with the pose search on first.")
     chosen = previous.best
-    others = sorted((h for h in previous.hypotheses if h.name != chosen.name),
+    others = sorted((h for h in previous.candidates if h.name != chosen.name),
                     key=lambda h: (not math.isfinite(h.score_mm), h.score_mm))
     candidates = [chosen] + others
     poses = np.stack([h.T_ct_us for h in candidates])
@@ -65,18 +65,18 @@ def warm_poses(previous: HypothesisResult, centroid: np.ndarray, config: Hypothe
     return [candidates[i].name for i in kept], poses[kept]
 
 
-def warm_search(us_points: np.ndarray, previous: HypothesisResult, target: SurfaceCloud,
-                config: HypothesisConfig | None = None, *,
+def warm_search(us_points: np.ndarray, previous: SearchResult, target: SurfaceCloud,
+                config: SearchConfig | None = None, *,
                 beam_origins: np.ndarray | None = None, prior: Prior | None = None,
-                space: str = "LPS", top: int = WARM_TOP) -> HypothesisResult:
+                space: str = "LPS", top: int = WARM_TOP) -> SearchResult:
     """Register ``us_points`` ``(N, 3)`` mm (US frame) again from ``previous``'s poses (module
-    docstring): the same :class:`HypothesisResult` as
-    :func:`~comreg_core.registration.search.search.search_hypotheses`, ``starts_tried`` = the poses
+    docstring): the same :class:`SearchResult` as
+    :func:`~comreg_core.registration.search.search.search_poses`, ``starts_tried`` = the poses
     refined. ``beam_origins`` ``(N, 3)`` mm or None; ``prior`` (in the CT's space) or None:
     only poses within it are chosen."""
     from comreg_core.registration.search.search import is_patch, us_subset_indices
 
-    cfg = config or HypothesisConfig()
+    cfg = config or SearchConfig()
     pts = as_points(us_points, "US points")
     keep = us_subset_indices(len(pts), cfg.icp_points)
     subset_mm = pts[keep]
@@ -97,12 +97,12 @@ def warm_search(us_points: np.ndarray, previous: HypothesisResult, target: Surfa
                                      slide_probe=False)  # the full searches probed
     confidence, ambiguous, advice = choice_evidence(poses, scores, best, runner, cfg, centroid,
                                                     target, space)
-    hypotheses = tuple(Hypothesis(n, starts[i], poses[i], float(scores[i]),
-                                  float(fit.rmse_mm[i]), polishes[i])
+    candidates = tuple(Candidate(n, starts[i], poses[i], float(scores[i]),
+                                 float(fit.rmse_mm[i]), polishes[i])
                        for i, n in enumerate(names))
-    return HypothesisResult(
+    return SearchResult(
         T_ct_us=poses[best], chosen=names[best],
         runner_up=None if runner is None else names[runner],
         score_gap_mm=None if runner is None else float(scores[runner] - scores[best]),
-        confidence=confidence, ambiguous=ambiguous, hypotheses=hypotheses,
+        confidence=confidence, ambiguous=ambiguous, candidates=candidates,
         starts_tried=len(names), advice=advice, patch=patch)

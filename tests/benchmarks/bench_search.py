@@ -1,8 +1,8 @@
-"""Benchmark: the test-time hypotheses stage on its own (issue 8): success, flips, ambiguity
+"""Benchmark: the pose search on its own (issue 8): success, flips, ambiguity
 flags and latency, against plain ICP from the same coarse starts.
 
-``.venv/bin/python -m tests.benchmarks hypotheses`` (defaults) or
-``.venv/bin/python -m tests.benchmarks.bench_hypotheses [--trials 50] [--seed 0]
+``.venv/bin/python -m tests.benchmarks search`` (defaults) or
+``.venv/bin/python -m tests.benchmarks.bench_search [--trials 50] [--seed 0]
 [--completion none|ideal]``
 
 Needs no trained network: fresh simulated sweeps of the real fibula
@@ -21,8 +21,8 @@ iterations, sigma 5e-3, 16 neighbours, 2048 US points against the 2048-point FPS
 = 2048 and 4096 US points; its point-to-point ICP modes were dropped in issue 17: they crawled
 along the shaft where point-to-plane converges). Printed per
 start kind: success (RTE < 2 mm and RRE < 2 deg), flips (RRE > 90 deg), share flagged
-ambiguous, silent failures (failed and not flagged), and the stage's latency (median, 90th
-percentile) on this machine's CPU. ``--completion ideal`` also hands the stage a perfect
+ambiguous, silent failures (failed and not flagged), and the search's latency (median, 90th
+percentile) on this machine's CPU. ``--completion ideal`` also hands the search a perfect
 completion (the CT in the US frame), which adds the principal-axes solve.
 """
 
@@ -93,8 +93,8 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     from comreg_core.evaluation.evaluate import simulated_us_clouds
-    from comreg_core.registration import (CTSurface, HypothesisConfig, is_flip, is_success,
-                                          search_hypotheses)
+    from comreg_core.registration import (CTSurface, SearchConfig, is_flip, is_success,
+                                          search_poses)
     from comreg_core.normalization import Normalization
     from comreg_core.model.ops import subsample
     from comreg_core.transforms import apply_transform, invert_rigid
@@ -104,13 +104,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--trials", type=int, default=50, help="simulated sweeps (x 3 start kinds)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--completion", choices=("none", "ideal"), default="none")
-    p.add_argument("--shaft-rotations", type=int, default=HypothesisConfig.shaft_rotations)
+    p.add_argument("--shaft-rotations", type=int, default=SearchConfig.shaft_rotations)
     p.add_argument("--no-4096", action="store_true", help="skip the N_c = 4096 run")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
 
     surface = CTSurface(FIBULA_STL)
     norm = Normalization.from_ct(surface.vertices)
-    target = surface.cloud(HypothesisConfig.target_points)
+    target = surface.cloud(SearchConfig.target_points)
     ct_cloud, _ = CTSurface(FIBULA_STL, sample_seed=1).samples(4096)
     ct_subset = subsample(torch.from_numpy(norm.points_to_model(ct_cloud)).float()[None], 2048, 0)
     whole, _ = CTSurface(FIBULA_STL, sample_seed=2).samples(8192)
@@ -123,10 +123,10 @@ def main(argv: list[str] | None = None) -> None:
 
     variants = {"plain-icp": None}
     rotations = args.shaft_rotations
-    variants["hyp-plane-2048"] = HypothesisConfig(icp_points=2048, shaft_rotations=rotations)
+    variants["search-2048"] = SearchConfig(icp_points=2048, shaft_rotations=rotations)
     if not args.no_4096:
-        variants["hyp-plane-4096"] = HypothesisConfig(icp_points=4096,
-                                                      shaft_rotations=rotations)
+        variants["search-4096"] = SearchConfig(icp_points=4096,
+                                                  shaft_rotations=rotations)
     rows = {name: {kind: [] for kind in KINDS} for name in variants}
     for name, config in variants.items():
         for kind, us, truth, T0 in cases:
@@ -135,14 +135,14 @@ def main(argv: list[str] | None = None) -> None:
                 completion = apply_transform(invert_rigid(truth), whole)
             t0 = time.perf_counter()
             if config is None:
-                T, flagged, n_hyp = _plain_icp(us, T0, ct_subset, norm), None, 1
+                T, flagged, refined = _plain_icp(us, T0, ct_subset, norm), None, 1
             else:
-                res = search_hypotheses(us, T0, target, completion, config)
-                T, flagged, n_hyp = res.T_ct_us, res.ambiguous, len(res.hypotheses)
+                res = search_poses(us, T0, target, completion, config)
+                T, flagged, refined = res.T_ct_us, res.ambiguous, len(res.candidates)
             seconds = time.perf_counter() - t0
             rte, rre = _errors(T, truth, us)
             rows[name][kind].append((is_success(rte, rre), is_flip(rre), flagged, seconds,
-                                     n_hyp))
+                                     refined))
 
     print(f"\nstarts: truth + 15 deg / 10 mm ('near'), flipped end to end ('flip'), turned "
           f"45-315 deg about the shaft ('spin'); completion: {args.completion}; "
