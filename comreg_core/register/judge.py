@@ -135,6 +135,7 @@ def judge(points_us: np.ndarray, T_ct_us: np.ndarray, ct_surface, evidence: Evid
     p_correct = None if uncertainty is None else evidence.p_correct(uncertainty.p_raw)
     verdict = judge_registration(points_us, T_ct_us, surface, uncertainty=uncertainty,
                                  p_correct=p_correct, confidence=evidence.confidence,
+                                 ambiguous=evidence.ambiguous,
                                  ok_probability=evidence.ok_probability,
                                  short_sweep=is_short_sweep(evidence.extent_share),
                                  scale_scan=scale_scan)

@@ -21,7 +21,7 @@ point-to-triangle distances of :class:`~comreg_core.registration.geometry.surfac
 the bone for their own noise (the noise at most :attr:`VerdictThresholds.max_noise_mm`, at
 least ``min_within_noise`` of them within 3 noise levels), the refit stays within 5 mm (the pose
 is at the fit's optimum), no scale fits clearly better, and the pose is not tied with a
-different one.
+different one, nor one the search found nearly as good (its ``ambiguous``).
 
 How the limits were chosen: docs/calibration.md ("The verdict's limits").
 """
@@ -108,14 +108,15 @@ class Verdict:
 
 def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
                        p_correct: float | None = None, confidence: float | None = None,
-                       ok_probability: float = 0.95, short_sweep: bool = False,
-                       scale_scan: bool = True) -> Verdict:
+                       ambiguous: bool = False, ok_probability: float = 0.95,
+                       short_sweep: bool = False, scale_scan: bool = True) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` rigid, mm) for ``us_points`` (``(N, 3)`` mm, as
     received) on ``ct_surface`` (anything :func:`~comreg_core.registration.geometry.surface.as_surface`
     takes). ``uncertainty``: the pose's
     (:class:`~comreg_core.registration.judgement.assessment.Uncertainty`; None: too few points
-    meet the CT, which is CHECK); ``p_correct``: from it; ``confidence``: the pose search's
-    (a tie is CHECK). ``short_sweep``: a sweep spanning under half the CT's length, whose
+    meet the CT, which is CHECK); ``p_correct``: from it; ``confidence``, ``ambiguous``: the
+    pose search's (a tie, or another clearly different pose it found nearly as good, is
+    CHECK). ``short_sweep``: a sweep spanning under half the CT's length, whose
     best-fitting scale says nothing, so the scale check is left out; ``scale_scan=False`` skips
     the scale scan (``refit_scale`` and ``refit_scale_gain`` None)."""
     surface = as_surface(ct_surface)
@@ -133,6 +134,10 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
                "p_raw": None if uncertainty is None else uncertainty.p_raw,
                "p_correct": None if p_correct is None else float(p_correct)}
     reasons = _reasons(figures, uncertainty, DEFAULT_THRESHOLDS, ok_probability, short_sweep)
+    if ambiguous and not any(r.startswith("Tie:") for r in reasons):
+        reasons.append("Ambiguous pose: the pose search found another, clearly different pose "
+                       "that fits the US points nearly as well (confidence "
+                       f"{figures['confidence'] or 0:.2f}).")
     return Verdict("check" if reasons else "ok", reasons, figures,
                    None if uncertainty is None else uncertainty.to_json(),
                    None if uncertainty is None else uncertainty.scan_next)
