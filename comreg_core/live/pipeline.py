@@ -1,0 +1,132 @@
+"""From the stream's frames to detected bone points, in a thread of its own
+(:class:`DetectionPipeline`), so that the update loop only registers.
+
+The pipeline's thread takes the frames the receiver paired (in stream order), lets the
+:class:`~comreg_core.live.intake.FrameGate` decide each one when a detection worker is free
+(skipped: no new bone; dropped: it would be too old when used; else detected), hands it to
+the :class:`~comreg_core.live.detection.DetectionPool` and keeps the detections that come back
+for the update loop (:meth:`DetectionPipeline.take`, which drops those that waited past the age
+limit). Frames wait in a queue (:attr:`DetectionPipeline.waiting`) only while every worker is
+busy; its length and the gate's counts are the status line's ``waiting``, ``skipped`` and
+``dropped``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+from comreg_core.live.detection import DetectionPool
+from comreg_core.live.intake import FrameGate
+from comreg_core.live.points import Detection
+
+
+@dataclass
+class PipelineBatch:
+    """What :meth:`DetectionPipeline.take` hands over: ``detections`` (in the order they came;
+    each within the age limit), one-line ``notes``, ``received`` images so far, ``ended`` (the
+    server closed the stream and every frame that came is decided), ``gave_up`` (why no first
+    connection was made; empty otherwise), ``waiting`` frames (queued or being detected)."""
+
+    detections: list[Detection] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    received: int = 0
+    ended: bool = False
+    gave_up: str = ""
+    waiting: int = 0
+
+
+class DetectionPipeline:
+    """The receiver's frames -> the gate -> detection -> the update loop (module docstring).
+
+    Args:
+        receiver: a :class:`~comreg_core.live.run.FrameReceiver` (anything with its ``take``).
+        gate: the session's :class:`FrameGate`.
+        pool: the :class:`DetectionPool` (``DetectionPool(0)``: detection in this thread).
+        clock: the time source (s), ``time.monotonic`` by default.
+    """
+
+    def __init__(self, receiver, gate: FrameGate, pool: DetectionPool,
+                 clock: Callable[[], float] = time.monotonic):
+        self.receiver, self.gate, self.pool, self.clock = receiver, gate, pool, clock
+        self._lock = threading.Lock()
+        self._waiting: deque = deque()
+        self._ready: list[Detection] = []
+        self._out = PipelineBatch()
+        self._stream_ended = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="comreg-detection-pipeline",
+                                        daemon=True)
+
+    def start(self) -> None:
+        self.receiver.start()
+        self._thread.start()
+
+    @property
+    def waiting(self) -> int:
+        """Frames queued for detection or being detected."""
+        return len(self._waiting) + self.pool.busy
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            batch = self.receiver.take(0.0)
+            self._waiting.extend(batch.frames)
+            while self._waiting and self.pool.free():
+                frame = self._waiting.popleft()
+                if self.gate.admit(frame, self.clock()):
+                    self.pool.submit(frame)
+            found = self.pool.collect(0.0)
+            for detection in found:
+                self.gate.timed(detect_s=detection.detect_s)
+            with self._lock:
+                self._ready += found
+                out = self._out
+                out.notes += batch.notes + self.pool.notes
+                out.received = batch.received
+                out.gave_up = out.gave_up or batch.gave_up
+                self._stream_ended = self._stream_ended or batch.ended
+                out.ended = self._stream_ended and not self._waiting and not self.pool.busy
+            self.pool.notes = []
+            if batch.gave_up:
+                return
+            if not batch.frames and not found:
+                time.sleep(0.003)
+
+    def take(self, timeout_s: float = 0.1) -> PipelineBatch:
+        """The detections that came since the last call (those past the age limit dropped, as
+        :meth:`FrameGate.too_old` records), with the notes and the stream's state; waits up to
+        ``timeout_s`` for something to hand over."""
+        end = self.clock() + timeout_s
+        while True:
+            with self._lock:
+                out = self._out
+                if self._ready or out.notes or out.ended or out.gave_up or \
+                        self.clock() >= end or not self._thread.is_alive():
+                    now = self.clock()
+                    out.detections = [d for d in self._ready if not self.gate.too_old(d, now)]
+                    out.waiting = self.waiting
+                    self._ready = []
+                    self._out = PipelineBatch(received=out.received, gave_up=out.gave_up)
+                    self._stream_ended = self._stream_ended and not out.ended
+                    return out
+            time.sleep(0.003)
+
+    def stop(self, wait_s: float = 10.0) -> tuple[list, list[Detection]]:
+        """Stop the thread and the receiver; returns what was still on its way: ``(frames not
+        decided yet, detections not taken)``, the frames being detected waited for (up to
+        ``wait_s``)."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+        self.receiver.stop()
+        end = self.clock() + wait_s
+        found = list(self._ready)
+        while self.pool.busy and self.clock() < end:
+            found += self.pool.collect(0.05)
+        found += self.pool.collect(0.0)
+        frames = list(self._waiting) + self.receiver.take(0.0).frames
+        self._ready, self._waiting = [], deque()
+        return frames, found
