@@ -152,7 +152,7 @@ def _frame_rules(spacing: str, max_age: float) -> dict:
     rules = {"spacing": None if FrameSpacing(mm, deg) == FrameSpacing(0.0, 0.0)
              else FrameSpacing(mm, deg),
              "max_frame_age_s": None if max_age == float("inf") else max_age}
-    FrameGate(**rules)  # refuses an age limit that is not a positive number
+    FrameGate(rules["spacing"], rules["max_frame_age_s"])  # refuses a bad age limit
     return rules
 
 

@@ -7,10 +7,12 @@ frames that can show new bone, and no frame waits longer than a stated age.
   counted as ``skipped`` (not a loss), as volume reconstruction does with frames closer than
   its voxel. The comparison runs in stream order, in a fixed order of operations (the same
   decision on every CPU).
-- **Lag**: a frame that waited longer than ``max_age_s`` is dropped (``lag``): before
-  detection, when its age plus what detection and an update still take (the mean of the last
-  ones) would pass the limit; after detection, when the update that would take it comes too
-  late. So no frame is older than ``max_age_s`` when an update registers it.
+- **Lag**: a frame that waited too long for a detection worker is dropped (``lag``): when its
+  age plus what detection and an update still take (the mean of the last ones, counted up to
+  half the limit) passes ``max_age_s``. So, while updates take less than half the limit, no
+  frame is older than ``max_age_s`` when an update registers it; when they take longer, the
+  frames detected are still registered (older: ``frame_age_s`` says by how much) rather than
+  all dropped, and the status line says LATE.
 
 Every frame's fate (``used``, ``skipped``, ``lag``) is kept (:attr:`FrameGate.fates`) with its
 pose, for ``frames.csv``; :attr:`FrameGate.counts` counts them by cause. Thread-safe: the
@@ -97,7 +99,8 @@ class FrameGate:
 
     Args:
         spacing: the :class:`FrameSpacing` of the frames used; None: every frame.
-        max_age_s: the age limit (s) of a frame when used; None: no limit (frames wait).
+        max_age_s: the age limit (s) of a frame when used (kept by dropping frames that
+            waited too long for detection); None: no limit (frames wait).
     """
 
     def __init__(self, spacing: FrameSpacing | None = FrameSpacing(),
@@ -131,15 +134,6 @@ class FrameGate:
             self._last = np.asarray(frame.T_ref_image, np.float64)
             return True
 
-    def too_old(self, found, now_s: float) -> bool:
-        """Whether the detected frame ``found`` is past the age limit at ``now_s``; if so it is
-        recorded as dropped for lag."""
-        if self.max_age_s is None or now_s - found.received_s <= self.max_age_s:
-            return False
-        with self._lock:
-            self._record(found, LAG, now_s)
-        return True
-
     def used(self, found, now_s: float) -> None:
         """Record that an update (or the stop, ``now_s`` NaN) took the detected frame."""
         with self._lock:
@@ -156,9 +150,9 @@ class FrameGate:
 
     def _reserve(self) -> float:
         """The time a frame sent to detection now still waits before an update takes it (s):
-        the mean detection and the mean update of late."""
+        the mean detection and the mean update of late, at most half the age limit."""
         mean = (lambda d: sum(d) / len(d) if d else 0.0)
-        return mean(self._detect_s) + mean(self._update_s)
+        return min(mean(self._detect_s) + mean(self._update_s), 0.5 * self.max_age_s)
 
     def _record(self, frame, fate: str, now_s: float) -> None:
         self.counts[fate] += 1

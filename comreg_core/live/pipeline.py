@@ -26,8 +26,8 @@ from comreg_core.live.points import Detection
 
 @dataclass
 class PipelineBatch:
-    """What :meth:`DetectionPipeline.take` hands over: ``detections`` (in the order they came;
-    each within the age limit), one-line ``notes``, ``received`` images so far, ``ended`` (the
+    """What :meth:`DetectionPipeline.take` hands over: ``detections`` (in the order they came),
+    one-line ``notes``, ``received`` images so far, ``ended`` (the
     server closed the stream and every frame that came is decided), ``gave_up`` (why no first
     connection was made; empty otherwise), ``waiting`` frames (queued or being detected)."""
 
@@ -96,17 +96,15 @@ class DetectionPipeline:
                 time.sleep(0.003)
 
     def take(self, timeout_s: float = 0.1) -> PipelineBatch:
-        """The detections that came since the last call (those past the age limit dropped, as
-        :meth:`FrameGate.too_old` records), with the notes and the stream's state; waits up to
-        ``timeout_s`` for something to hand over."""
+        """The detections that came since the last call, with the notes and the stream's
+        state; waits up to ``timeout_s`` for something to hand over."""
         end = self.clock() + timeout_s
         while True:
             with self._lock:
                 out = self._out
                 if self._ready or out.notes or out.ended or out.gave_up or \
                         self.clock() >= end or not self._thread.is_alive():
-                    now = self.clock()
-                    out.detections = [d for d in self._ready if not self.gate.too_old(d, now)]
+                    out.detections = self._ready
                     out.waiting = self.waiting
                     self._ready = []
                     self._out = PipelineBatch(received=out.received, gave_up=out.gave_up)
