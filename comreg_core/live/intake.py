@@ -37,8 +37,8 @@ SPACING_MM = 0.5
 SPACING_DEG = 0.5
 #: The default age limit of a frame when it is used (s).
 MAX_AGE_S = 0.5
-#: Fates of a frame.
-USED, SKIPPED, LAG = "used", "skipped", "lag"
+#: Fates of a frame (and a frame sent to detection).
+USED, SKIPPED, LAG, DETECT = "used", "skipped", "lag", "detect"
 
 
 @dataclass(frozen=True)
@@ -119,20 +119,29 @@ class FrameGate:
         self._update_s: deque[float] = deque(maxlen=8)
 
     def admit(self, frame, now_s: float) -> bool:
-        """Whether ``frame`` (next in stream order) goes to detection; if not, it is recorded
-        as skipped (no new bone) or dropped for lag."""
+        """Whether ``frame`` (next in stream order) goes to detection now; if not, it is
+        recorded as skipped (no new bone) or dropped for lag."""
+        return self.decide(frame, now_s, True) == DETECT
+
+    def decide(self, frame, now_s: float, can_detect: bool) -> str | None:
+        """The fate of ``frame`` (next in stream order): :data:`SKIPPED` or :data:`LAG`
+        (recorded), :data:`DETECT` (when ``can_detect``: it is the new reference), or None: it
+        shows new bone and is not too old, but must wait for a free worker (the frames after
+        it wait for its fate: it may become the reference)."""
         with self._lock:
             if self.spacing is not None and self._last is not None and \
                     not self.spacing.new_bone(self._last, frame.T_ref_image,
                                               image_corners(frame)):
                 self._record(frame, SKIPPED, now_s)
-                return False
+                return SKIPPED
             if self.max_age_s is not None and \
                     now_s - frame.received_s + self._reserve() > self.max_age_s:
                 self._record(frame, LAG, now_s)
-                return False
+                return LAG
+            if not can_detect:
+                return None
             self._last = np.asarray(frame.T_ref_image, np.float64)
-            return True
+            return DETECT
 
     def used(self, found, now_s: float) -> None:
         """Record that an update (or the stop, ``now_s`` NaN) took the detected frame."""

@@ -1,12 +1,12 @@
 """From the stream's frames to detected bone points, in a thread of its own
 (:class:`DetectionPipeline`), so that the update loop only registers.
 
-The pipeline's thread takes the frames the receiver paired (in stream order), lets the
-:class:`~comreg_core.live.intake.FrameGate` decide each one when a detection worker is free
-(skipped: no new bone; dropped: it would be too old when used; else detected), hands it to
-the :class:`~comreg_core.live.detection.DetectionPool` and keeps the detections that come back
-for the update loop (:meth:`DetectionPipeline.take`, which drops those that waited past the age
-limit). Frames wait in a queue (:attr:`DetectionPipeline.waiting`) only while every worker is
+The pipeline's thread takes the frames the receiver paired (in stream order) and lets the
+:class:`~comreg_core.live.intake.FrameGate` decide each one: skipped (no new bone), dropped (it
+would be too old when used), or detected once a worker of the
+:class:`~comreg_core.live.detection.DetectionPool` is free. It keeps the detections that come
+back for the update loop (:meth:`DetectionPipeline.take`). Frames wait in a queue
+(:attr:`DetectionPipeline.waiting`) only behind a frame with new bone while every worker is
 busy; its length and the gate's counts are the status line's ``waiting``, ``skipped`` and
 ``dropped``.
 """
@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from comreg_core.live.detection import DetectionPool
-from comreg_core.live.intake import FrameGate
+from comreg_core.live.intake import DETECT, LAG, SKIPPED, FrameGate
 from comreg_core.live.points import Detection
 
 
@@ -29,7 +29,9 @@ class PipelineBatch:
     """What :meth:`DetectionPipeline.take` hands over: ``detections`` (in the order they came),
     one-line ``notes``, ``received`` images so far, ``ended`` (the
     server closed the stream and every frame that came is decided), ``gave_up`` (why no first
-    connection was made; empty otherwise), ``waiting`` frames (queued or being detected)."""
+    connection was made; empty otherwise), ``waiting`` frames (queued, not being detected),
+    and the gate's counts when ``received`` was: frames ``skipped`` (no new bone) and
+    ``dropped`` (lag)."""
 
     detections: list[Detection] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
@@ -37,6 +39,8 @@ class PipelineBatch:
     ended: bool = False
     gave_up: str = ""
     waiting: int = 0
+    skipped: int = 0
+    dropped: int = 0
 
 
 class DetectionPipeline:
@@ -67,16 +71,20 @@ class DetectionPipeline:
 
     @property
     def waiting(self) -> int:
-        """Frames queued for detection or being detected."""
-        return len(self._waiting) + self.pool.busy
+        """Frames queued, not decided yet (behind a frame with new bone that waits for a
+        worker); those being detected are not counted."""
+        return len(self._waiting)
 
     def _run(self) -> None:
         while not self._stop.is_set():
             batch = self.receiver.take(0.0)
             self._waiting.extend(batch.frames)
-            while self._waiting and self.pool.free():
+            while self._waiting:  # in order; a frame with new bone waits for a worker
+                fate = self.gate.decide(self._waiting[0], self.clock(), self.pool.free())
+                if fate is None:
+                    break
                 frame = self._waiting.popleft()
-                if self.gate.admit(frame, self.clock()):
+                if fate == DETECT:
                     self.pool.submit(frame)
             found = self.pool.collect(0.0)
             for detection in found:
@@ -86,6 +94,7 @@ class DetectionPipeline:
                 out = self._out
                 out.notes += batch.notes + self.pool.notes
                 out.received = batch.received
+                out.skipped, out.dropped = self.gate.counts[SKIPPED], self.gate.counts[LAG]
                 out.gave_up = out.gave_up or batch.gave_up
                 self._stream_ended = self._stream_ended or batch.ended
                 out.ended = self._stream_ended and not self._waiting and not self.pool.busy
@@ -107,7 +116,8 @@ class DetectionPipeline:
                     out.detections = self._ready
                     out.waiting = self.waiting
                     self._ready = []
-                    self._out = PipelineBatch(received=out.received, gave_up=out.gave_up)
+                    self._out = PipelineBatch(received=out.received, gave_up=out.gave_up,
+                                              skipped=out.skipped, dropped=out.dropped)
                     self._stream_ended = self._stream_ended and not out.ended
                     return out
             time.sleep(0.003)

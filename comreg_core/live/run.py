@@ -330,8 +330,8 @@ def _one_update(session: LiveSession, receiver: FrameReceiver, batch, state: dic
                       "search runs in the background")
             state["told"].add(waiting)
         return
-    update.waiting = batch.waiting
-    update.dropped_lag += receiver.dropped
+    update.waiting, update.skipped = batch.waiting, batch.skipped
+    update.dropped_lag = batch.dropped + receiver.dropped
     update.dropped_no_pose = receiver.assembler.without_pose + receiver.assembler.bad_poses
     receiver.send(update, session.registrar.space, send_device)
     update.latency_s = session.clock() - update.newest_s

@@ -159,6 +159,7 @@ class LiveSession(VerdictChecks):
         None while there is too little bone to register or nothing new. ``received``: images
         received so far by the stream (default: counted here)."""
         start = self.clock()
+        counts = dict(self.gate.counts)
         self.frames_received = received if received is not None \
             else self.frames_received + len(frames)
         found = list(detections) + [detect_frame(f, self.points.config)
@@ -195,7 +196,7 @@ class LiveSession(VerdictChecks):
             newest_s=max(record.received_s for record in self.points.records),
             searching=self.searching,
             frame_age_s=max((start - d.received_s for d in found), default=math.nan),
-            skipped=self.gate.counts["skipped"], dropped_lag=self.gate.counts["lag"])
+            skipped=counts["skipped"], dropped_lag=counts["lag"])
         self.gate.timed(update_s=update.register_s)
         self.last = update
         self.updates.append(update)

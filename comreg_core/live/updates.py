@@ -13,8 +13,8 @@ import numpy as np
 
 #: ``updates.csv``'s columns.
 UPDATE_COLUMNS = ("time_s", "frames_received", "frames_used", "covered_mm", "verdict",
-                  "p_correct", "latency_s", "frame_age_s", "skipped_no_new_bone", "dropped_lag",
-                  "dropped_no_pose", "centroid_x", "centroid_y", "centroid_z",
+                  "p_correct", "latency_s", "update_s", "frame_age_s", "skipped_no_new_bone",
+                  "dropped_lag", "dropped_no_pose", "centroid_x", "centroid_y", "centroid_z",
                   *(f"T_ct_us_{r}{c}" for r in range(3) for c in range(4)))
 
 
@@ -70,7 +70,7 @@ class LiveUpdate:
         p = "" if self.p_correct is None else f"{self.p_correct:.4f}"
         return [f"{self.time_s:.3f}", self.frames_received, self.frames_used,
                 f"{self.covered_mm:.1f}", self.verdict, p, f"{self.latency_s:.3f}",
-                f"{self.frame_age_s:.3f}", self.skipped, self.dropped_lag, self.dropped_no_pose,
+                f"{self.register_s:.3f}", f"{self.frame_age_s:.3f}", self.skipped, self.dropped_lag, self.dropped_no_pose,
                 *(f"{v:.4f}" for v in self.centroid),
                 *(repr(float(v)) for v in self.T_ct_us[:3].reshape(-1))]
 
