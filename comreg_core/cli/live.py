@@ -45,6 +45,10 @@ LIVE_MAX_AGE = typer.Option(
     0.5, "--max-frame-age", metavar="SECONDS", rich_help_panel=STREAM, help="No frame is older "
     "than this when an update registers it: frames the registration cannot keep up with are "
     "dropped (counted, 'dropped (lag)'). inf: frames wait, none is dropped.")
+LIVE_UPDATE_EVERY = typer.Option(
+    0.2, "--update-every", metavar="SECONDS", min=0.0, rich_help_panel=STREAM, help="While "
+    "frames wait for bone detection, start an update at most this often (the frames detected "
+    "meanwhile wait for it), leaving the processor to detection. 0: as often as frames come.")
 LIVE_DETECT_WORKERS = typer.Option(
     None, "--detect-workers", min=0, rich_help_panel=STREAM, help="Processes that find the bone "
     "in the frames beside the update loop (default: one per core less one, 1 to 4; 0: in the "
@@ -86,6 +90,7 @@ def live(
     frame_spacing: str = LIVE_SPACING,
     max_frame_age: float = LIVE_MAX_AGE,
     detect_workers: Optional[int] = LIVE_DETECT_WORKERS,
+    update_every: float = LIVE_UPDATE_EVERY,
     ct_mesh: Path = LIVE_CT,
     calibration: Optional[Path] = LIVE_CALIBRATION,
     model: Optional[Path] = LIVE_MODEL,
@@ -127,20 +132,23 @@ def live(
     pose_device = transform_device or (IMAGE_POSE_DEVICE if calibration is None
                                        else PROBE_POSE_DEVICE)
     _check_device_names(image_device, pose_device, send_device)
-    frames = _frame_rules(frame_spacing, max_frame_age)
+    frames, update_every_s = _frame_rules(frame_spacing, max_frame_age, update_every)
     session, recipe = _session(ct_mesh, model, device, verdict_calibration, prior, seed, frames)
-    summary = _listen(session, recipe, background, detect_workers, (host, port), image_device,
-                      pose_device, send_device, T_probe_pixel, until_end, connect_timeout, out)
+    summary = _listen(session, recipe, (background, detect_workers, update_every_s),
+                      (host, port), image_device, pose_device, send_device, T_probe_pixel,
+                      until_end, connect_timeout, out)
     typer.echo(summary.line())
     if out is not None:
         _finish(session, out, model, ct_mesh, device, verdict_calibration, prior, report)
 
 
-def _frame_rules(spacing: str, max_age: float) -> dict:
+def _frame_rules(spacing: str, max_age: float, update_every: float) -> tuple[dict, float]:
     """``--frame-spacing MM,DEG`` and ``--max-frame-age`` as the session's ``spacing`` (a
     :class:`~comreg_core.live.intake.FrameSpacing`, None for 0,0: every frame) and
-    ``max_frame_age_s`` (None for inf); a :class:`ComRegError` when they are not numbers of
-    that kind."""
+    ``max_frame_age_s`` (None for inf), and ``--update-every`` (s); a :class:`ComRegError`
+    when they are not numbers of that kind."""
+    import math
+
     from comreg_core.errors import ComRegError
     from comreg_core.live.intake import FrameGate, FrameSpacing
 
@@ -153,7 +161,10 @@ def _frame_rules(spacing: str, max_age: float) -> dict:
              else FrameSpacing(mm, deg),
              "max_frame_age_s": None if max_age == float("inf") else max_age}
     FrameGate(rules["spacing"], rules["max_frame_age_s"])  # refuses a bad age limit
-    return rules
+    if not math.isfinite(update_every):
+        raise ComRegError(f"--update-every {update_every:g} is not a finite number of seconds.",
+                          "Give e.g. --update-every 0.2 (0: as often as frames come).")
+    return rules, update_every
 
 
 def _check_connect_timeout(seconds: float) -> float:
@@ -219,16 +230,18 @@ def _session(ct_mesh, model, device: Device, verdict_calibration, prior, seed: i
     return LiveSession(registrar, calibration=verdict, prior=prior, seed=seed, **frames), recipe
 
 
-def _listen(session, recipe, background: bool, detect_workers, where: tuple[str, int],
+def _listen(session, recipe, work: tuple, where: tuple[str, int],
             image_device: str, pose_device: str, send_device: str, T_probe_pixel,
             until_end: bool, connect_timeout: float, out):
     """Prepare the CT side (and the full-search and detection workers), then register the
-    stream's frames until it stops; returns the run's summary."""
+    stream's frames until it stops; returns the run's summary. ``work``: ``(background
+    search, detection workers or None, seconds between updates)``."""
     from comreg_core.live.background import WORKER_START_S, FullSearchWorker, one_thread
     from comreg_core.live.detection import DetectionPool, default_workers
     from comreg_core.live.run import FrameReceiver, run_live, stop_on_sigterm
 
     host, port = where
+    background, detect_workers, update_every_s = work
     with ExitStack() as stack:
         if background:
             session.worker = stack.enter_context(FullSearchWorker(recipe, session.prior))
@@ -251,6 +264,7 @@ def _listen(session, recipe, background: bool, detect_workers, where: tuple[str,
         with stop_on_sigterm():
             return run_live(session, receiver, out_dir=out, until_end=until_end,
                             send_device=send_device, on_status=typer.echo, pool=pool,
+                            update_every_s=update_every_s,
                             on_note=lambda line: typer.echo(f"live: {line}", err=True))
 
 

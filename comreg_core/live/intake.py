@@ -117,6 +117,7 @@ class FrameGate:
         self._last: np.ndarray | None = None  # the pose of the last frame sent to detection
         self._detect_s: deque[float] = deque(maxlen=8)
         self._update_s: deque[float] = deque(maxlen=8)
+        self.update_every_s = 0.0  # the least time between two updates (s)
 
     def admit(self, frame, now_s: float) -> bool:
         """Whether ``frame`` (next in stream order) goes to detection now; if not, it is
@@ -159,9 +160,11 @@ class FrameGate:
 
     def _reserve(self) -> float:
         """The time a frame sent to detection now still waits before an update takes it (s):
-        the mean detection and the mean update of late, at most half the age limit."""
+        the mean detection of late, and the mean update of late or the time between updates
+        (:attr:`update_every_s`) if longer; at most half the age limit."""
         mean = (lambda d: sum(d) / len(d) if d else 0.0)
-        return min(mean(self._detect_s) + mean(self._update_s), 0.5 * self.max_age_s)
+        wait = mean(self._detect_s) + max(mean(self._update_s), self.update_every_s)
+        return min(wait, 0.5 * self.max_age_s)
 
     def _record(self, frame, fate: str, now_s: float) -> None:
         self.counts[fate] += 1

@@ -23,6 +23,7 @@ the first update. On stop, the frames still on their way are detected, and
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import threading
 import time
@@ -51,6 +52,9 @@ log = logging.getLogger(__name__)
 
 #: Frames the receiver holds for the update loop at most (the oldest is dropped beyond).
 MAX_QUEUED = 200
+#: Seconds ``--until-end`` waits, once the stream ended, for the answer of a full search still
+#: running in the background (the last update uses it).
+FINAL_SEARCH_WAIT_S = 60.0
 #: File names of a live folder, besides those of a registration folder.
 UPDATES = "updates.csv"
 US_POINTS = "us_points.ply"
@@ -268,12 +272,15 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
              until_end: bool = False, stop: threading.Event | None = None,
              send_device: str = SEND_DEVICE, on_status: Callable[[str], None] | None = None,
              on_note: Callable[[str], None] | None = None,
-             pool: DetectionPool | None = None) -> LiveSummary:
+             pool: DetectionPool | None = None, update_every_s: float = 0.0) -> LiveSummary:
     """The update loop (module docstring) until ``stop`` is set, Ctrl-C, or (``until_end``) the
-    server closed the stream and the frames that came are registered. ``out_dir``: gets
+    server closed the stream and the frames that came are registered (with the answer of a
+    full search still running, waited for). ``out_dir``: gets
     ``updates.csv`` at the first update, then a row per update, flushed. ``on_status`` gets
     each update's status line, ``on_note`` each one-line note. ``pool``: the detection workers
-    (None: detection in the pipeline's thread). Frames still on their way when it stops are
+    (None: detection in the pipeline's thread). ``update_every_s``: while frames wait for
+    detection, an update starts at least this long after the one before (the frames detected
+    meanwhile wait for it), leaving the processor to detection. Frames still on their way when it stops are
     detected then (no update), for :func:`finish_live`. Raises :class:`NoServerError` when the
     receiver's connect timeout passed without a connection (``out_dir`` untouched then)."""
     on_status = on_status or (lambda line: log.info("%s", line))
@@ -282,10 +289,13 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
     pipeline = DetectionPipeline(receiver, session.gate, pool or DetectionPool(0),
                                  session.clock)
     state = {"log": None, "told": set()}
-    ended = False
+    ended = last_answer = False
+    next_update_s = -math.inf
+    session.gate.update_every_s = update_every_s
     pipeline.start()
     try:
         while not stop.is_set():
+            stop.wait(max(0.0, next_update_s - session.clock()))
             batch = pipeline.take(0.1)
             for note in batch.notes:
                 on_note(note)
@@ -294,10 +304,16 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
                                     "Start PLUS Server (or 'comreg replay') there first, check "
                                     "--igtl, or wait longer (--connect-timeout).")
             if batch.detections or session.answer_waiting():
+                start = session.clock()
                 _one_update(session, receiver, batch, state, out_dir, send_device, on_status,
                             on_note)
+                if pipeline.waiting:  # detection lags: the next update waits a while
+                    next_update_s = start + update_every_s
             ended = ended or batch.ended
             if ended and until_end:
+                if session.searching and not last_answer:  # one more update, with its answer
+                    last_answer = session.worker.wait(FINAL_SEARCH_WAIT_S)
+                    continue
                 break
     except KeyboardInterrupt as stopped:
         on_note(f"stopping ({getattr(stopped, 'reason', 'Ctrl-C')})")
