@@ -303,7 +303,7 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
                 raise NoServerError(f"{batch.gave_up[0].upper()}{batch.gave_up[1:]}.",
                                     "Start PLUS Server (or 'comreg replay') there first, check "
                                     "--igtl, or wait longer (--connect-timeout).")
-            if batch.detections or session.answer_waiting():
+            if batch.detections or (ended and session.answer_waiting()):
                 start = session.clock()
                 _one_update(session, receiver, batch, state, out_dir, send_device, on_status,
                             on_note)

@@ -309,8 +309,8 @@ class LiveSession(VerdictChecks):
         return self._job is not None
 
     def answer_waiting(self) -> bool:
-        """Whether the worker's answer to a full search waits to be used (by an update, even
-        without new frames)."""
+        """Whether the worker's answer to a full search waits to be used (an update without new
+        frames uses it: at the end of the stream)."""
         return self.worker is not None and self._job is not None and (
             self._done is not None or self.worker.wait(0.0))
 
