@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.igtl import ConnectionClosed, read_message
