@@ -19,6 +19,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import time
 from multiprocessing.connection import wait as wait_for
 
 import numpy as np
@@ -117,8 +118,6 @@ class DetectionPool:
     def wait_ready(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for every worker to start; those that failed are let go.
         Whether all are ready."""
-        import time
-
         end = time.monotonic() + timeout_s
         while any(not w.ready for w in self._workers) and time.monotonic() < end:
             self._read(0.05)
