@@ -245,6 +245,7 @@ def _listen(session, recipe, work: tuple, where: tuple[str, int],
     with ExitStack() as stack:
         if background:
             session.worker = stack.enter_context(FullSearchWorker(recipe, session.prior))
+            session.first_search_beside = True  # no update waits for a search
         workers = default_workers() if detect_workers is None else detect_workers
         pool = stack.enter_context(DetectionPool(workers, session.points.config))
         stack.enter_context(one_thread())

@@ -101,6 +101,11 @@ class LiveSession(VerdictChecks):
         clock: the time source (s), ``time.monotonic`` by default.
         worker: a :class:`~comreg_core.live.background.FullSearchWorker` of the same registrar
             and prior, to run the full searches in the background (None: in the update).
+
+    Attributes:
+        first_search_beside: with a worker, the first full search runs in it too (no update
+            until its answer came, with new frames; ``comreg live``), instead of in the first
+            update (the default).
     """
 
     def __init__(self, registrar, *, calibration: Calibration | None = None,
@@ -137,6 +142,7 @@ class LiveSession(VerdictChecks):
         self._fulls: list[tuple[float, np.ndarray]] = []  # (covered mm, T_ct_us) of each
         self._halves_deg: float | None = None  # the last full search's, when it measured it
         self.worker = worker
+        self.first_search_beside = False
         self._job: tuple[int, float] | None = None  # (id, covered mm) of the worker's job
         self._jobs = 0
         self._done: FullSearchDone | None = None  # the worker's answer, not yet used
@@ -254,7 +260,8 @@ class LiveSession(VerdictChecks):
         ``origins`` are registered, ``everything`` (all points) measures the coverage. None
         while the worker runs the first full search."""
         covered = self.covered_mm(everything, None if self.last is None else self.last.T_ct_us)
-        if self._worker_ready():
+        beside = self._worker_ready() and (self._result is not None or self.first_search_beside)
+        if beside:
             if self._result is None and not self._first_answer(pts, origins, covered):
                 return None  # the first full search runs in the worker
             return self._register_beside(pts, origins, covered)

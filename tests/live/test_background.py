@@ -71,6 +71,7 @@ def test_the_worker_finds_what_the_session_would(worker, sweep, search_registrar
 def test_a_session_with_the_worker_is_warm_and_adopts_full_searches(worker, sweep,
                                                                    search_registrar):
     session = LiveSession(search_registrar, worker=worker)
+    session.first_search_beside = True  # as comreg live
     updates = []
     for start in range(0, 30, 2):
         update = session.update(_frames(sweep, range(start, start + 2)))
