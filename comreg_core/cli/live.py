@@ -36,6 +36,23 @@ LIVE_CONNECT_TIMEOUT = typer.Option(
     "2, nothing written) when no server answered within this many seconds of starting to "
     "connect. The first connection only: a lost one is retried for as long as live runs (with "
     "--until-end, a closed stream ends it).")
+LIVE_SPACING = typer.Option(
+    "0.5,0.5", "--frame-spacing", metavar="MM,DEG", rich_help_panel=STREAM, help="Skip, before "
+    "detection, a frame whose image moved less than MM (at every corner) and turned less than "
+    "DEG from the last frame used: it shows no new bone (counted as skipped, not lost). 0,0: "
+    "use every frame.")
+LIVE_MAX_AGE = typer.Option(
+    0.5, "--max-frame-age", metavar="SECONDS", rich_help_panel=STREAM, help="No frame is older "
+    "than this when an update registers it: frames the registration cannot keep up with are "
+    "dropped (counted, 'dropped (lag)'). inf: frames wait, none is dropped.")
+LIVE_UPDATE_EVERY = typer.Option(
+    0.2, "--update-every", metavar="SECONDS", min=0.0, rich_help_panel=STREAM, help="While "
+    "frames wait for bone detection, start an update at most this often (the frames detected "
+    "meanwhile wait for it), leaving the processor to detection. 0: as often as frames come.")
+LIVE_DETECT_WORKERS = typer.Option(
+    None, "--detect-workers", min=0, rich_help_panel=STREAM, help="Processes that find the bone "
+    "in the frames beside the update loop (default: one per core less one, 1 to 4; 0: in the "
+    "live process).")
 LIVE_CT = typer.Option(..., "--ct", rich_help_panel=INPUTS, help="The CT bone mesh (mm).")
 LIVE_CALIBRATION = typer.Option(
     None, "--probe-calibration", "--calibration", rich_help_panel=INPUTS,
@@ -70,6 +87,10 @@ def live(
     send_device: str = LIVE_SEND_DEVICE,
     until_end: bool = LIVE_UNTIL_END,
     connect_timeout: float = LIVE_CONNECT_TIMEOUT,
+    frame_spacing: str = LIVE_SPACING,
+    max_frame_age: float = LIVE_MAX_AGE,
+    detect_workers: Optional[int] = LIVE_DETECT_WORKERS,
+    update_every: float = LIVE_UPDATE_EVERY,
     ct_mesh: Path = LIVE_CT,
     calibration: Optional[Path] = LIVE_CALIBRATION,
     model: Optional[Path] = LIVE_MODEL,
@@ -111,12 +132,39 @@ def live(
     pose_device = transform_device or (IMAGE_POSE_DEVICE if calibration is None
                                        else PROBE_POSE_DEVICE)
     _check_device_names(image_device, pose_device, send_device)
-    session, recipe = _session(ct_mesh, model, device, verdict_calibration, prior, seed)
-    summary = _listen(session, recipe, background, host, port, image_device, pose_device,
-                      send_device, T_probe_pixel, until_end, connect_timeout, out)
+    frames, update_every_s = _frame_rules(frame_spacing, max_frame_age, update_every)
+    session, recipe = _session(ct_mesh, model, device, verdict_calibration, prior, seed, frames)
+    summary = _listen(session, recipe, (background, detect_workers, update_every_s),
+                      (host, port), image_device, pose_device, send_device, T_probe_pixel,
+                      until_end, connect_timeout, out)
     typer.echo(summary.line())
     if out is not None:
         _finish(session, out, model, ct_mesh, device, verdict_calibration, prior, report)
+
+
+def _frame_rules(spacing: str, max_age: float, update_every: float) -> tuple[dict, float]:
+    """``--frame-spacing MM,DEG`` and ``--max-frame-age`` as the session's ``spacing`` (a
+    :class:`~comreg_core.live.intake.FrameSpacing`, None for 0,0: every frame) and
+    ``max_frame_age_s`` (None for inf), and ``--update-every`` (s); a :class:`ComRegError`
+    when they are not numbers of that kind."""
+    import math
+
+    from comreg_core.errors import ComRegError
+    from comreg_core.live.intake import FrameGate, FrameSpacing
+
+    try:
+        mm, deg = (float(v) for v in spacing.split(","))
+    except ValueError:
+        raise ComRegError(f"--frame-spacing '{spacing}' is not MM,DEG.",
+                          "Give e.g. --frame-spacing 0.5,0.5 (0,0 uses every frame).") from None
+    rules = {"spacing": None if FrameSpacing(mm, deg) == FrameSpacing(0.0, 0.0)
+             else FrameSpacing(mm, deg),
+             "max_frame_age_s": None if max_age == float("inf") else max_age}
+    FrameGate(rules["spacing"], rules["max_frame_age_s"])  # refuses a bad age limit
+    if not math.isfinite(update_every):
+        raise ComRegError(f"--update-every {update_every:g} is not a finite number of seconds.",
+                          "Give e.g. --update-every 0.2 (0: as often as frames come).")
+    return rules, update_every
 
 
 def _check_connect_timeout(seconds: float) -> float:
@@ -165,9 +213,11 @@ def _check_device_names(image_device: str, pose_device: str, send_device: str) -
                           "and --send-device names, e.g. Image and ImageToReference.")
 
 
-def _session(ct_mesh, model, device: Device, verdict_calibration, prior, seed: int):
+def _session(ct_mesh, model, device: Device, verdict_calibration, prior, seed: int,
+             frames: dict):
     """``(the live session, the recipe of its registrar)``; a verdict calibration made for
-    another CT is refused here, before any work."""
+    another CT is refused here, before any work. ``frames``: the session's ``spacing`` and
+    ``max_frame_age_s``."""
     from comreg_core.live.background import RegistrarRecipe, build_registrar
     from comreg_core.live.session import LiveSession
     from comreg_core.register.inputs import calibration_path, find_calibration
@@ -177,33 +227,45 @@ def _session(ct_mesh, model, device: Device, verdict_calibration, prior, seed: i
     registrar = build_registrar(recipe)
     if verdict is not None:
         verdict.check_ct(registrar.fingerprint, calibration_path(verdict_calibration, model))
-    return LiveSession(registrar, calibration=verdict, prior=prior, seed=seed), recipe
+    return LiveSession(registrar, calibration=verdict, prior=prior, seed=seed, **frames), recipe
 
 
-def _listen(session, recipe, background: bool, host: str, port: int, image_device: str,
-            pose_device: str, send_device: str, T_probe_pixel, until_end: bool,
-            connect_timeout: float, out):
-    """Prepare the CT side (and the full-search worker), then register the stream's frames
-    until it stops; returns the run's summary."""
+def _listen(session, recipe, work: tuple, where: tuple[str, int],
+            image_device: str, pose_device: str, send_device: str, T_probe_pixel,
+            until_end: bool, connect_timeout: float, out):
+    """Prepare the CT side (and the full-search and detection workers), then register the
+    stream's frames until it stops; returns the run's summary. ``work``: ``(background
+    search, detection workers or None, seconds between updates)``."""
     from comreg_core.live.background import WORKER_START_S, FullSearchWorker, one_thread
+    from comreg_core.live.detection import DetectionPool, default_workers
     from comreg_core.live.run import FrameReceiver, run_live, stop_on_sigterm
 
+    host, port = where
+    background, detect_workers, update_every_s = work
     with ExitStack() as stack:
         if background:
             session.worker = stack.enter_context(FullSearchWorker(recipe, session.prior))
-            stack.enter_context(one_thread())
+            session.first_search_beside = True  # no update waits for a search
+        workers = default_workers() if detect_workers is None else detect_workers
+        pool = stack.enter_context(DetectionPool(workers, session.points.config))
+        stack.enter_context(one_thread())
         typer.echo("preparing the CT side ...", err=True)
         session.warm_up()
         if session.worker is not None and not session.worker.wait_ready(WORKER_START_S):
             typer.echo("live: the full-search worker is not ready; the update loop runs the "
                        "full searches until it is", err=True)
+        if not pool.wait_ready(WORKER_START_S):
+            pool.close()
+            typer.echo("live: the detection workers are not ready; frames are detected in "
+                       "the live process", err=True)
         receiver = FrameReceiver(host, port, image_device, pose_device, T_probe_pixel,
                                  reconnect=not until_end, connect_timeout_s=connect_timeout)
         typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "
                    f"'{pose_device}'; sending '{send_device}' (Ctrl-C to stop)", err=True)
         with stop_on_sigterm():
             return run_live(session, receiver, out_dir=out, until_end=until_end,
-                            send_device=send_device, on_status=typer.echo,
+                            send_device=send_device, on_status=typer.echo, pool=pool,
+                            update_every_s=update_every_s,
                             on_note=lambda line: typer.echo(f"live: {line}", err=True))
 
 
@@ -238,6 +300,9 @@ REPLAY_HOST = typer.Option("127.0.0.1", "--host", rich_help_panel=STREAM,
                            help="The address to serve on.")
 REPLAY_RATE = typer.Option(1.0, "--rate", rich_help_panel=STREAM, help="Speed: 1 = as recorded, "
                            "4 = four times as fast.")
+REPLAY_FPS = typer.Option(None, "--fps", rich_help_panel=STREAM, help="Send at this fixed "
+                          "frame rate instead of the recorded timing (e.g. 40: a scanner's "
+                          "rate).")
 REPLAY_WAIT = typer.Option(None, "--wait", min=0.0, rich_help_panel=STREAM, help="Give up when "
                            "no client connects within this many seconds (default: wait).")
 
@@ -250,21 +315,27 @@ def replay(
     port: int = REPLAY_PORT,
     host: str = REPLAY_HOST,
     rate: float = REPLAY_RATE,
+    fps: Optional[float] = REPLAY_FPS,
     wait: Optional[float] = REPLAY_WAIT,
 ) -> None:
     """Serve a recorded sweep over OpenIGTLink as PLUS Server would for a tracked probe: per
     frame an IMAGE 'Image', its TRANSFORM 'ImageToReference' and the probe's TRANSFORM
     'ProbeToReference' (where the recording gives it or its calibration derives it) with the
     same time stamp, at the recorded rate (or --rate times it), to the first client that
-    connects; then close the connection, so that 'comreg live --until-end' stops.
+    connects (--fps: at a fixed frame rate instead); then close the connection, so that
+    'comreg live --until-end' stops.
     """
+    import math
+
     from comreg_core.errors import ComRegError
     from comreg_core.io.tracked_us import read_tracked_sweep
     from comreg_core.live.replay import ReplayServer, replay_sweep
     from comreg_core.live.stream import recorded_probe_poses
 
-    if not rate > 0:
+    if not (math.isfinite(rate) and rate > 0):
         raise ComRegError(f"--rate {rate:g} is not a positive speed.", "Give e.g. --rate 1.")
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise ComRegError(f"--fps {fps:g} is not a positive frame rate.", "Give e.g. --fps 40.")
     tracked = read_tracked_sweep(sweep, calibration=calibration)
     if first_frame >= tracked.n_frames:
         raise ComRegError(f"--first-frame {first_frame} is outside the sweep's "
@@ -272,15 +343,16 @@ def replay(
                           f"Give a frame number from 0 to {tracked.n_frames - 1}.")
     probe_poses, source = recorded_probe_poses(tracked, calibration)
     server = ReplayServer(host, port)
+    speed = f"x{rate:g}" if fps is None else f"{fps:g} frames/s"
     typer.echo(f"serving {sweep} ({tracked.n_frames - first_frame} frames from frame "
-               f"{first_frame}, x{rate:g}) on {host}:{server.port}; waiting for a client",
+               f"{first_frame}, {speed}) on {host}:{server.port}; waiting for a client",
                err=True)
     if probe_poses is None:
         typer.echo(f"replay: sending ImageToReference only, no ProbeToReference: {source}",
                    err=True)
     try:
         stats = replay_sweep(tracked, server, rate=rate, first_frame=first_frame, wait_s=wait,
-                             probe_poses=probe_poses)
+                             probe_poses=probe_poses, fps=fps)
     except KeyboardInterrupt:
         server.close()
         typer.echo("stopped (Ctrl-C)", err=True)
@@ -289,4 +361,6 @@ def replay(
                + (f", {stats.unsent} while no client was connected" if stats.unsent else "")
                + (f", {stats.without_pose} without a pose" if stats.without_pose else "")
                + (f", {stats.without_probe} without a probe pose"
-                  if stats.without_probe and probe_poses is not None else ""))
+                  if stats.without_probe and probe_poses is not None else "")
+               + f"; on time within {1000 * stats.late_max_s:.0f} ms (median "
+               f"{1000 * stats.late_median_s:.0f} ms)")

@@ -140,7 +140,7 @@ def _serve(recipe: RegistrarRecipe, prior, connection) -> None:
 
 
 @contextmanager
-def _child_environment():
+def child_environment():
     """While inside, the thread variables say 1 and (in the main thread) Ctrl-C is ignored: a
     process spawned then inherits both, so a Ctrl-C at the terminal, which reaches the whole
     process group, stops ``live`` alone, even while the worker is still starting."""
@@ -196,7 +196,7 @@ class FullSearchWorker:
         self._connection, child = context.Pipe()
         self._process = context.Process(target=_serve, args=(recipe, prior, child),
                                         name="comreg-full-search", daemon=True)
-        with _child_environment():
+        with child_environment():
             self._process.start()
         child.close()
         self.ready = False

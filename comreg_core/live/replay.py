@@ -33,6 +33,9 @@ from comreg_core.live.igtl import (DEFAULT_PORT, IMAGE_DEVICE, IMAGE_POSE_DEVICE
 
 log = logging.getLogger(__name__)
 
+#: How long the server waits for a message from its client before it sends what is queued (s).
+READ_WAIT_S = 0.002
+
 
 class _ReplayHandler(socketserver.BaseRequestHandler):
     """One client of a :class:`ReplayServer`: sends the queued messages, reads (and keeps) what
@@ -44,8 +47,8 @@ class _ReplayHandler(socketserver.BaseRequestHandler):
         server._attach()
         try:
             while not server.closing.is_set():
-                try:
-                    message = read_message(sock, 0.02)
+                try:  # a short wait: frames queued meanwhile go out within ~2 ms
+                    message = read_message(sock, READ_WAIT_S)
                 except MalformedMessage as exc:
                     log.warning("replay: received %s", exc)
                     if not exc.in_sync:
@@ -146,7 +149,9 @@ class ReplayServer(pyigtl.OpenIGTLinkServer):
 class ReplayStats:
     """What :func:`replay_sweep` did: ``frames`` served (sent or not), ``sent`` to a client,
     ``unsent`` (no client connected then), ``without_pose`` (invalid frames: IMAGE only),
-    ``without_probe`` (valid frames sent without a probe pose), ``duration_s``."""
+    ``without_probe`` (valid frames sent without a probe pose), ``duration_s``, and how late
+    the frames were sent against their schedule: ``late_median_s``, ``late_max_s`` (from a
+    frame's due time to its messages written)."""
 
     frames: int = 0
     sent: int = 0
@@ -154,6 +159,8 @@ class ReplayStats:
     without_pose: int = 0
     without_probe: int = 0
     duration_s: float = 0.0
+    late_median_s: float = 0.0
+    late_max_s: float = 0.0
 
 
 def frame_messages(sweep, index: int, timestamp: float, T_ref_probe: np.ndarray | None = None,
@@ -179,21 +186,26 @@ def frame_messages(sweep, index: int, timestamp: float, T_ref_probe: np.ndarray 
 def replay_sweep(sweep, server: ReplayServer, *, rate: float = 1.0, first_frame: int = 0,
                  wait_s: float | None = None, stop: threading.Event | None = None,
                  on_frame: Callable[[int, bool], None] | None = None,
-                 probe_poses: np.ndarray | None = None) -> ReplayStats:
+                 probe_poses: np.ndarray | None = None, fps: float | None = None
+                 ) -> ReplayStats:
     """Serve ``sweep`` (a :class:`~comreg_core.io.sweeps.TrackedSweep`) from frame
     ``first_frame`` on through ``server`` as PLUS Server would (:func:`frame_messages`; with
     ``probe_poses`` ``(N, 4, 4)``, probe mm -> reference mm, NaN where unknown, each frame's
     ProbeToReference too), at its recorded rate times ``rate`` (timestamps in s; unknown ones
-    at 10 frames/s), then close the server. Waits for a client first (up to ``wait_s``; None:
-    for ever); frames due while no client is connected are counted ``unsent``, as a live
-    server would lose them.
-    ``on_frame(index, sent)`` after each frame; ``stop`` ends it early."""
+    at 10 frames/s) or, with ``fps``, at that fixed frame rate (the time stamps sent are the
+    recorded ones either way), then close the server. Each frame is due at its scheduled time
+    from the first frame's; a frame sent late does not delay the later ones. Waits for a client
+    first (up to ``wait_s``; None: for ever); frames due while no client is connected are
+    counted ``unsent``, as a live server would lose them. ``on_frame(index, sent)`` after each
+    frame; ``stop`` ends it early."""
     if not 0 <= first_frame < sweep.n_frames:
         raise ComRegError(f"--first-frame {first_frame} is outside the sweep's "
                           f"{sweep.n_frames} frames.",
                           f"Give a frame number from 0 to {sweep.n_frames - 1}.")
-    if not rate > 0:
+    if not (np.isfinite(rate) and rate > 0):
         raise ComRegError(f"--rate {rate:g} is not a positive speed.", "Give e.g. --rate 1.")
+    if fps is not None and not (np.isfinite(fps) and fps > 0):
+        raise ComRegError(f"--fps {fps:g} is not a positive frame rate.", "Give e.g. --fps 40.")
     stop = stop or threading.Event()
     stats = ReplayStats()
     try:
@@ -203,7 +215,9 @@ def replay_sweep(sweep, server: ReplayServer, *, rate: float = 1.0, first_frame:
             raise ComRegError(f"No client connected to {server.host}:{server.port} within "
                               f"{wait_s:g} s.", "Start 'comreg live' (or 3D Slicer's "
                               "OpenIGTLink connector) first, or wait longer (--wait).")
-        times = _schedule(sweep.timestamps[first_frame:], rate)
+        times = _schedule(sweep.timestamps[first_frame:], rate) if fps is None else \
+            np.arange(sweep.n_frames - first_frame) / float(fps)
+        late = []
         start = time.monotonic()
         for k, due in enumerate(times):
             index = first_frame + k
@@ -215,6 +229,7 @@ def replay_sweep(sweep, server: ReplayServer, *, rate: float = 1.0, first_frame:
             stamp = float(stamp) if np.isfinite(stamp) else time.time()
             probe = None if probe_poses is None else probe_poses[index]
             sent = server.send_now(*frame_messages(sweep, index, stamp, probe))
+            late.append(time.monotonic() - start - due)
             stats.frames += 1
             stats.sent += int(sent)
             stats.unsent += int(not sent)
@@ -224,6 +239,8 @@ def replay_sweep(sweep, server: ReplayServer, *, rate: float = 1.0, first_frame:
             if on_frame is not None:
                 on_frame(index, sent)
         stats.duration_s = time.monotonic() - start
+        if late:
+            stats.late_median_s, stats.late_max_s = float(np.median(late)), float(max(late))
     finally:
         server.close()
     return stats

@@ -1,27 +1,29 @@
 """``comreg live``: the stream in, the registration out, until the user or the stream stops.
 
-Threads: the OpenIGTLink client's thread (:class:`FrameReceiver`, on
+Threads and processes: the OpenIGTLink client's thread (:class:`FrameReceiver`, on
 :class:`~comreg_core.live.igtl.LiveClient`) reads every message, pairs images with poses
 (:class:`~comreg_core.live.stream.FrameAssembler`) and queues the frames; it never waits for the
-registration, so a slow update never blocks the stream. The update loop (:func:`run_live`, the
-caller's thread) takes all queued frames at once (coalesced,
-:meth:`~comreg_core.live.session.LiveSession.update`), registers, sends a TRANSFORM and a
-STRING back, writes a row of ``updates.csv`` and a status line. A full queue
-(:data:`MAX_QUEUED` frames) drops its oldest frame, and says so.
+registration. The detection pipeline's thread
+(:class:`~comreg_core.live.pipeline.DetectionPipeline`) decides each frame (skipped: no new
+bone; dropped: too old; :class:`~comreg_core.live.intake.FrameGate`) and has the bone detected
+in worker processes (:class:`~comreg_core.live.detection.DetectionPool`). The update loop
+(:func:`run_live`, the caller's thread) takes the detections that came, registers, sends a
+TRANSFORM and a STRING back, writes a row of ``updates.csv`` and a status line. A full
+receiver queue (:data:`MAX_QUEUED` frames) drops its oldest frame, and says so.
 
 No server within the connect timeout (``--connect-timeout``, the first connection only) ends
 the loop with :class:`NoServerError` before anything is written. Losing the connection loses
 nothing registered: the points stay in the session and the client reconnects (for as long as
 it takes); ``--until-end`` stops when the server closes the stream. ``updates.csv`` is made at
-the first update. On stop,
+the first update. On stop, the frames still on their way are detected, and
 :func:`finish_live` writes what ``comreg register`` and ``comreg report`` would for the points
-(:func:`~comreg_core.register.register_to_directory`).
+(:func:`~comreg_core.register.register_to_directory`) and every frame's fate (``frames.csv``).
 """
 
 from __future__ import annotations
 
-import csv
 import logging
+import math
 import signal
 import threading
 import time
@@ -37,9 +39,12 @@ import pyigtl
 from comreg_core.errors import ComRegError
 from comreg_core.io import PointCloud, write_points
 from comreg_core.io._files import atomic_output
+from comreg_core.live.detection import DetectionPool
 from comreg_core.live.igtl import LiveClient, UnknownMessage, SEND_DEVICE, STATUS_DEVICE
+from comreg_core.live.intake import LAG, SKIPPED
+from comreg_core.live.pipeline import DetectionPipeline
 from comreg_core.live.session import LiveSession
-from comreg_core.live.updates import LiveUpdate, UpdatesLog
+from comreg_core.live.updates import LiveUpdate, UpdatesLog, write_frames_csv
 from comreg_core.live.stream import Frame, FrameAssembler
 from comreg_core.transforms import space_change
 
@@ -47,6 +52,9 @@ log = logging.getLogger(__name__)
 
 #: Frames the receiver holds for the update loop at most (the oldest is dropped beyond).
 MAX_QUEUED = 200
+#: Seconds ``--until-end`` waits, once the stream ended, for the answer of a full search still
+#: running in the background (the last update uses it).
+FINAL_SEARCH_WAIT_S = 60.0
 #: File names of a live folder, besides those of a registration folder.
 UPDATES = "updates.csv"
 US_POINTS = "us_points.ply"
@@ -208,8 +216,9 @@ class FrameReceiver:
 @dataclass
 class LiveSummary:
     """How a live run ended: ``updates`` sent, images ``received``, frames ``used``, and those
-    not: ``waiting`` (still in the backlog, used by :func:`finish_live`), ``dropped`` (a full
-    queue or backlog), ``without_pose`` (or with an unusable one)."""
+    not: ``waiting`` (still on their way, used by :func:`finish_live`), ``skipped`` (no new
+    bone: not a loss), ``dropped`` (while lagging), ``without_pose`` (or with an unusable
+    one)."""
 
     updates: int
     received: int
@@ -217,15 +226,17 @@ class LiveSummary:
     waiting: int
     dropped: int
     without_pose: int
+    skipped: int = 0
 
     def line(self) -> str:
-        lost = self.received - self.used - self.waiting
+        lost = self.received - self.used - self.waiting - self.skipped
+        other = lost - self.dropped - self.without_pose
         return (f"{self.updates} updates; {self.used} of {self.received} frames registered"
                 + (f", {self.waiting} waiting" if self.waiting else "")
+                + f"; {self.skipped} skipped (no new bone)"
                 + (f"; {lost} not used: {self.dropped} dropped while lagging, "
                    f"{self.without_pose} without a usable pose"
-                   + (f", {lost - self.dropped - self.without_pose} other"
-                      if lost - self.dropped - self.without_pose else "") if lost else ""))
+                   + (f", {other} other" if other else "") if lost else ""))
 
 
 class StopRequested(KeyboardInterrupt):
@@ -260,67 +271,99 @@ def stop_on_sigterm():
 def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Path | None = None,
              until_end: bool = False, stop: threading.Event | None = None,
              send_device: str = SEND_DEVICE, on_status: Callable[[str], None] | None = None,
-             on_note: Callable[[str], None] | None = None) -> LiveSummary:
+             on_note: Callable[[str], None] | None = None,
+             pool: DetectionPool | None = None, update_every_s: float = 0.0) -> LiveSummary:
     """The update loop (module docstring) until ``stop`` is set, Ctrl-C, or (``until_end``) the
-    server closed the stream and the frames that came are registered. ``out_dir``: gets
+    server closed the stream and the frames that came are registered (with the answer of a
+    full search still running, waited for). ``out_dir``: gets
     ``updates.csv`` at the first update, then a row per update, flushed. ``on_status`` gets
-    each update's status line, ``on_note`` each one-line note. Frames the loop could not keep
-    up with wait in the session's backlog: they are registered when the stream pauses, and
-    :func:`finish_live` uses them all. Raises :class:`NoServerError` when the receiver's
-    connect timeout passed without a connection (``out_dir`` untouched then)."""
+    each update's status line, ``on_note`` each one-line note. ``pool``: the detection workers
+    (None: detection in the pipeline's thread). ``update_every_s``: while frames wait for
+    detection, an update starts at least this long after the one before (the frames detected
+    meanwhile wait for it), leaving the processor to detection. Frames still on their way when it stops are
+    detected then (no update), for :func:`finish_live`. Raises :class:`NoServerError` when the
+    receiver's connect timeout passed without a connection (``out_dir`` untouched then)."""
     on_status = on_status or (lambda line: log.info("%s", line))
     on_note = on_note or (lambda line: log.warning("%s", line))
     stop = stop or threading.Event()
-    updates_log = None
-    space = session.registrar.space
-    waiting_told = ended = False
-    receiver.start()
+    pipeline = DetectionPipeline(receiver, session.gate, pool or DetectionPool(0),
+                                 session.clock)
+    state = {"log": None, "told": set()}
+    ended = last_answer = False
+    next_update_s = -math.inf
+    session.gate.update_every_s = update_every_s
+    pipeline.start()
     try:
         while not stop.is_set():
-            batch = receiver.take(0.0 if session.backlog else 0.1)
+            stop.wait(max(0.0, next_update_s - session.clock()))
+            batch = pipeline.take(0.1)
             for note in batch.notes:
                 on_note(note)
             if batch.gave_up:
                 raise NoServerError(f"{batch.gave_up[0].upper()}{batch.gave_up[1:]}.",
                                     "Start PLUS Server (or 'comreg replay') there first, check "
                                     "--igtl, or wait longer (--connect-timeout).")
-            if batch.frames or session.backlog:
-                update = session.update(batch.frames, received=batch.received)
-                for note in session.take_notes():
-                    on_note(note)
-                if update is None and batch.frames and not waiting_told:
-                    on_status(f"waiting for bone: {session.points.frames_with_bone} of "
-                              f"{session.points.frames_used} frames show it so far")
-                    waiting_told = True
-                elif update is not None:
-                    receiver.send(update, space, send_device)
-                    update.latency_s = session.clock() - update.newest_s
-                    if out_dir is not None and updates_log is None:
-                        updates_log = UpdatesLog(Path(out_dir) / UPDATES)
-                    if updates_log is not None:
-                        updates_log.write(update)
-                    on_status(update.status_line())
+            if batch.detections or (ended and session.answer_waiting()):
+                start = session.clock()
+                _one_update(session, receiver, batch, state, out_dir, send_device, on_status,
+                            on_note)
+                if pipeline.waiting:  # detection lags: the next update waits a while
+                    next_update_s = start + update_every_s
             ended = ended or batch.ended
-            if ended and until_end and not session.backlog:
+            if ended and until_end:
+                if session.searching and not last_answer:  # one more update, with its answer
+                    last_answer = session.worker.wait(FINAL_SEARCH_WAIT_S)
+                    continue
                 break
     except KeyboardInterrupt as stopped:
         on_note(f"stopping ({getattr(stopped, 'reason', 'Ctrl-C')})")
     finally:
-        receiver.stop()
-        if updates_log is not None:
-            updates_log.close()
+        frames, found = pipeline.stop()
+        session.drain(frames, found)
+        if state["log"] is not None:
+            state["log"].close()
     return LiveSummary(len(session.updates), receiver.assembler.images,
                        session.points.frames_used, len(session.backlog),
-                       receiver.dropped + session.dropped,
-                       receiver.assembler.without_pose + receiver.assembler.bad_poses)
+                       receiver.dropped + session.dropped + session.gate.counts[LAG],
+                       receiver.assembler.without_pose + receiver.assembler.bad_poses,
+                       session.gate.counts[SKIPPED])
+
+
+def _one_update(session: LiveSession, receiver: FrameReceiver, batch, state: dict, out_dir,
+                send_device: str, on_status, on_note) -> None:
+    """One update of :func:`run_live` with the ``batch``'s detections: sent back, logged
+    (``state``: the ``updates.csv`` log, made at the first update; the waits told) and
+    told."""
+    update = session.update(received=batch.received, detections=batch.detections)
+    for note in session.take_notes():
+        on_note(note)
+    if update is None:
+        waiting = ("first" if session.searching and session.last is None else "bone")
+        if waiting not in state["told"]:
+            on_status(f"waiting for bone: {session.points.frames_with_bone} of "
+                      f"{session.points.frames_used} frames show it so far" if waiting == "bone"
+                      else f"registering {session.points.frames_used} frames: the first full "
+                      "search runs in the background")
+            state["told"].add(waiting)
+        return
+    update.waiting, update.skipped = batch.waiting, batch.skipped
+    update.dropped_lag = batch.dropped + receiver.dropped
+    update.dropped_no_pose = receiver.assembler.without_pose + receiver.assembler.bad_poses
+    receiver.send(update, session.registrar.space, send_device)
+    update.latency_s = session.clock() - update.newest_s
+    if out_dir is not None and state["log"] is None:
+        state["log"] = UpdatesLog(Path(out_dir) / UPDATES)
+    if state["log"] is not None:
+        state["log"].write(update)
+    on_status(update.status_line())
 
 
 def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_mesh=None,
                 device: str = "auto", calibration=None, prior=None, report: bool = True):
     """Write what ``comreg register`` (and ``comreg report``) would for the sweep's points, into
     ``out_dir``: ``us_points.ply`` (tracker frame, LPS, with beam origins),
-    ``us_points_frames.npy`` (each point's frame, ``(N,)``), ``frames.csv`` (each frame used:
-    index, time stamp, points found, pose), then ``register_to_directory`` (``result.json``,
+    ``us_points_frames.npy`` (each point's frame, ``(N,)``), ``frames.csv`` (every frame that
+    came with a pose: :func:`write_frames_csv`), then ``register_to_directory`` (``result.json``,
     ``transform.tfm``, ``registered_us.ply``, ``config.yaml``, ...; within ``prior``, a
     :class:`~comreg_core.registration.search.priors.Prior` or None) and ``report.html``.
     Frames still waiting in the session's backlog are detected first, so every frame received
@@ -342,14 +385,7 @@ def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_m
     with atomic_output(out / US_POINT_FRAMES) as tmp:
         np.save(tmp, cloud.frame_index.astype(np.int64))
     with atomic_output(out / FRAMES) as tmp:
-        with open(tmp, "w", newline="", encoding="utf-8") as f:
-            writer = csv.writer(f)
-            writer.writerow(["index", "timestamp_s", "received_s", "raw_points",
-                             *(f"T_ref_image_{r}{c}" for r in range(3) for c in range(4))])
-            for rec in session.points.records:
-                writer.writerow([rec.index, repr(rec.timestamp),
-                                 f"{rec.received_s - session.started_s:.4f}", rec.raw_points,
-                                 *(repr(float(v)) for v in rec.T_ref_image[:3].reshape(-1))])
+        write_frames_csv(session.gate.fates, session.points.records, session.started_s, tmp)
     result = register_to_directory(run_dir, points_path, out, device=device, seed=session.seed,
                                    ct_mesh=ct_mesh, calibration=calibration, prior=prior)
     path = None
@@ -358,3 +394,4 @@ def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_m
 
         path = write_report_for_registration(out, ct_mesh=ct_mesh)
     return result, path
+

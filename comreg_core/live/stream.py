@@ -1,27 +1,22 @@
-"""A live sweep as it grows: frames in, bone points out, and how much of the bone they cover.
+"""A live stream's frames: images paired with their poses, and the probe calibration.
 
 - :class:`Frame`: one B-mode image with its pose (image mm -> tracker reference mm).
 - :class:`FrameAssembler`: pairs the IMAGE messages of a stream with their poses (the TRANSFORM
   of the same timestamp, PLUS Server's way), a probe pose through the probe calibration; what
   it cannot pair (an image without a pose, a pose that is no rigid map) becomes a one-line
   note, never an exception.
-- :class:`SweepPoints`: the bone points of every frame used, found by the B-mode detector with
-  the settings of ``comreg extract-us`` (:class:`~comreg_core.surfaces.us_config.
-  USExtractionConfig`), and the cloud of all of them denoised together as ``extract-us`` does:
-  after the last frame it is exactly ``extract-us``'s cloud of the frames used.
-- :func:`covered_length_mm`: the length of bone the points cover along an axis.
 - :func:`probe_calibration`, :func:`recorded_probe_poses`: the probe calibration of a file, and
   the probe's poses of a recording (what ``comreg replay`` sends as ``ProbeToReference``).
 
 Coordinates: a frame's pixel (row r, column c) lies at ``T_ref_image @ (c sx, r sy, 0, 1)``
-(:mod:`comreg_core.io.sweeps`); points are in the tracker's reference frame, mm.
+(:mod:`comreg_core.io.sweeps`). Their bone points: :mod:`comreg_core.live.points`.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -31,21 +26,11 @@ from comreg_core.io.frame_folders import read_frame_folder_calibration
 from comreg_core.io.plus_files import read_plus_calibration
 from comreg_core.io.plus_sequences import read_plus_sequence
 from comreg_core.io.sweeps import TrackedSweep, frames_to_grey
-from comreg_core.surfaces.us_config import USExtractionConfig
-from comreg_core.surfaces.us_denoise import denoise_points
-from comreg_core.surfaces.us_detector import detect_bone_surface
-from comreg_core.surfaces.us_points import NoBoneFoundError, USSurfacePoints, beam_origins
 
 log = logging.getLogger(__name__)
 
 #: Pixel columns further from a right angle than this (|cos|) make a pose malformed.
 MAX_SHEAR_COS = 0.05
-#: Neighbouring points along the axis closer than this (mm) belong to one covered stretch (a
-#: sweep's frames can be 30 mm apart where the probe moved fast: 95th percentile of the shared
-#: fibula recording's frames as served, every 10th of the original).
-MERGE_GAP_MM = 40.0
-#: A covered stretch needs at least this many points (a stray echo covers nothing).
-MIN_STRETCH_POINTS = 20
 
 
 @dataclass
@@ -203,111 +188,6 @@ def _worth_telling(count: int) -> bool:
     """Whether the ``count``-th repeat of a problem gets its line: the first three, then every
     hundredth (a stream without poses must not bury the status lines)."""
     return count <= 3 or count % 100 == 0
-
-
-@dataclass
-class _FrameRecord:
-    index: int
-    timestamp: float
-    received_s: float
-    T_ref_image: np.ndarray
-    raw_points: int
-
-
-@dataclass
-class SweepPoints:
-    """Bone points of the frames used so far (module docstring).
-
-    Attributes:
-        config: the extraction settings (``comreg extract-us``'s; its detector and denoising).
-        records: one per frame used: stream index, time stamp, arrival, pose, raw points.
-    """
-
-    config: USExtractionConfig = field(default_factory=USExtractionConfig)
-    records: list[_FrameRecord] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        self._points: list[np.ndarray] = []
-        self._frames: list[np.ndarray] = []
-        self._scores: list[np.ndarray] = []
-        self._poses: dict[int, np.ndarray] = {}
-        self._cloud: USSurfacePoints | None = None
-        self._dirty = False
-
-    def add(self, frame: Frame) -> int:
-        """Detect the bone in ``frame`` and keep its points; returns how many it gave."""
-        found = detect_bone_surface(frame.image, frame.spacing, self.config.detector)
-        one = TrackedSweep(frame.image[None], frame.spacing, frame.T_ref_image[None],
-                           [frame.timestamp], [True])
-        n = len(found.rows)
-        if n:
-            self._points.append(one.pixel_to_reference(np.zeros(n, int), found.rows,
-                                                       found.cols))
-            self._frames.append(np.full(n, frame.index, dtype=np.int64))
-            self._scores.append(found.score)
-            self._dirty = True
-        self._poses[frame.index] = frame.T_ref_image
-        self.records.append(_FrameRecord(frame.index, frame.timestamp, frame.received_s,
-                                         frame.T_ref_image, n))
-        return n
-
-    @property
-    def frames_used(self) -> int:
-        return len(self.records)
-
-    @property
-    def frames_with_bone(self) -> int:
-        return len(self._points)
-
-    def cloud(self) -> USSurfacePoints | None:
-        """All points so far in frame order, denoised together (as ``extract-us``), or None
-        when there are none or the clean-up keeps none. Cached until a frame adds points."""
-        if self._dirty:  # in frame order, whatever order the frames were detected in
-            frames = np.concatenate(self._frames)
-            order = np.argsort(frames, kind="stable")
-            raw = USSurfacePoints(np.concatenate(self._points)[order], frames[order],
-                                  np.concatenate(self._scores)[order], self.frames_used,
-                                  self.frames_with_bone)
-            try:
-                self._cloud = denoise_points(raw, self.config.denoise)
-            except NoBoneFoundError:
-                self._cloud = None
-            self._dirty = False
-        return self._cloud
-
-    def beam_origins(self, cloud: USSurfacePoints) -> np.ndarray | None:
-        """``(N, 3)`` the beam origin of each point of ``cloud`` (None after a down-sampling
-        that merged points)."""
-        if (cloud.frame_index < 0).any():
-            return None
-        poses = np.stack([self._poses[int(i)] for i in cloud.frame_index])
-        return beam_origins(cloud.points, poses)
-
-
-def covered_length_mm(along: np.ndarray, merge_gap_mm: float = MERGE_GAP_MM,
-                      min_points: int = MIN_STRETCH_POINTS) -> float:
-    """The length (mm) of the union of the stretches that positions ``along`` ``(N,)`` (mm on
-    one axis) cover: sorted positions closer than ``merge_gap_mm`` form one stretch; stretches
-    of fewer than ``min_points`` points count 0."""
-    s = np.sort(np.asarray(along, dtype=np.float64))
-    if len(s) == 0:
-        return 0.0
-    breaks = np.flatnonzero(np.diff(s) > merge_gap_mm)
-    starts = np.concatenate([[0], breaks + 1])
-    stops = np.concatenate([breaks, [len(s) - 1]])
-    keep = (stops - starts + 1) >= min_points
-    return float(np.sum(s[stops[keep]] - s[starts[keep]]))
-
-
-def coalesce(frames: list[Frame], limit: int) -> list[Frame]:
-    """At most ``limit`` of ``frames`` (in order), evenly spread and always with the newest:
-    what one update detects when the stream is faster than the updates."""
-    if len(frames) <= limit:
-        return list(frames)
-    if limit < 1:
-        raise ComRegError("At least one frame per update must be used.", "")
-    picks = np.unique(np.round(np.linspace(len(frames) - 1, 0, limit)).astype(int))
-    return [frames[i] for i in sorted(picks)]
 
 
 def probe_calibration(path) -> np.ndarray:

@@ -1,6 +1,6 @@
 """A live update's record (:class:`LiveUpdate`: what was registered and judged, and what to
-tell the user) and ``updates.csv``, one row per update (:class:`UpdatesLog`,
-:func:`read_updates`)."""
+tell the user), ``updates.csv``, one row per update (:class:`UpdatesLog`,
+:func:`read_updates`), and ``frames.csv``, one row per frame (:func:`write_frames_csv`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ import numpy as np
 
 #: ``updates.csv``'s columns.
 UPDATE_COLUMNS = ("time_s", "frames_received", "frames_used", "covered_mm", "verdict",
-                  "p_correct", "latency_s", "centroid_x", "centroid_y", "centroid_z",
+                  "p_correct", "latency_s", "update_s", "frame_age_s", "skipped_no_new_bone",
+                  "dropped_lag", "dropped_no_pose", "centroid_x", "centroid_y", "centroid_z",
                   *(f"T_ct_us_{r}{c}" for r in range(3) for c in range(4)))
 
 
@@ -35,6 +36,10 @@ class LiveUpdate:
         newest_s: arrival (``time.monotonic()``) of the newest frame registered; latency_s:
             from it to the update being sent (set by whoever sends it).
         searching: a full search runs in the background (its answer comes with a later update).
+        frame_age_s: the age of the oldest frame this update took (s, from its arrival).
+        skipped, dropped_lag, dropped_no_pose: frames so far skipped (no new bone: not a loss),
+            dropped while lagging, and images without a usable pose (set by whoever receives
+            them).
     """
 
     time_s: float
@@ -55,12 +60,17 @@ class LiveUpdate:
     newest_s: float
     latency_s: float = float("nan")
     searching: bool = False
+    frame_age_s: float = float("nan")
+    skipped: int = 0
+    dropped_lag: int = 0
+    dropped_no_pose: int = 0
 
     def csv_row(self) -> list:
         """The ``updates.csv`` row (:data:`UPDATE_COLUMNS`)."""
         p = "" if self.p_correct is None else f"{self.p_correct:.4f}"
         return [f"{self.time_s:.3f}", self.frames_received, self.frames_used,
                 f"{self.covered_mm:.1f}", self.verdict, p, f"{self.latency_s:.3f}",
+                f"{self.register_s:.3f}", f"{self.frame_age_s:.3f}", self.skipped, self.dropped_lag, self.dropped_no_pose,
                 *(f"{v:.4f}" for v in self.centroid),
                 *(repr(float(v)) for v in self.T_ct_us[:3].reshape(-1))]
 
@@ -69,11 +79,14 @@ class LiveUpdate:
         p = "n/a" if self.p_correct is None else f"{self.p_correct:.2f}"
         lag = f"; LAGGING: {self.waiting} frames waiting" if self.waiting else ""
         late = f"; LATE by {self.latency_s:.1f} s" if self.latency_s > 1.0 else ""
+        lost = "".join(f", {n} {why}" for n, why in (
+            (self.dropped_lag, "dropped (lag)"), (self.dropped_no_pose, "without a pose")) if n)
         return (f"[{self.time_s:7.1f} s] frames {self.frames_used}/{self.frames_received}, "
                 f"{self.n_points} points, {self.covered_mm:.0f} mm covered | {self.mode} "
                 f"{self.register_s:.2f} s{', full search running' if self.searching else ''}, "
                 f"latency {self.latency_s:.2f} s | "
-                f"{self.verdict.upper()} p_correct {p} | {self.advice}{lag}{late}")
+                f"{self.verdict.upper()} p_correct {p} | {self.advice} | "
+                f"{self.skipped} skipped (no new bone){lost}{lag}{late}")
 
     def message_text(self) -> str:
         """The STRING sent back: JSON with ``verdict``, ``p_correct``, ``covered_mm``,
@@ -121,3 +134,31 @@ def row_transform(row: dict) -> np.ndarray:
     T = np.eye(4)
     T[:3] = np.array([row[f"T_ct_us_{r}{c}"] for r in range(3) for c in range(4)]).reshape(3, 4)
     return T
+
+
+#: ``frames.csv``'s columns.
+FRAME_COLUMNS = ("index", "timestamp_s", "received_s", "fate", "used_s", "age_s", "raw_points",
+                 *(f"T_ref_image_{r}{c}" for r in range(3) for c in range(4)))
+
+
+def write_frames_csv(fates: list, records: list, started_s: float, path: str | Path) -> None:
+    """``frames.csv``: one row per frame that came with a usable pose, in stream order
+    (:data:`FRAME_COLUMNS`), from the gate's ``fates``
+    (:class:`~comreg_core.live.intake.FrameFate`) and the ``records`` of the frames used
+    (:class:`~comreg_core.live.points.FrameRecord`): its time stamp, arrival (s since
+    ``started_s``), fate (``used``, ``skipped``: no new bone, ``lag``: dropped while lagging),
+    when an update took it and how old it was then (empty: not used, or used at the stop), the
+    raw bone points found (empty: not detected) and its pose ``T_ref_image`` (top three
+    rows)."""
+    found = {rec.index: rec.raw_points for rec in records}
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(FRAME_COLUMNS)
+        for fate in sorted(fates, key=lambda x: x.index):
+            used = fate.fate == "used" and np.isfinite(fate.at_s)
+            writer.writerow([fate.index, repr(fate.timestamp),
+                             f"{fate.received_s - started_s:.4f}", fate.fate,
+                             f"{fate.at_s - started_s:.4f}" if used else "",
+                             f"{fate.at_s - fate.received_s:.4f}" if used else "",
+                             found.get(fate.index, ""),
+                             *(repr(float(v)) for v in fate.T_ref_image[:3].reshape(-1))])

@@ -6,7 +6,7 @@ from ``register`` on a partial recording).
 [--model RUN_DIR] [--untrained RUN0] [--verdict-calibration FILE]``
 
 For each start frame, the bone points of frames ``start..end`` (the live session's detector and
-clean-up, :class:`~comreg_core.live.stream.SweepPoints`) are registered for every ``step``-th
+clean-up, :class:`~comreg_core.live.points.SweepPoints`) are registered for every ``step``-th
 ``end`` to the sweep's last frame, in the tracker's frame (the CT's: the registration does not
 start from it), with their beam origins, by the search alone (``Registrar.from_ct``) and, with
 ``--model`` / ``--untrained``, by the network then the search (``Registrar.from_run``: the
@@ -38,7 +38,8 @@ def prefixes(start: int, step: int):
     """``(end frame, points (N, 3), beam origins (N, 3))`` of the sweep's frames
     ``start..end`` for every ``step``-th end with at least 3 frames with bone."""
     from comreg_core.io.tracked_us import read_tracked_sweep
-    from comreg_core.live.stream import Frame, SweepPoints
+    from comreg_core.live.points import SweepPoints
+    from comreg_core.live.stream import Frame
 
     sweep = read_tracked_sweep(SHARED)
     points = SweepPoints()
@@ -54,7 +55,7 @@ def prefixes(start: int, step: int):
 
 def covered_mm(points: np.ndarray, T_ct_us: np.ndarray, target) -> float:
     """Bone covered by ``points`` placed by ``T_ct_us``, along the CT's long axis (mm)."""
-    from comreg_core.live.stream import covered_length_mm
+    from comreg_core.live.points import covered_length_mm
     from comreg_core.transforms import apply_transform
 
     moved = apply_transform(T_ct_us, points)

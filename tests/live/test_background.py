@@ -1,7 +1,7 @@
 """The live full search in a second process (comreg_core.live.background): a real spawned
 worker gives the result the session's own process gives for the same points; a session using it
-registers warm every update after the first, adopts each answer in a later update, and turns OK
-only there; a worker that cannot start is let go with a note and the session searches itself."""
+registers warm every update (from the worker's first full search), adopts each answer in a
+later update, and turns OK only there; a worker that cannot start is let go with a note and the session searches itself."""
 
 from __future__ import annotations
 
@@ -71,19 +71,20 @@ def test_the_worker_finds_what_the_session_would(worker, sweep, search_registrar
 def test_a_session_with_the_worker_is_warm_and_adopts_full_searches(worker, sweep,
                                                                    search_registrar):
     session = LiveSession(search_registrar, worker=worker)
+    session.first_search_beside = True  # as comreg live
     updates = []
     for start in range(0, 30, 2):
         update = session.update(_frames(sweep, range(start, start + 2)))
-        if update is None:
-            continue
-        updates.append(update)
+        if update is not None:
+            updates.append(update)
         # the next update sees the answer: wait for it, so the order is the same on any machine
-        _wait(lambda: not update.searching or worker.wait(0.05), "answer")
+        _wait(lambda: not session.searching or worker.wait(0.05), "answer")
     modes = [u.mode for u in updates]
-    assert modes[0] == "full" and "full" not in modes[1:]
+    # the first full search too runs in the worker: no update waits for a search
+    assert modes[0] == "warm+full" and "full" not in modes
     adopted = [k for k, mode in enumerate(modes) if mode == "warm+full"]
     assert len(adopted) >= 3
-    for k in adopted:  # each answer asked for by the update before
+    for k in adopted[1:]:  # each later answer asked for by the update before
         assert updates[k - 1].searching
     for before, after in zip(updates, updates[1:]):  # OK comes only with a full search
         if after.verdict == "ok" and before.verdict != "ok":

@@ -12,7 +12,8 @@ import pytest
 from comreg_core.demo import pseudo_ground_truth
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.session import LiveSession
-from comreg_core.live.stream import Frame, SweepPoints
+from comreg_core.live.points import SweepPoints
+from comreg_core.live.stream import Frame
 from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.registration.search.polish import halves_disagreement_deg
 from comreg_core.registration.search.priors import Landmark, Prior

@@ -30,7 +30,7 @@ def _frames(sweep, indices, first_index=None):
 
 def test_full_first_then_warm_then_full_when_the_bone_covered_grows(sweep, search_registrar,
                                                                     tmp_path):
-    session = LiveSession(search_registrar)
+    session = LiveSession(search_registrar, spacing=None)  # a frame sent again is used again
     first = session.update(_frames(sweep, range(6)))
     assert first.mode == "full" and first.frames_used == 6 and first.frames_received == 6
     # the same frame again: no new bone covered, so warm from the last pose

@@ -11,8 +11,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.live.stream import (Frame, FrameAssembler, SweepPoints, coalesce,
-                                     covered_length_mm, probe_calibration)
+from comreg_core.live.intake import coalesce
+from comreg_core.live.points import SweepPoints, covered_length_mm
+from comreg_core.live.stream import Frame, FrameAssembler, probe_calibration
 from tests.helpers import assert_close
 from tests.live.conftest import cut_sweep
 

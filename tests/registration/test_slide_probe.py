@@ -15,7 +15,8 @@ import pytest
 from comreg_core.demo import pseudo_ground_truth
 from comreg_core.register import Registrar
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.live.stream import Frame, SweepPoints
+from comreg_core.live.points import SweepPoints
+from comreg_core.live.stream import Frame
 from comreg_core.registration.geometry.metrics import rotation_error_deg, translation_error_mm
 from comreg_core.registration.geometry.extent import SLIDE_PROBE_MAX_SHARE, spread_mm
 from comreg_core.registration.geometry.surface import ct_length_mm
