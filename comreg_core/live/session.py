@@ -190,8 +190,10 @@ class LiveSession(VerdictChecks):
             return None
         result, verdict, mode = registered
         covered = self.covered_mm(cloud.points, result.T_ct_us)
-        advice = "enough" if verdict.ok else scan_advice(
-            apply_transform(result.T_ct_us, cloud.points), self.target, self.registrar.space)
+        advice = "enough" if verdict.ok else (verdict.scan_next or {}).get("words") or \
+            scan_advice(apply_transform(result.T_ct_us, cloud.points), self.target,
+                        self.registrar.space)
+        uncertainty = verdict.uncertainty or {}
         update = LiveUpdate(
             time_s=start - self.started_s, frames_received=self.frames_received,
             frames_used=self.points.frames_used, n_points=len(cloud.points),
@@ -202,7 +204,9 @@ class LiveSession(VerdictChecks):
             newest_s=max(record.received_s for record in self.points.records),
             searching=self.searching,
             frame_age_s=max((start - d.received_s for d in found), default=math.nan),
-            skipped=counts["skipped"], dropped_lag=counts["lag"])
+            skipped=counts["skipped"], dropped_lag=counts["lag"],
+            bound_mm=uncertainty.get("bound_mm"),
+            weakest=uncertainty.get("summary", "").partition("weakest: ")[2])
         self.gate.timed(update_s=update.register_s)
         self.last = update
         self.updates.append(update)

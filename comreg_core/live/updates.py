@@ -13,7 +13,7 @@ import numpy as np
 
 #: ``updates.csv``'s columns.
 UPDATE_COLUMNS = ("time_s", "frames_received", "frames_used", "covered_mm", "verdict",
-                  "p_correct", "latency_s", "update_s", "frame_age_s", "skipped_no_new_bone",
+                  "p_correct", "bound_mm", "latency_s", "update_s", "frame_age_s", "skipped_no_new_bone",
                   "dropped_lag", "dropped_no_pose", "centroid_x", "centroid_y", "centroid_z",
                   *(f"T_ct_us_{r}{c}" for r in range(3) for c in range(4)))
 
@@ -40,6 +40,8 @@ class LiveUpdate:
         skipped, dropped_lag, dropped_no_pose: frames so far skipped (no new bone: not a loss),
             dropped while lagging, and images without a usable pose (set by whoever receives
             them).
+        bound_mm: the pose's 95 % bound at the bone (mm); weakest: its weakest directions in
+            words (the one judge's uncertainty; None / "" when not judged).
     """
 
     time_s: float
@@ -64,12 +66,15 @@ class LiveUpdate:
     skipped: int = 0
     dropped_lag: int = 0
     dropped_no_pose: int = 0
+    bound_mm: float | None = None
+    weakest: str = ""
 
     def csv_row(self) -> list:
         """The ``updates.csv`` row (:data:`UPDATE_COLUMNS`)."""
         p = "" if self.p_correct is None else f"{self.p_correct:.4f}"
+        bound = "" if self.bound_mm is None else f"{self.bound_mm:.2f}"
         return [f"{self.time_s:.3f}", self.frames_received, self.frames_used,
-                f"{self.covered_mm:.1f}", self.verdict, p, f"{self.latency_s:.3f}",
+                f"{self.covered_mm:.1f}", self.verdict, p, bound, f"{self.latency_s:.3f}",
                 f"{self.register_s:.3f}", f"{self.frame_age_s:.3f}", self.skipped, self.dropped_lag, self.dropped_no_pose,
                 *(f"{v:.4f}" for v in self.centroid),
                 *(repr(float(v)) for v in self.T_ct_us[:3].reshape(-1))]
@@ -85,13 +90,17 @@ class LiveUpdate:
                 f"{self.n_points} points, {self.covered_mm:.0f} mm covered | {self.mode} "
                 f"{self.register_s:.2f} s{', full search running' if self.searching else ''}, "
                 f"latency {self.latency_s:.2f} s | "
-                f"{self.verdict.upper()} p_correct {p} | {self.advice} | "
+                f"{self.verdict.upper()} p_correct {p}"
+                + ("" if self.bound_mm is None else f", within {self.bound_mm:.1f} mm")
+                + f" | {self.advice} | "
                 f"{self.skipped} skipped (no new bone){lost}{lag}{late}")
 
     def message_text(self) -> str:
-        """The STRING sent back: JSON with ``verdict``, ``p_correct``, ``covered_mm``,
-        ``advice``, ``frames_used``, ``frames_received``, ``reasons``."""
+        """The STRING sent back: JSON with ``verdict``, ``p_correct``, ``bound_mm``,
+        ``weakest``, ``covered_mm``, ``advice``, ``frames_used``, ``frames_received``,
+        ``reasons``."""
         return json.dumps({"verdict": self.verdict, "p_correct": self.p_correct,
+                           "bound_mm": self.bound_mm, "weakest": self.weakest,
                            "covered_mm": round(self.covered_mm, 1), "advice": self.advice,
                            "frames_used": self.frames_used,
                            "frames_received": self.frames_received, "reasons": self.reasons})

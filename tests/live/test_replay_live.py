@@ -217,6 +217,7 @@ def test_a_dropped_connection_is_restored_and_nothing_is_lost(sweep16, search_re
                 assert message.device_name == "ComRegStatus"
                 assert status["verdict"] in ("ok", "check") and "advice" in status
                 assert status["covered_mm"] >= 0
+                assert status["bound_mm"] > 0 and "bone's long axis" in status["weakest"]
 
     # every frame's points kept: the final folder registers extract-us's cloud of all 16,
     # onto the pseudo ground truth moved by T_move
