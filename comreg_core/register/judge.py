@@ -129,7 +129,7 @@ def judge(points_us: np.ndarray, T_ct_us: np.ndarray, ct_surface, evidence: Evid
     competitor = (evidence.competitor or {}).get("T_ct_us")
     uncertainty = pose_uncertainty(
         np.asarray(points_us, dtype=np.float64), np.asarray(T_ct_us, dtype=np.float64),
-        surface, ct_length_mm=ct_length_of(surface), prior_mm=prior_mm, prior_deg=prior_deg,
+        surface, ct_length_mm=None, prior_mm=prior_mm, prior_deg=prior_deg,
         competitors=[] if competitor is None else [np.asarray(competitor, dtype=np.float64)],
         profiles=profiles)
     p_correct = None if uncertainty is None else evidence.p_correct(uncertainty.p_raw)
@@ -141,10 +141,3 @@ def judge(points_us: np.ndarray, T_ct_us: np.ndarray, ct_surface, evidence: Evid
                                  scale_scan=scale_scan)
     return with_prior_reasons(verdict, evidence.prior)
 
-
-def ct_length_of(surface) -> float:
-    """The CT's length (mm): its vertices' spread along their principal axis."""
-    from comreg_core.registration.judgement.uncertainty import extent_along, long_axis_of
-
-    low, high = extent_along(surface.vertices, long_axis_of(surface))
-    return high - low

@@ -101,7 +101,7 @@ def _core_clusters(points, order, sorted_keys, shape, radius, min_points):
                             continue
                         j = order[q]
                         if j > i and counts[j] >= min_points:
-                            ri, rj = _root(parent, i), _root(parent, j)
+                            ri, rj = find_root(parent, i), find_root(parent, j)
                             if ri != rj:  # the root: the lowest index of its tree
                                 parent[max(ri, rj)] = min(ri, rj)
             first = last
@@ -110,7 +110,7 @@ def _core_clusters(points, order, sorted_keys, shape, radius, min_points):
     next_label = 0
     for i in range(n):
         if is_core[i]:
-            root = _root(parent, i)
+            root = find_root(parent, i)
             if component[root] < 0:
                 component[root] = next_label
                 next_label += 1
@@ -119,7 +119,7 @@ def _core_clusters(points, order, sorted_keys, shape, radius, min_points):
 
 
 @njit(cache=True)
-def _root(parent, i):
+def find_root(parent, i):
     """The root of ``i`` in the union-find forest ``parent``, halving the path on the way."""
     while parent[i] != i:
         parent[i] = parent[parent[i]]

@@ -34,7 +34,7 @@ from numba import njit
 from scipy.spatial import cKDTree
 
 from comreg_core.surfaces.us_config import DenoiseConfig
-from comreg_core.surfaces.us_denoise import denoise_points
+from comreg_core.surfaces.us_denoise import denoise_points, find_root
 from comreg_core.surfaces.us_points import NoBoneFoundError, USSurfacePoints
 
 
@@ -247,19 +247,10 @@ def _local_knn(queries: np.ndarray, target: np.ndarray, k: int, start_mm: float)
 
 
 @njit(cache=True)
-def _find(parent, i):
-    """The root of ``i`` (the lowest index of its tree), halving the path on the way."""
-    while parent[i] != i:
-        parent[i] = parent[parent[i]]
-        i = parent[i]
-    return i
-
-
-@njit(cache=True)
 def _union(parent, a, b):
     """Join the trees of ``a[e]`` and ``b[e]`` for every edge ``e``."""
     for e in range(len(a)):
-        ra, rb = _find(parent, a[e]), _find(parent, b[e])
+        ra, rb = find_root(parent, a[e]), find_root(parent, b[e])
         if ra != rb:
             parent[max(ra, rb)] = min(ra, rb)
 
@@ -272,7 +263,7 @@ def _labels(parent, core, nearest):
     out = np.full(n, -1, np.int64)
     for i in range(n):
         if core[i]:
-            out[i] = _find(parent, i)
+            out[i] = find_root(parent, i)
         elif nearest[i] >= 0:
-            out[i] = _find(parent, nearest[i])
+            out[i] = find_root(parent, nearest[i])
     return out

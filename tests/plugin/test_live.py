@@ -12,8 +12,6 @@ import os
 
 import numpy as np
 import pytest
-import vtk
-from vtk.util import numpy_support
 
 from tests.plugin.conftest import SLICER_CORE_MISSING
 
@@ -23,6 +21,7 @@ from comreg_core.errors import ComRegError  # noqa: E402
 from comreg_core.io.tracked_us import read_tracked_sweep  # noqa: E402
 from comreg_core.transforms import T_RAS_LPS  # noqa: E402
 from comreg_plugin.live import LiveRegistration  # noqa: E402
+from comreg_plugin.panel_testing import streamFrame  # noqa: E402
 from comreg_plugin.scene_io import transformToParentRAS, vtkMatrixFromArray  # noqa: E402
 from tests.helpers import FIBULA_STL, assert_close  # noqa: E402
 from tests.live.conftest import cut_sweep  # noqa: E402
@@ -34,18 +33,8 @@ def sweep16(shared_data, tmp_path_factory):
 
 
 def _stream_frame(imageNode, poseNode, sweep, i):
-    """Frame i into the nodes as the connector shows a PLUS stream in the module's convention:
-    the pose first, then the image (which fires ImageDataModifiedEvent)."""
-    poseNode.SetMatrixTransformToParent(vtkMatrixFromArray(
-        T_RAS_LPS @ sweep.T_ref_image[i] @ T_RAS_LPS))
-    imageNode.SetIJKToRASMatrix(vtkMatrixFromArray(T_RAS_LPS @ np.diag([*sweep.spacing, 1, 1])))
-    H, W = sweep.image_shape
-    image = vtk.vtkImageData()
-    image.SetDimensions(W, H, 1)
-    image.GetPointData().SetScalars(numpy_support.numpy_to_vtk(
-        np.ascontiguousarray(sweep.frames[i]).ravel(), deep=True,
-        array_type=vtk.VTK_UNSIGNED_CHAR))
-    imageNode.SetAndObserveImageData(image)
+    """Frame i into the nodes as the connector shows a PLUS stream (the module's own helper)."""
+    streamFrame(imageNode, poseNode, sweep, i, vtkMatrixFromArray)
 
 
 def test_live_mode_registers_the_incoming_frames(logic, sweep16):

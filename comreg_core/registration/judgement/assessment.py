@@ -11,8 +11,9 @@ import numpy as np
 
 from comreg_core.registration.judgement.profile import different_answer, profile
 from comreg_core.registration.judgement.scan_next import scan_next
-from comreg_core.registration.judgement.uncertainty import (basin_weight, fit_moments,
-                                                            long_axis_of, target_error,
+from comreg_core.registration.judgement.uncertainty import (basin_weight, extent_along,
+                                                            fit_moments, long_axis_of,
+                                                            target_error,
                                                             truncated_cost, weakest_directions)
 
 
@@ -71,24 +72,28 @@ class Uncertainty:
 
 
 def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
-                     ct_length_mm: float, prior_mm: float | None = None,
+                     ct_length_mm: float | None = None, prior_mm: float | None = None,
                      prior_deg: float | None = None,
                      competitors: Sequence[np.ndarray] = (),
                      groups: np.ndarray | None = None, profiles: bool = True,
                      advice: bool = True) -> Uncertainty | None:
     """The :class:`Uncertainty` of ``T_ct_us`` (``(4, 4)`` mm) for ``(n, 3)`` US points on the
-    CT ``surface`` (a CTSurface) ``ct_length_mm`` long. ``prior_mm``/``prior_deg``: the
+    CT ``surface`` (a CTSurface) ``ct_length_mm`` long (None: its vertices' spread along their
+    long axis). ``prior_mm``/``prior_deg``: the
     prior's tolerances; ``competitors``: clinically different poses ``(4, 4)`` the search
     found; ``groups``: ``(n,)`` frame of each point (None: blocks); ``profiles``/``advice``:
     whether to profile the weakest directions and to find where to scan next. None when too
     few points meet the CT."""
+    long_axis = long_axis_of(surface)
+    if ct_length_mm is None:
+        low, high = extent_along(surface.vertices, long_axis)
+        ct_length_mm = high - low
     fit = fit_moments(points_us, T_ct_us, surface, free_mm=ct_length_mm, prior_mm=prior_mm,
                       prior_deg=prior_deg, groups=groups)
     if fit is None:
         return None
     covariance = fit.covariance
     bound, p_local = target_error(fit, covariance)
-    long_axis = long_axis_of(surface)
     directions = weakest_directions(fit, covariance, long_axis)
     weights, runs = [], []
     base = truncated_cost(points_us, T_ct_us, surface, fit) if (profiles or competitors) else 0

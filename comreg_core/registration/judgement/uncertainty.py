@@ -35,11 +35,10 @@ import numpy as np
 
 from comreg_core.registration.geometry.icp import strided
 from comreg_core.registration.judgement import uncertainty_kernels as kern
+from comreg_core.registration.judgement.calibration import TOLERANCE_DEG, TOLERANCE_MM
 from comreg_core.registration.judgement.directions import direction_words
 from comreg_core.transforms import apply_transform, project, symmetric_eigen3
 
-TOLERANCE_MM = 4.0
-TOLERANCE_DEG = 5.0
 #: Thickness (mm) of the slabs (across the sweep's long axis) whose points count as one group
 #: when frames are not known: a few whole frames each.
 SLAB_MM = 2.5
