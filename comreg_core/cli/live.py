@@ -238,7 +238,7 @@ def _listen(session, recipe, work: tuple, where: tuple[str, int],
     search, detection workers or None, seconds between updates)``."""
     from comreg_core.live.background import WORKER_START_S, FullSearchWorker, one_thread
     from comreg_core.live.detection import DetectionPool, default_workers
-    from comreg_core.live.run import FrameReceiver, run_live, stop_on_sigterm
+    from comreg_core.live.run import FrameReceiver, run_live, stop_on_signals
 
     host, port = where
     background, detect_workers, update_every_s = work
@@ -262,8 +262,8 @@ def _listen(session, recipe, work: tuple, where: tuple[str, int],
                                  reconnect=not until_end, connect_timeout_s=connect_timeout)
         typer.echo(f"listening to {host}:{port} for IMAGE '{image_device}' + TRANSFORM "
                    f"'{pose_device}'; sending '{send_device}' (Ctrl-C to stop)", err=True)
-        with stop_on_sigterm():
-            return run_live(session, receiver, out_dir=out, until_end=until_end,
+        with stop_on_signals() as stop:
+            return run_live(session, receiver, out_dir=out, until_end=until_end, stop=stop,
                             send_device=send_device, on_status=typer.echo, pool=pool,
                             update_every_s=update_every_s,
                             on_note=lambda line: typer.echo(f"live: {line}", err=True))

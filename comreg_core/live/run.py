@@ -9,15 +9,12 @@ bone; dropped: too old; :class:`~comreg_core.live.intake.FrameGate`) and has the
 in worker processes (:class:`~comreg_core.live.detection.DetectionPool`). The update loop
 (:func:`run_live`, the caller's thread) takes the detections that came, registers, sends a
 TRANSFORM and a STRING back, writes a row of ``updates.csv`` and a status line. A full
-receiver queue (:data:`MAX_QUEUED` frames) drops its oldest frame, and says so.
-
-No server within the connect timeout (``--connect-timeout``, the first connection only) ends
-the loop with :class:`NoServerError` before anything is written. Losing the connection loses
-nothing registered: the points stay in the session and the client reconnects (for as long as
-it takes); ``--until-end`` stops when the server closes the stream. ``updates.csv`` is made at
-the first update. On stop, the frames still on their way are detected, and
+receiver queue (:data:`MAX_QUEUED` frames) drops its oldest frame, and says so. No server within the connect timeout (``--connect-timeout``, the first connection only) ends
+the loop with :class:`NoServerError` before anything is written. A lost connection loses
+nothing registered (the client reconnects); ``--until-end`` stops when the server closes the
+stream. ``updates.csv`` is made at the first update. On stop, frames on their way are detected;
 :func:`finish_live` writes what ``comreg register`` and ``comreg report`` would for the points
-(:func:`~comreg_core.register.register_to_directory`) and every frame's fate (``frames.csv``).
+(:func:`~comreg_core.register.register_to_directory`) and each frame's fate (``frames.csv``).
 """
 
 from __future__ import annotations
@@ -239,33 +236,35 @@ class LiveSummary:
                    + (f", {other} other" if other else "") if lost else ""))
 
 
-class StopRequested(KeyboardInterrupt):
-    """A stop asked for by a signal other than Ctrl-C (``reason``: e.g. "SIGTERM"); the update
-    loop stops on it as on Ctrl-C."""
+class SignalStop(threading.Event):
+    """:func:`run_live`'s stop set by a signal; ``reason``: "Ctrl-C" or e.g. "SIGTERM"."""
 
-    def __init__(self, reason: str):
-        super().__init__(reason)
-        self.reason = reason
+    reason: str | None = None
 
 
 @contextmanager
-def stop_on_sigterm():
-    """While inside: SIGTERM (``kill PID``, a supervisor, a batch system) stops :func:`run_live`
-    as Ctrl-C does, so that its folder is still written. A process started in the background by
-    a shell ignores Ctrl-C (SIGINT), as POSIX shells arrange; SIGTERM still reaches it. Only in
-    the main thread (elsewhere a no-op); the previous handler comes back on leaving."""
+def stop_on_signals():
+    """Yields a :class:`SignalStop` that Ctrl-C and SIGTERM set (not raise: an exception raised
+    inside a compiled kernel's call surfaces as a SystemError), so that :func:`run_live` stops
+    between updates and its folder is still written; a second signal raises KeyboardInterrupt.
+    Main thread only; the previous handlers come back on leaving."""
+    stop = SignalStop()
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield stop
         return
 
     def _stop(signum, frame):
-        raise StopRequested("SIGTERM")
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.reason = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        stop.set()
 
-    previous = signal.signal(signal.SIGTERM, _stop)
+    previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        yield
+        yield stop
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Path | None = None,
@@ -303,6 +302,8 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
                 raise NoServerError(f"{batch.gave_up[0].upper()}{batch.gave_up[1:]}.",
                                     "Start PLUS Server (or 'comreg replay') there first, check "
                                     "--igtl, or wait longer (--connect-timeout).")
+            if stop.is_set():  # a signal came during the wait
+                break
             if batch.detections or (ended and session.answer_waiting()):
                 start = session.clock()
                 _one_update(session, receiver, batch, state, out_dir, send_device, on_status,
@@ -315,8 +316,10 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
                     last_answer = session.worker.wait(FINAL_SEARCH_WAIT_S)
                     continue
                 break
-    except KeyboardInterrupt as stopped:
-        on_note(f"stopping ({getattr(stopped, 'reason', 'Ctrl-C')})")
+        if getattr(stop, "reason", None):
+            on_note(f"stopping ({stop.reason})")
+    except KeyboardInterrupt:
+        on_note("stopping (Ctrl-C)")
     finally:
         frames, found = pipeline.stop()
         session.drain(frames, found)
