@@ -110,14 +110,15 @@ class VerdictChecks:
                 origins=origins)
         return halves_agree(verdict, self._halves_deg)
 
-    def _judge(self, pts: np.ndarray, result, evidence: Evidence, scale_scan: bool = True):
+    def _judge(self, pts: np.ndarray, result, evidence: Evidence, full: bool = True):
         """The verdict of ``result`` for ``pts`` by the one judge (:func:`judge`) on at most
-        :data:`VERDICT_POINTS` of them; without ``scale_scan`` (a warm update) no scale check:
-        the US calibration's scale is checked by the full searches (a scale problem found
-        there makes the warm verdicts differ, so each update runs the full search again and
-        stays CHECK)."""
+        :data:`VERDICT_POINTS` of them. A warm update (``full=False``) has no scale check and
+        no profiles of the weakest directions: both are the full searches' (a scale problem
+        or another basin found there makes the warm verdicts differ, so each update runs the
+        full search again and stays CHECK; a warm OK only keeps an OK a full judgement gave,
+        see :mod:`.session`)."""
         if len(pts) > VERDICT_POINTS:
             pts = pts[np.sort(np.random.default_rng(self.seed).choice(
                 len(pts), VERDICT_POINTS, replace=False))]
         return judge(pts, result.T_ct_us, self.registrar.surface, evidence,
-                     scale_scan=scale_scan)
+                     scale_scan=full, profiles=full)

@@ -10,8 +10,8 @@ points and registers the grown sweep (:class:`LiveSession`; docs/live.md for the
   :class:`~comreg_core.live.background.FullSearchWorker`'s process (mode "warm+full" when its
   answer is used). The verdict only turns OK, or back to CHECK, on a full search.
 - **Verdict.** The one judge (:func:`~comreg_core.register.judge.judge`) on at most
-  :data:`~comreg_core.live.gates.VERDICT_POINTS` points with the result's own evidence; the scale is checked on full
-  searches only. An OK must also have *settled*
+  :data:`~comreg_core.live.gates.VERDICT_POINTS` points with the result's own evidence; the scale scan and the profiles
+  of the weakest directions run on full searches only (a warm update costs less). An OK must also have *settled*
   (:data:`~comreg_core.live.gates.SETTLED_TOLERANCE` from the full
   search on ``full_every_mm`` less bone) and, on a short sweep, its two halves must agree
   (:func:`~comreg_core.registration.search.polish.halves_disagreement_deg` within
@@ -275,7 +275,7 @@ class LiveSession(VerdictChecks):
             return (*self._full(pts, origins, everything), "full")
         result = warm_register(self.registrar, pts, origins, self._result, self.seed, self.prior)
         verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts),
-                                            scale_scan=False), result.T_ct_us, pts, covered)
+                                            full=False), result.T_ct_us, pts, covered)
         verdict = self._consistent(verdict, pts)
         if self._moved(result.T_ct_us, self.last.T_ct_us, pts.mean(axis=0)) \
                 or verdict.verdict != self.last.verdict:
@@ -337,7 +337,7 @@ class LiveSession(VerdictChecks):
                 base, mode, self._halves_deg = done.result, "warm+full", done.halves_deg
         result = warm_register(self.registrar, pts, origins, base, self.seed, self.prior)
         verdict = self._judge(pts, result, self._evidence_of(result, pts),
-                              scale_scan=mode == "warm+full")
+                              full=mode == "warm+full")
         if mode == "warm+full":  # judged as that full search; its own pose is recorded
             verdict = self._settled(verdict, result.T_ct_us, pts, job_covered)
             self._fulls.append((job_covered, np.array(done.result.T_ct_us)))

@@ -58,29 +58,40 @@ def _complement(kind: str, axis: np.ndarray | None) -> np.ndarray:
     return B
 
 
-def refit_holding(points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMoments,
+def refit_holding(points_us: np.ndarray, starts: np.ndarray, surface, fit: FitMoments,
                   kind: str | None, axis: np.ndarray | None) -> np.ndarray:
-    """``(4, 4)``: ``T_ct_us`` refitted by point-to-plane Gauss-Newton with its ``kind``
-    (``"slide"``/``"rotation"``) component along the unit ``axis`` held (None: all free)."""
+    """``(K, 4, 4)``: each of the ``(K, 4, 4)`` poses ``starts`` refitted by point-to-plane
+    Gauss-Newton with its ``kind`` (``"slide"``/``"rotation"``) component along the unit
+    ``axis`` held (None: all free). The poses' closest points are found in one query per
+    step (each pose's answer is what it would be alone)."""
     B = _complement(kind, axis)
     Bt = np.ascontiguousarray(B.T)
     prior = fit.prior / fit.c
     sub = strided(np.asarray(points_us, dtype=np.float64), PROFILE_POINTS)
-    T = T_ct_us
+    poses = [np.asarray(T, dtype=np.float64) for T in starts]
+    active = list(range(len(poses)))
     for _ in range(PROFILE_ITERATIONS):
-        points = apply_transform(T, sub)
-        closest, normals, signed = residuals(points, surface)
-        ok = np.isfinite(signed)
-        ok[ok] = np.abs(signed[ok]) <= INLIER_SIGMAS * fit.noise_mm
-        if ok.sum() < 12:
+        if not active:
             break
-        H, _, g = kern.moments(points[ok], closest[ok], normals[ok], fit.centre, fit.scale,
-                               np.zeros(int(ok.sum()), dtype=np.int64), 1)
-        reduced = kern.product(kern.product(Bt, H + prior), B)
-        step = -kern.product(kern.product(B, kern.inverse(reduced)),
-                             kern.product(Bt, g[:, None]))[:, 0]
-        T = matmul(moved_pose(fit, step), T)
-    return T
+        points = np.concatenate([apply_transform(poses[k], sub) for k in active])
+        closest, normals, signed = residuals(points, surface)
+        still = []
+        for j, k in enumerate(active):
+            rows = slice(j * len(sub), (j + 1) * len(sub))
+            ok = np.isfinite(signed[rows])
+            ok[ok] = np.abs(signed[rows][ok]) <= INLIER_SIGMAS * fit.noise_mm
+            if ok.sum() < 12:
+                continue  # this pose stays where it is
+            H, _, g = kern.moments(points[rows][ok], closest[rows][ok], normals[rows][ok],
+                                   fit.centre, fit.scale,
+                                   np.zeros(int(ok.sum()), dtype=np.int64), 1)
+            reduced = kern.product(kern.product(Bt, H + prior), B)
+            step = -kern.product(kern.product(B, kern.inverse(reduced)),
+                                 kern.product(Bt, g[:, None]))[:, 0]
+            poses[k] = matmul(moved_pose(fit, step), poses[k])
+            still.append(k)
+        active = still
+    return np.stack(poses)
 
 
 def _offset(fit: FitMoments, kind: str, axis: np.ndarray, amount: float) -> np.ndarray:
@@ -109,18 +120,18 @@ def profile(points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMoments
     ``weight`` (:func:`basin_weight`, 0 for the same answer); ``flat_to``: the
     largest offset up to which every profiled cost stays within :data:`CHI2_95_1`."""
     amounts = PROFILE_MM if kind == "slide" else PROFILE_DEG
+    offsets = [sign * amount for sign in (1.0, -1.0) for amount in amounts]
+    starts = np.stack([matmul(_offset(fit, kind, axis, offset), T_ct_us) for offset in offsets])
+    held = refit_holding(points_us, starts, surface, fit, kind, axis)
+    free = refit_holding(points_us, held, surface, fit, None, None)
+    costs = truncated_cost(points_us, np.concatenate([held, free]), surface, fit) - base_cost
     rows = []
-    for sign in (1.0, -1.0):
-        for amount in amounts:
-            start = matmul(_offset(fit, kind, axis, sign * amount), T_ct_us)
-            held = refit_holding(points_us, start, surface, fit, kind, axis)
-            free = refit_holding(points_us, held, surface, fit, None, None)
-            basin = truncated_cost(points_us, free, surface, fit) - base_cost
-            different = different_answer(free, T_ct_us, fit.targets)
-            rows.append({"offset": sign * amount,
-                         "delta_cost": truncated_cost(points_us, held, surface, fit) - base_cost,
-                         "basin_delta_cost": float(basin), "different": different,
-                         "weight": basin_weight(basin) if different else 0.0})
+    for k, offset in enumerate(offsets):
+        basin = costs[len(offsets) + k]
+        different = different_answer(free[k], T_ct_us, fit.targets)
+        rows.append({"offset": offset, "delta_cost": float(costs[k]),
+                     "basin_delta_cost": float(basin), "different": different,
+                     "weight": basin_weight(basin) if different else 0.0})
     flat_to = 0.0
     for sign in (1.0, -1.0):
         for row in sorted((r for r in rows if r["offset"] * sign > 0),

@@ -247,18 +247,23 @@ def basin_weight(delta_cost: float) -> float:
     return float(np.exp(-0.5 * max(float(delta_cost), 0.0)))
 
 
-def truncated_cost(points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMoments
-                   ) -> float:
-    """The fit's cost of a pose: the mean over (a strided subset of :data:`COST_POINTS`) US
-    points of the squared residual, each capped at ``(INLIER_SIGMAS * noise)^2`` (unmatched:
-    the cap), times the :data:`FIT_POINTS` subset's size, over ``c``: the units in which a
-    cost difference is a chi-square."""
+def truncated_cost(points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMoments):
+    """The fit's cost of a pose ``(4, 4)`` (a float), or of each of ``(K, 4, 4)`` poses (``(K,)``,
+    their closest points found in one query): the mean over (a strided subset of
+    :data:`COST_POINTS`) US points of the squared residual, each capped at
+    ``(INLIER_SIGMAS * noise)^2`` (unmatched: the cap), times the :data:`FIT_POINTS` subset's
+    size, over ``c``: the units in which a cost difference is a chi-square."""
     points = np.asarray(points_us, dtype=np.float64)
     counted = min(len(points), FIT_POINTS)
-    _, _, signed = residuals(apply_transform(T_ct_us, strided(points, COST_POINTS)), surface)
+    sub = strided(points, COST_POINTS)
+    poses = np.asarray(T_ct_us, dtype=np.float64)
+    stack = poses.reshape(-1, 4, 4)
+    _, _, signed = residuals(np.concatenate([apply_transform(T, sub) for T in stack]), surface)
     cap = (INLIER_SIGMAS * fit.noise_mm) ** 2
     squared = np.where(np.isfinite(signed), np.minimum(np.nan_to_num(signed) ** 2, cap), cap)
-    return float(np.mean(squared)) * counted / fit.c
+    costs = np.array([float(np.mean(row)) * counted / fit.c
+                      for row in squared.reshape(len(stack), len(sub))])
+    return float(costs[0]) if poses.ndim == 2 else costs
 
 
 def long_axis_of(surface) -> np.ndarray:
