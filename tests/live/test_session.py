@@ -132,3 +132,24 @@ def _pose(R, t) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     return T
+
+
+def test_warm_updates_leave_the_profiles_and_the_scale_scan_to_the_full_searches(
+        sweep, search_registrar, monkeypatch):
+    """The one judge runs with its profiles and scale scan on a full search's pose and without
+    them on a warm update's (a warm OK only keeps an OK that a full judgement gave)."""
+    import comreg_core.live.gates as gates
+
+    calls = []
+    judge = gates.judge
+
+    def spy(*args, **kwargs):
+        calls.append((kwargs["profiles"], kwargs["scale_scan"]))
+        return judge(*args, **kwargs)
+
+    monkeypatch.setattr(gates, "judge", spy)
+    session = LiveSession(search_registrar, spacing=None)
+    first = session.update(_frames(sweep, range(6)))
+    assert first.mode == "full" and calls == [(True, True)]
+    again = session.update(_frames(sweep, [5], first_index=6))
+    assert again.mode == "warm" and calls[1:] == [(False, False)]
