@@ -67,13 +67,22 @@ class BoneEvidence:
 
 
 def _block_mean(frame: np.ndarray, ky: int, kx: int) -> np.ndarray:
-    """``(H // ky, W // kx)`` float32 block means."""
+    """``(H // ky, W // kx)`` float32 block means. A B-mode (uint8) frame's blocks are summed
+    exactly in integers, then divided as ``numpy.mean`` divides its float32 sum (exact too): the
+    same bits as ``mean(axis=(1, 3))``, in a fifth of its time."""
     H, W = frame.shape
     h, w = H // ky, W // kx
-    a = np.asarray(frame[:h * ky, :w * kx], dtype=np.float32)
     if ky == 1 and kx == 1:
-        return a
-    return a.reshape(h, ky, w, kx).mean(axis=(1, 3))
+        return np.asarray(frame[:h, :w], dtype=np.float32)
+    if frame.dtype != np.uint8:
+        a = np.asarray(frame[:h * ky, :w * kx], dtype=np.float32)
+        return a.reshape(h, ky, w, kx).mean(axis=(1, 3))
+    total = np.zeros((h, w), np.uint32)
+    for i in range(ky):
+        for j in range(kx):
+            total += frame[i:h * ky:ky, j:w * kx:kx]
+    mean = total.astype(np.float32)
+    return np.true_divide(mean, np.intp(ky * kx), out=mean, casting="unsafe")
 
 
 def _window_means(cum: np.ndarray, start: np.ndarray, stop: np.ndarray):
