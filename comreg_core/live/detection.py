@@ -1,7 +1,7 @@
 """Bone detection off the update loop (:class:`DetectionPool`): worker processes that find the
 bone in frames while the update loop registers.
 
-Why processes: detection (~28 ms a frame on one core of the test machine) is numpy and scipy
+Why processes: detection (~22 ms a frame on an idle core of the test machine) is numpy and scipy
 code that holds Python's lock, so a thread beside the update loop would take turns with it.
 Each worker is started with ``spawn`` (as the full-search worker: a fork of a process whose
 numba and torch pools run can hang), runs its kernels on one thread, and answers one frame at
