@@ -136,14 +136,18 @@ def one_replay(start: int, rate: float, out: Path, ct: Path, model: Path | None,
         began = time.monotonic()
         live = subprocess.run(args, cwd=REPO, capture_output=True, text=True,
                               timeout=timeout_s)
-        replay_out, _ = replay.communicate(timeout=60)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "live_stdout.txt").write_text(live.stdout)
+        (out / "live_stderr.txt").write_text(live.stderr)
+        if live.returncode != 0:  # the replay still waits for a client: say why, not a timeout
+            raise RuntimeError(f"live failed ({live.returncode}): {live.stderr[-2000:]}")
+        try:
+            replay_out, _ = replay.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"the replay from frame {start} did not end within 60 s of live "
+                               f"(live's last lines: {live.stdout[-1000:]})") from None
     finally:
         replay.kill()
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "live_stdout.txt").write_text(live.stdout)
-    (out / "live_stderr.txt").write_text(live.stderr)
-    if live.returncode != 0:
-        raise RuntimeError(f"live failed ({live.returncode}): {live.stderr[-2000:]}")
     served = re.search(r"served (\d+) frames .*?: (\d+) sent", replay_out)
     used = re.search(r"(\d+) of (\d+) frames registered(?:, (\d+) waiting)?", live.stdout)
     reported = re.search(r"(\d+) not used", live.stdout)
