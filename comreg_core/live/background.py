@@ -262,17 +262,23 @@ class FullSearchWorker:
 
     def close(self) -> None:
         """Stop the worker (it finishes nothing it was doing)."""
-        if self._process.is_alive():
-            try:
-                self._connection.send(None)
-            except (BrokenPipeError, OSError):
-                pass
-            self._process.join(0.2)
-        if self._process.is_alive():
-            self._process.terminate()
-            self._process.join(CLOSE_WAIT_S)
-        self._connection.close()
+        close_process(self._process, self._connection)
         self.ready = False
         if self.failed is None:
             self.failed = "closed"
 
+
+def close_process(process, connection) -> None:
+    """Stop a worker ``process`` listening on ``connection``: None asks it to end, then it is
+    terminated if it has not within 0.2 s (waited for up to :data:`CLOSE_WAIT_S`); the
+    connection is closed."""
+    if process.is_alive():
+        try:
+            connection.send(None)
+        except (OSError, ValueError):  # a broken pipe, a closed connection
+            pass
+        process.join(0.2)
+    if process.is_alive():
+        process.terminate()
+        process.join(CLOSE_WAIT_S)
+    connection.close()

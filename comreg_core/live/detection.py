@@ -24,7 +24,7 @@ from multiprocessing.connection import wait as wait_for
 
 import numpy as np
 
-from comreg_core.live.background import CLOSE_WAIT_S, child_environment
+from comreg_core.live.background import child_environment, close_process
 from comreg_core.live.points import Detection, detect_frame
 
 log = logging.getLogger(__name__)
@@ -182,23 +182,12 @@ class DetectionPool:
         log.warning("%s", self.notes[-1])
         if worker.frame is not None:
             self._done.append(detect_frame(worker.frame, self.config))
-        _close(worker)
+        close_process(worker.process, worker.connection)
 
     def close(self) -> None:
         """Stop the workers (what they were detecting is not waited for)."""
         for worker in self._workers:
-            _close(worker)
+            close_process(worker.process, worker.connection)
         self._workers = []
 
 
-def _close(worker: _Worker) -> None:
-    if worker.process.is_alive():
-        try:
-            worker.connection.send(None)
-        except (OSError, ValueError):
-            pass
-        worker.process.join(0.2)
-    if worker.process.is_alive():
-        worker.process.terminate()
-        worker.process.join(CLOSE_WAIT_S)
-    worker.connection.close()

@@ -268,13 +268,11 @@ def main(argv=None) -> None:
         f = figures(out, T_truth, run)
         summary.append({"method": name, "prior": prior, "search": search, "start": start, **f})
 
-        def fmt(value, spec):
-            return "-" if value is None else format(value, spec)
         right = None if f["ok_correct"] is None else ("yes" if f["ok_correct"] else "NO")
         print(f"{name:9} {prior:8} {search:10} {start:>5} {f['updates']:>4} "
-              f"{fmt(f['ok_at_mm'], '6.0f')} {fmt(f['ok_at_images'], '6d')} {fmt(right, '>5')} "
+              f"{_fmt(f['ok_at_mm'], '6.0f')} {_fmt(f['ok_at_images'], '6d')} {_fmt(right, '>5')} "
               f"{f['ok_and_wrong']:>8} {f['final']:>11} "
-              f"{fmt(f['latency_median_s'], '7.2f')} {fmt(f['latency_p95_s'], '7.2f')} "
+              f"{_fmt(f['latency_median_s'], '7.2f')} {_fmt(f['latency_p95_s'], '7.2f')} "
               f"{f['full_searches']:>4} {f['served']:>6} {f['received']:>5} "
               f"{f['used']:>5} {f['unreported']:>5} {f['wall_s']:>6.0f}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
