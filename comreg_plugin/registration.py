@@ -72,8 +72,12 @@ class RegistrationSummary:
         residuals = self.info.get("residuals_mm") or {}
         if "median" in residuals:
             text += f", median distance to CT {residuals['median']:.2f} mm"
-        if "ambiguous" in self.info:
-            text += ", AMBIGUOUS (check the pose)" if ambiguous else ""
+        if "ambiguous" in self.info and ambiguous:
+            from comreg_core.registration.judgement.verdict import competitor_ruled_out
+
+            competitor = ((self.record or {}).get("uncertainty") or {}).get("competitor")
+            text += (", a close pose ruled out by the fit" if competitor_ruled_out(competitor)
+                     else ", AMBIGUOUS (check the pose)")
         prior = self.info.get("prior") or {}
         if prior.get("reasons"):
             text += ", CHECK: " + " ".join(prior["reasons"])

@@ -83,7 +83,13 @@ def describeFigures(figures: dict) -> list:
     if figures.get("confidence") is not None:
         numbers.append(f"confidence {float(figures['confidence']):.2f}")
     if figures.get("ambiguous"):
-        numbers.append("AMBIGUOUS: another pose fits about as well")
+        from comreg_core.registration.judgement.verdict import (ambiguity_words,
+                                                                competitor_ruled_out)
+
+        competitor = (figures.get("uncertainty") or {}).get("competitor")
+        numbers.append(f"another pose scored {ambiguity_words(True, competitor)}"
+                       if competitor_ruled_out(competitor)
+                       else "AMBIGUOUS: another pose fits about as well")
     if numbers:
         lines.append(", ".join(numbers))
     uncertainty = figures.get("uncertainty") or {}

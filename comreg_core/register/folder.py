@@ -27,6 +27,7 @@ from comreg_core.registration.judgement.calibration import Calibration
 from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.inputs import MAX_US_POINTS
 from comreg_core.registration.judgement.prior_reasons import prior_allows
+from comreg_core.registration.judgement.verdict import ambiguity_words, competitor_ruled_out
 from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.result import RegistrationResult
 from comreg_core.registration.geometry.surface import ct_length_mm
@@ -171,7 +172,7 @@ def _log_outcome(result: RegistrationResult, registrar: Registrar, verdict, out:
         log.warning("%s", warning)
     if not verdict.ok:
         log.warning("%s: %s", verdict.headline, " ".join(verdict.reasons))
-    if result.ambiguous:
+    if result.ambiguous and not competitor_ruled_out(_competitor(verdict)):
         log.warning("Ambiguous registration: the pose '%s' fits the US points within %.2f mm "
                     "of '%s' (confidence %.2f); check the result visually.",
                     result.search.runner_up, result.search.score_gap_mm,
@@ -238,7 +239,7 @@ def summary_lines(result: RegistrationResult, out_dir, *, with_network: bool) ->
                      + (" (a short sweep: all orientations tried)" if h.patch
                         and not result.info.get("prior") else "")
                      + f", {gap}; confidence {h.confidence:.2f}"
-                     + ("; AMBIGUOUS: check the result visually" if h.ambiguous else ""))
+                     + _ambiguity_note(h.ambiguous, result.info.get("verdict")))
         if h.advice and result.info.get("verdict") is None:
             lines.append(h.advice["advice"])
     lines += prior_lines(result.info.get("prior"))
@@ -248,6 +249,22 @@ def summary_lines(result: RegistrationResult, out_dir, *, with_network: bool) ->
         lines.append(f"  input {k}: {Path(record['path']).name}: {record['n_points']} points, "
                      f"median residual {record['residuals_mm']['median']:.2f} mm")
     return lines
+
+
+def _competitor(verdict) -> dict | None:
+    """The verdict's uncertainty's competitor record (None: none, or not judged)."""
+    return None if verdict is None or verdict.uncertainty is None else \
+        verdict.uncertainty.get("competitor")
+
+
+def _ambiguity_note(ambiguous: bool, verdict) -> str:
+    """The terminal's word on an ambiguous search: a warning, unless the verdict's uncertainty
+    rules the close pose out."""
+    if not ambiguous:
+        return ""
+    if not competitor_ruled_out(_competitor(verdict)):
+        return "; AMBIGUOUS: check the result visually"
+    return f"; a different pose scored {ambiguity_words(True, _competitor(verdict))}"
 
 
 def verdict_lines(verdict) -> list[str]:

@@ -14,6 +14,7 @@ import numpy as np
 from comreg_core.progress import Progress
 from comreg_core.register.folder import read_result
 from comreg_core.register.judge import Evidence, judge
+from comreg_core.registration.judgement.verdict import ambiguity_words
 from comreg_core import runs
 from comreg_core.io._files import check_output_folder, require_input_file
 from comreg_core.report.html import Quantity
@@ -211,8 +212,8 @@ def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], 
         rows["Fit of the US points to the CT bone"]["Transform judged"] = str(judged_file)
     search = result.get("search") or result.get("hypotheses")  # "hypotheses": its earlier name
     if search:  # the pose search's choice (comreg_core.registration.search.search)
-        pose = {"Another pose fits nearly as well (ambiguous)":
-                "YES: check the images" if search.get("ambiguous") else "no",
+        pose = {"Another pose fits nearly as well (ambiguous)": ambiguity_words(
+                    bool(search.get("ambiguous")), (result.get("uncertainty") or {}).get("competitor")),
                 "Confidence (0-1; below 0.3 is ambiguous)": Quantity(search.get("confidence")),
                 "Pose kept": _start_words(search.get("chosen")),
                 "Next best pose": _start_words(search.get("runner_up")),

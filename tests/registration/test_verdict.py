@@ -125,3 +125,45 @@ def test_a_short_sweep_skips_the_scale_scan_it_ignores(fibula, axis, real_sweep)
         assert {k: v for k, v in skipped.figures.items() if not k.startswith("refit_scale")} \
             == {k: v for k, v in scanned.figures.items() if not k.startswith("refit_scale")}
     assert scanned.verdict == "check"  # the slide
+
+
+def _turned_end_to_end(points, T, axis):
+    """``T`` then a half turn about an axis across the shaft through the points' centroid."""
+    from scipy.spatial.transform import Rotation
+
+    centre = apply_transform(T, points).mean(0)
+    across = np.cross(axis, [0.0, 0.0, 1.0])
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(np.pi * across / np.linalg.norm(across)).as_matrix()
+    turn[:3, 3] = centre - turn[:3, :3] @ centre
+    return turn @ T
+
+
+def test_the_search_s_ambiguity_stands_unless_the_fit_rules_its_competitor_out(
+        fibula, axis, real_sweep, simulated_sweep):
+    """The search's ``ambiguous`` (a relative score margin) is CHECK unless the uncertainty
+    weighs its clinically different competitor under RULED_OUT_WEIGHT: a whole simulated
+    sweep against itself turned end to end is OK, the same flag with no competitor to weigh
+    is CHECK, and a 800-point real slab against itself slid 8 mm (a weight of ~4e-5) stays
+    CHECK."""
+    from comreg_core.registration.judgement.verdict import RULED_OUT_WEIGHT, ambiguity_words
+
+    def judged(points, T, competitor):
+        evidence = Evidence(confidence=0.2, ambiguous=True,
+                            competitor=None if competitor is None else {"T_ct_us": competitor})
+        return judge(points, T, fibula, evidence)
+
+    flipped = judged(simulated_sweep, np.eye(4),
+                     _turned_end_to_end(simulated_sweep, np.eye(4), axis))
+    weight = flipped.uncertainty["competitor"]["weight"]
+    assert flipped.verdict == "ok" and weight < RULED_OUT_WEIGHT, (flipped.reasons, weight)
+    assert ambiguity_words(True, flipped.uncertainty["competitor"]).startswith("close in score")
+    unweighed = judged(simulated_sweep, np.eye(4), None)
+    assert unweighed.verdict == "check"
+    assert any(r.startswith("Ambiguous pose") for r in unweighed.reasons), unweighed.reasons
+    points, T = real_sweep
+    slab = judged(points[:800], T, slid(T, 8.0, axis))
+    weight = slab.uncertainty["competitor"]["weight"]
+    assert RULED_OUT_WEIGHT < weight < 1e-2, weight
+    assert any(r.startswith("Ambiguous pose") for r in slab.reasons), slab.reasons
+    assert ambiguity_words(True, slab.uncertainty["competitor"]) == "YES: check the images"

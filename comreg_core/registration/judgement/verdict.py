@@ -22,7 +22,9 @@ point-to-triangle distances of :class:`~comreg_core.registration.geometry.surfac
 the bone for their own noise (the noise at most :attr:`VerdictThresholds.max_noise_mm`, at
 least ``min_within_noise`` of them within 3 noise levels), the refit stays within 5 mm (the pose
 is at the fit's optimum), no scale fits clearly better, and the pose is not tied with a
-different one, nor one the search found nearly as good (its ``ambiguous``).
+different one, nor one the search found nearly as good (its ``ambiguous``), unless the
+uncertainty rules that clinically different competitor out by a wide margin
+(:data:`RULED_OUT_WEIGHT`).
 
 How the limits were chosen: docs/calibration.md ("The verdict's limits").
 """
@@ -53,6 +55,13 @@ SCALE_POINTS = 500
 RESIDUAL_POINTS = 3000
 #: CT surface samples for the coverage and the refit's closest points.
 CT_SAMPLES = 50_000
+#: The search's ``ambiguous`` (a relative score margin, which noise dilutes: a whole cloud with
+#: 0.43 mm of noise scores 0.24 mm at the truth and 0.39-0.41 mm flipped end to end, a margin
+#: under the patch's 0.5) is overruled when the uncertainty weighs its clinically different
+#: competitor below this (``exp(-dC / 2)``: an excess cost over 27.6 chi-square units). The
+#: wrong near-misses of the real sweep's growing prefixes that the flag holds back weigh 1e-3
+#: to 8e-3 (4.4-4.5 mm off, ``bench_growing`` from frame 0; 2026-12-05).
+RULED_OUT_WEIGHT = 1e-6
 
 
 @dataclass(frozen=True)
@@ -123,8 +132,8 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
     takes). ``uncertainty``: the pose's
     (:class:`~comreg_core.registration.judgement.assessment.Uncertainty`; None: too few points
     meet the CT, which is CHECK); ``p_correct``: from it; ``confidence``, ``ambiguous``: the
-    pose search's (a tie, or another clearly different pose it found nearly as good, is
-    CHECK). ``short_sweep``: a sweep spanning under half the CT's length, whose
+    pose search's (a tie is CHECK, and so is another clearly different pose it found nearly
+    as good, unless :func:`competitor_ruled_out`). ``short_sweep``: a sweep spanning under half the CT's length, whose
     best-fitting scale says nothing, so the scale scan is left out; ``scale_scan=False`` skips
     it too (a live warm update); without it ``refit_scale`` and ``refit_scale_gain`` are None."""
     surface = as_surface(ct_surface)
@@ -142,13 +151,32 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
                "p_raw": None if uncertainty is None else uncertainty.p_raw,
                "p_correct": None if p_correct is None else float(p_correct)}
     reasons = _reasons(figures, uncertainty, DEFAULT_THRESHOLDS, ok_probability, short_sweep)
-    if ambiguous and not any(r.startswith("Tie:") for r in reasons):
+    competitor = None if uncertainty is None else uncertainty.competitor
+    if (ambiguous and not any(r.startswith("Tie:") for r in reasons)
+            and not competitor_ruled_out(competitor)):
         reasons.append("Ambiguous pose: the pose search found another, clearly different pose "
                        "that fits the US points nearly as well (confidence "
                        f"{figures['confidence'] or 0:.2f}).")
     return Verdict("check" if reasons else "ok", reasons, figures,
                    None if uncertainty is None else uncertainty.to_json(),
                    None if uncertainty is None else uncertainty.scan_next)
+
+
+def competitor_ruled_out(competitor: dict | None) -> bool:
+    """Whether the uncertainty's ``competitor`` record (``{"delta_cost", "weight"}``, None:
+    none) weighs the search's clinically different pose below :data:`RULED_OUT_WEIGHT`."""
+    return competitor is not None and competitor["weight"] < RULED_OUT_WEIGHT
+
+
+def ambiguity_words(ambiguous: bool, competitor: dict | None) -> str:
+    """The search's ``ambiguous`` for a user, given the uncertainty's ``competitor`` record:
+    "no", "YES: check the images", or that the fit rules the close pose out."""
+    if not ambiguous:
+        return "no"
+    if competitor_ruled_out(competitor):
+        return (f"close in score, but the fit rules it out (weight {competitor['weight']:.0e}, "
+                f"under {RULED_OUT_WEIGHT:.0e})")
+    return "YES: check the images"
 
 
 def _reasons(f: dict, uncertainty, th: VerdictThresholds, ok_probability: float,
