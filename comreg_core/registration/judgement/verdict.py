@@ -250,7 +250,7 @@ def refit(points_ct: np.ndarray, surface, *, iterations: int = 25, gate_mm: floa
     unit = SCALES.index(1.0)
     moved = point_to_plane_icp(pts, np.eye(4), partial(cloud.match, max_distance=gate_mm),
                                iterations=iterations, trim_fraction=0.1,
-                               tolerance_mm=REFIT_TOLERANCE_MM).T
+                               tolerance_mm=REFIT_TOLERANCE_MM, patience=REFIT_PATIENCE).T
     rigid = apply_transform(moved, pts)
     shift = float(np.sqrt(np.mean(np.sum((rigid - pts) ** 2, axis=1))))
     if not scale_scan:
@@ -261,7 +261,7 @@ def refit(points_ct: np.ndarray, surface, *, iterations: int = 25, gate_mm: floa
     fits = point_to_plane_icp(sources, np.tile(np.eye(4), (len(scaled), 1, 1)),
                               partial(cloud.match, max_distance=gate_mm),
                               iterations=iterations, trim_fraction=0.1,
-                              tolerance_mm=REFIT_TOLERANCE_MM).T
+                              tolerance_mm=REFIT_TOLERANCE_MM, patience=REFIT_PATIENCE).T
     fitted = {unit: rigid, **{k: apply_transform(T, src)
                               for k, T, src in zip(scaled, fits, sources)}}
     scores = [_fit_score(fitted[k], cloud, gate_mm) for k in range(len(SCALES))]
@@ -271,8 +271,13 @@ def refit(points_ct: np.ndarray, surface, *, iterations: int = 25, gate_mm: floa
     return shift, float(SCALES[best]), float(gain)
 
 
-#: The refit's ICP stops once an update moves no point by more than this (mm).
+#: The refit's ICP stops once an update moves no point by more than this (mm), or once its RMS
+#: has not fallen for :data:`REFIT_PATIENCE` iterations: the trimmed, gated fit jitters above
+#: the tolerance and ran all 25 iterations on the bundled and real whole clouds; stopping at the
+#: stall found the same scales for them scaled by 0.85-1.15, shifts within 0.07 mm, gains
+#: within 0.02, in half the time (2026-12-05).
 REFIT_TOLERANCE_MM = 1e-4
+REFIT_PATIENCE = 3
 
 
 def _fit_score(points: np.ndarray, cloud, gate_mm: float) -> float:
