@@ -39,6 +39,10 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
 WORKER_START_S = 60.0
 #: Seconds :meth:`FullSearchWorker.close` waits for the worker to stop before killing it.
 CLOSE_WAIT_S = 5.0
+#: The full-search worker's niceness once it is ready (``os.nice``): when the processor is short
+#: (a 30-40 frames/s stream on 2 cores), detection and the update loop go first and the full
+#: search takes what they leave; on an idle core it runs as fast as before.
+FULL_SEARCH_NICENESS = 10
 
 
 @dataclass(frozen=True)
@@ -115,6 +119,7 @@ def _serve(recipe: RegistrarRecipe, prior, connection) -> None:
     except Exception as exc:  # the parent runs its full searches itself then
         connection.send(("failed", f"{type(exc).__name__}: {exc}"))
         return
+    lower_priority(FULL_SEARCH_NICENESS)
     connection.send(("ready", None))
     while True:
         try:
@@ -137,6 +142,14 @@ def _serve(recipe: RegistrarRecipe, prior, connection) -> None:
             done = FullSearchDone(job.job, None, None, time.perf_counter() - start,
                                   f"{type(exc).__name__}: {exc}")
         connection.send(done)
+
+
+def lower_priority(niceness: int) -> None:
+    """Raise this process's niceness by ``niceness`` (where the system allows it)."""
+    try:
+        os.nice(niceness)
+    except (AttributeError, OSError):  # not on this system: the same results, later
+        pass
 
 
 @contextmanager

@@ -12,7 +12,8 @@ import time
 import pytest
 
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.live.background import FullSearchJob, FullSearchWorker, RegistrarRecipe
+from comreg_core.live.background import (FULL_SEARCH_NICENESS, FullSearchJob, FullSearchWorker,
+                                         RegistrarRecipe)
 from comreg_core.live.session import LiveSession
 from comreg_core.live.stream import Frame
 from tests.helpers import FIBULA_STL, assert_close
@@ -44,6 +45,16 @@ def worker(shared_data):
 def _frames(sweep, indices):
     return [Frame(i, sweep.frames[i], sweep.spacing, sweep.T_ref_image[i],
                   float(sweep.timestamps[i]), 0.0) for i in indices]
+
+
+def test_the_ready_worker_yields_the_processor_to_detection_and_updates(worker):
+    """Once ready, the worker runs FULL_SEARCH_NICENESS nicer than this process (capped at
+    the system's 19): when cores are short, detection and the update loop go first."""
+    import os
+
+    mine = os.getpriority(os.PRIO_PROCESS, 0)
+    theirs = os.getpriority(os.PRIO_PROCESS, worker._process.pid)
+    assert theirs == min(19, mine + FULL_SEARCH_NICENESS), (mine, theirs)
 
 
 def test_the_worker_finds_what_the_session_would(worker, sweep, search_registrar):
