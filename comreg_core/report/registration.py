@@ -212,8 +212,9 @@ def registration_metrics_table(result: dict[str, Any], figures: dict[str, Any], 
         rows["Fit of the US points to the CT bone"]["Transform judged"] = str(judged_file)
     search = result.get("search") or result.get("hypotheses")  # "hypotheses": its earlier name
     if search:  # the pose search's choice (comreg_core.registration.search.search)
-        pose = {"Another pose fits nearly as well (ambiguous)": ambiguity_words(
-                    bool(search.get("ambiguous")), (result.get("uncertainty") or {}).get("competitor")),
+        weighed = (result.get("uncertainty") or {}).get("competitor")
+        pose = {"Another pose fits nearly as well (ambiguous)":
+                ambiguity_words(bool(search.get("ambiguous")), weighed),
                 "Confidence (0-1; below 0.3 is ambiguous)": Quantity(search.get("confidence")),
                 "Pose kept": _start_words(search.get("chosen")),
                 "Next best pose": _start_words(search.get("runner_up")),

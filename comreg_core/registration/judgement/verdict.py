@@ -133,9 +133,10 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
     (:class:`~comreg_core.registration.judgement.assessment.Uncertainty`; None: too few points
     meet the CT, which is CHECK); ``p_correct``: from it; ``confidence``, ``ambiguous``: the
     pose search's (a tie is CHECK, and so is another clearly different pose it found nearly
-    as good, unless :func:`competitor_ruled_out`). ``short_sweep``: a sweep spanning under half the CT's length, whose
-    best-fitting scale says nothing, so the scale scan is left out; ``scale_scan=False`` skips
-    it too (a live warm update); without it ``refit_scale`` and ``refit_scale_gain`` are None."""
+    as good, unless :func:`competitor_ruled_out`). ``short_sweep``: a sweep spanning under half
+    the CT's length, whose best-fitting scale says nothing, so the scale scan is left out;
+    ``scale_scan=False`` skips it too (a live warm update); without it ``refit_scale`` and
+    ``refit_scale_gain`` are None."""
     surface = as_surface(ct_surface)
     points = apply_transform(check_rigid(T_ct_us), as_points(us_points, "US points"))
     d = surface.distance(strided(points, RESIDUAL_POINTS))
