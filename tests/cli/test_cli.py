@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 from comreg_core import __version__
 from comreg_core.cli import app
 from comreg_core.io import Volume, save_transform, write_volume
+from comreg_core.registration.judgement.verdict import ambiguity_words, competitor_ruled_out
 from tests.helpers import FIBULA_STL, assert_close
 
 runner = CliRunner()
@@ -309,7 +310,11 @@ def test_pretrain_register_evaluate_report_end_to_end(tmp_path):
     assert "icp-gt" not in html and "registered_anterior.png" in html
     assert "Verdict: OK" in html or "Verdict: CHECK" in html
     # the pose search's choice is in the report
-    search = json.loads((out / "result.json").read_text())["search"]
+    record = json.loads((out / "result.json").read_text())
+    search = record["search"]
     assert "Pose search / Confidence (0-1; below 0.3 is ambiguous)" in html
     assert f"in {search['polish']['iterations']} iterations" in html
-    assert ("YES: check the images" in html) == search["ambiguous"]
+    competitor = (record["uncertainty"] or {}).get("competitor")
+    assert ambiguity_words(search["ambiguous"], competitor) in html
+    assert ("YES: check the images" in html) == (search["ambiguous"]
+                                                 and not competitor_ruled_out(competitor))
