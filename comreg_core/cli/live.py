@@ -51,8 +51,8 @@ LIVE_UPDATE_EVERY = typer.Option(
     "meanwhile wait for it), leaving the processor to detection. 0: as often as frames come.")
 LIVE_DETECT_WORKERS = typer.Option(
     None, "--detect-workers", min=0, rich_help_panel=STREAM, help="Processes that find the bone "
-    "in the frames beside the update loop (default: one per core less one, 1 to 4; 0: in the "
-    "live process).")
+    "in the frames beside the update loop (default: one per core less one, two on 2 cores, 1 to "
+    "4; 0: in the live process).")
 LIVE_CT = typer.Option(..., "--ct", rich_help_panel=INPUTS, help="The CT bone mesh (mm).")
 LIVE_CALIBRATION = typer.Option(
     None, "--probe-calibration", "--calibration", rich_help_panel=INPUTS,

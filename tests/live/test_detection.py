@@ -37,6 +37,7 @@ def _collect(pool, n):
 
 def test_workers_find_what_the_update_loop_would(frames):
     assert 1 <= default_workers() <= 4
+    assert [default_workers(cores) for cores in (1, 2, 3, 4, 5, 16)] == [1, 2, 2, 3, 4, 4]
     with DetectionPool(2) as pool:
         assert pool.wait_ready(WAIT_S) and pool.workers == 2
         found = []
