@@ -179,3 +179,39 @@ def _batches_until(receiver: FrameReceiver, note: str, timeout_s: float = 5.0):
     while note not in notes and time.monotonic() - start < timeout_s:
         notes += receiver.take(0.05).notes
     return notes, "", time.monotonic() - start
+
+
+def test_a_closing_replay_server_lets_the_client_read_its_last_frames(sweep3):
+    """The replay server ends the stream after the client has its last frames, even when the
+    client's own messages wait unread: a server closing on unread messages resets the
+    connection, and the client's system throws away the frames it had not read yet."""
+    import threading
+
+    from comreg_core.live.igtl import ConnectionClosed, read_message
+    from comreg_core.live.replay import ReplayServer
+
+    server = ReplayServer("127.0.0.1", 0)
+    client = socket.create_connection(("127.0.0.1", server.port), timeout=10.0)
+    try:
+        assert server.wait_for_client(10.0)
+        chatter = pyigtl.StringMessage("x" * 200, device_name="ReferenceToCT").pack()
+        client.sendall(chatter * 2000)  # ~0.5 MB the server reads one message at a time
+        for i in range(3):
+            assert server.send_now(*frame_messages(sweep3, i, 100.0 + i))
+        closing = threading.Thread(target=server.close)
+        closing.start()
+        time.sleep(0.5)  # the frames wait unread in the client's buffer while the server closes
+        images = []
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end:
+            try:
+                message = read_message(client, 1.0)
+            except ConnectionClosed:
+                break
+            if isinstance(message, pyigtl.ImageMessage):
+                images.append(message.timestamp)
+        assert images == [100.0, 101.0, 102.0]
+    finally:
+        client.close()
+        closing.join(10.0)
+    assert not closing.is_alive()
