@@ -262,9 +262,10 @@ def _ambiguity_note(ambiguous: bool, verdict) -> str:
     rules the close pose out."""
     if not ambiguous:
         return ""
-    if not competitor_ruled_out(_competitor(verdict)):
+    competitor = _competitor(verdict)
+    if not competitor_ruled_out(competitor):
         return "; AMBIGUOUS: check the result visually"
-    return f"; a different pose scored {ambiguity_words(True, _competitor(verdict))}"
+    return f"; a different pose scored {ambiguity_words(True, competitor)}"
 
 
 def verdict_lines(verdict) -> list[str]:
