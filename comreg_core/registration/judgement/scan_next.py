@@ -8,6 +8,7 @@ with it (Fisher form, scaled to the current bound) ranks the patches.
 
 from __future__ import annotations
 
+import weakref
 from typing import Any
 
 import numpy as np
@@ -29,23 +30,35 @@ RANK_SAMPLES = 256
 SIDED = 0.3
 
 
+#: Each CT surface's patches (:func:`_surface_patches`), made once: they do not depend on the pose.
+_PATCHES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _surface_patches(surface) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``[(samples (m, 3), normals (m, 3), unit mean normal (3,))]`` of every patch of the CT
+    ``surface`` with at least :data:`MIN_PATCH_SAMPLES` samples (made once per surface)."""
+    if surface not in _PATCHES:
+        samples, normals = surface.samples(SCAN_SAMPLES)
+        group, count = block_groups(samples, PATCH_MM)
+        out = []
+        for k in range(count):
+            member = group == k
+            if member.sum() < MIN_PATCH_SAMPLES:
+                continue
+            mean = normals[member].mean(axis=0)
+            mean = mean / max(float(np.sqrt(np.sum(mean * mean))), 1e-12)
+            out.append((samples[member], normals[member], mean))
+        _PATCHES[surface] = out
+    return _PATCHES[surface]
+
+
 def _patches(surface, fit: FitMoments) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """``[(samples (m, 3), normals (m, 3), unit mean normal (3,))]`` of the reachable patches."""
-    samples, normals = surface.samples(SCAN_SAMPLES)
-    group, count = block_groups(samples, PATCH_MM)
+    """The :func:`_surface_patches` reachable from the side the sweep was seen from (all when
+    it has no side)."""
     side = fit.normal_mean
     sided = float(np.sqrt(np.sum(side * side))) >= SIDED
-    out = []
-    for k in range(count):
-        member = group == k
-        if member.sum() < MIN_PATCH_SAMPLES:
-            continue
-        mean = normals[member].mean(axis=0)
-        mean = mean / max(float(np.sqrt(np.sum(mean * mean))), 1e-12)
-        if sided and project(mean[None], side)[0] <= 0.0:
-            continue
-        out.append((samples[member], normals[member], mean))
-    return out
+    return [patch for patch in _surface_patches(surface)
+            if not sided or project(patch[2][None], side)[0] > 0.0]
 
 
 def scan_next(fit: FitMoments, covariance: np.ndarray, surface, long_axis: np.ndarray,

@@ -2,8 +2,9 @@
 
 Inputs: the US points as received, the transform ``T_ct_us`` (mm), the CT bone mesh, the pose's
 uncertainty (:mod:`~comreg_core.registration.judgement.assessment`) and ``p_correct``. No ground
-truth, no network. :func:`judge_registration` computes these figures (distances in mm, exact
-point-to-triangle distances of :class:`~comreg_core.registration.geometry.surface.CTSurface`):
+truth, no network. :func:`judge_registration` computes these figures (distances in mm, to the
+triangles by :meth:`CTSurface.closest_faces
+<comreg_core.registration.geometry.surface.CTSurface.closest_faces>`):
 
 - **residuals** of the registered US points (a strided subset of at most
   :data:`RESIDUAL_POINTS`) to the CT surface: ``median_mm``, ``p90_mm``,
@@ -51,7 +52,10 @@ REFIT_POINTS = 2000
 #: step of :data:`SCALES`, 2026-12-05).
 SCALE_POINTS = 500
 #: US points whose residuals are measured (a strided subset of larger clouds: the quantiles
-#: of 3,000 points are those of all within a few hundredths of a mm).
+#: of 3,000 points are those of all within a few hundredths of a mm). Their distances are the
+#: closest-point kernel's: on the bundled whole cloud the same median and 90th percentile as
+#: VTK's exact ``vtkImplicitPolyDataDistance`` (45 of 3,000 points differ, by at most
+#: 0.044 mm) in 2 ms instead of 12 (2026-12-05).
 RESIDUAL_POINTS = 3000
 #: CT surface samples for the coverage and the refit's closest points.
 CT_SAMPLES = 50_000
@@ -139,7 +143,7 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
     ``refit_scale_gain`` are None."""
     surface = as_surface(ct_surface)
     points = apply_transform(check_rigid(T_ct_us), as_points(us_points, "US points"))
-    d = surface.distance(strided(points, RESIDUAL_POINTS))
+    d = surface.closest_faces(strided(points, RESIDUAL_POINTS))[2]
     shift, scale, gain = refit(points, surface, scale_scan=scale_scan and not short_sweep)
     noise = None if uncertainty is None else uncertainty.noise_mm
     near = NEAR_MM if noise is None else max(NEAR_MM, 3.0 * noise)
