@@ -187,3 +187,33 @@ def test_advice_on_a_cylinder_points_at_the_knob():
     assert np.linalg.norm(np.array(advice["point_ct"]) - knob) < 15.0, advice
     assert advice["bound_mm"] < 0.5 * u.bound_mm
     assert "superior end" in advice["words"] and "pointing posterior" in advice["words"]  # LPS +z, +y
+
+
+def slid_along_axis(mm):
+    T = np.eye(4)
+    T[2, 3] = mm
+    return T
+
+
+def test_the_search_s_competitor_is_weighed_by_the_basin_it_falls_in():
+    twin = tube(bumps=[(np.radians(90), 0.0, 3.0, 4.0), (np.radians(90), 36.0, 3.0, 4.0)])
+    single = tube(bumps=[(np.radians(90), 0.0, 3.0, 4.0)])
+    points, frames = sweep_frames(twin, np.arange(-8.0, 8.5, 1.0))
+    _, normals, _ = twin.closest(points)
+    points = noisy(points, frames, normals, np.random.default_rng(3))
+
+    def weighed(surface, mm):
+        return pose_uncertainty(points, np.eye(4), surface, ct_length_mm=LENGTH, advice=False,
+                                profiles=False, competitors=[slid_along_axis(mm)])
+
+    # 33 mm along, short of the twin knob: refitted it lands on the twin, as good a fit
+    twins = weighed(twin, 33.0)
+    assert not twins.competitor["same_basin"] and twins.competitor["delta_cost"] < 1.0
+    assert twins.competitor["weight"] > 0.6 and twins.p_basin < 0.65
+    # on the tube with one knob the same pose fits clearly worse (chi-square > 10)
+    alone = weighed(single, 33.0)
+    assert alone.competitor["delta_cost"] > 10.0 and alone.p_basin > 0.99
+    # 4.5 mm off, a pose the search left unfinished: refitted it falls into the chosen basin
+    unfinished = weighed(single, 4.5)
+    assert unfinished.competitor["same_basin"] and unfinished.competitor["weight"] == 0.0
+    assert unfinished.p_basin == 1.0

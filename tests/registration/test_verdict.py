@@ -144,8 +144,8 @@ def test_the_search_s_ambiguity_stands_unless_the_fit_rules_its_competitor_out(
     """The search's ``ambiguous`` (a relative score margin) is CHECK unless the uncertainty
     weighs its clinically different competitor under RULED_OUT_WEIGHT: a whole simulated
     sweep against itself turned end to end is OK, the same flag with no competitor to weigh
-    is CHECK, and a 800-point real slab against itself slid 8 mm (a weight of ~4e-5) stays
-    CHECK."""
+    is CHECK, and a 800-point real slab against itself slid 8 mm stays CHECK: refitted, that
+    pose settles in another basin along the shaft that fits about as well."""
     from comreg_core.registration.judgement.verdict import RULED_OUT_WEIGHT, ambiguity_words
 
     def judged(points, T, competitor):
@@ -164,6 +164,7 @@ def test_the_search_s_ambiguity_stands_unless_the_fit_rules_its_competitor_out(
     points, T = real_sweep
     slab = judged(points[:800], T, slid(T, 8.0, axis))
     weight = slab.uncertainty["competitor"]["weight"]
-    assert RULED_OUT_WEIGHT < weight < 1e-2, weight
+    assert weight > 0.1 and not slab.uncertainty["competitor"]["same_basin"], \
+        slab.uncertainty["competitor"]
     assert any(r.startswith("Ambiguous pose") for r in slab.reasons), slab.reasons
     assert ambiguity_words(True, slab.uncertainty["competitor"]) == "YES: check the images"

@@ -9,7 +9,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from comreg_core.registration.judgement.profile import different_answer, profile
+from comreg_core.registration.judgement.profile import different_answer, profile, refit_holding
 from comreg_core.registration.judgement.scan_next import scan_next
 from comreg_core.registration.judgement.uncertainty import (basin_weight, extent_along,
                                                             fit_moments, long_axis_of,
@@ -111,8 +111,7 @@ def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
     competitor = None
     for T in competitors:
         if different_answer(T, T_ct_us, fit.targets):
-            delta = truncated_cost(points_us, T, surface, fit) - base
-            competitor = {"delta_cost": float(delta), "weight": basin_weight(delta)}
+            competitor = competitor_basin(points_us, T_ct_us, np.asarray(T), surface, fit, base)
             weights.append(competitor["weight"])
             break
     p_basin = 1.0 / (1.0 + float(sum(weights)))
@@ -121,3 +120,18 @@ def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
                        directions=directions, noise_mm=fit.noise_mm,
                        design_effect=fit.design_effect, groups=fit.groups, profiles=runs,
                        competitor=competitor, scan_next=advice_record)
+
+
+def competitor_basin(points_us: np.ndarray, T_ct_us: np.ndarray, T_competitor: np.ndarray,
+                     surface, fit, base_cost: float) -> dict[str, Any]:
+    """The search's clinically different pose ``T_competitor`` ``(4, 4)``, refitted free as a
+    profile's offsets are (:func:`~.profile.refit_holding`): ``{"delta_cost", "weight",
+    "same_basin"}``, the excess cost of the basin it falls in over the chosen pose's
+    (``base_cost``) and its :func:`basin_weight`; a competitor that falls into the chosen
+    pose's own basin (refitted within the clinical tolerance of ``T_ct_us``: the search had not
+    finished it) is no other answer, ``weight`` 0."""
+    basin = refit_holding(points_us, T_competitor[None], surface, fit, None, None)[0]
+    delta = float(truncated_cost(points_us, basin, surface, fit) - base_cost)
+    same = not different_answer(basin, T_ct_us, fit.targets)
+    return {"delta_cost": delta, "weight": 0.0 if same else basin_weight(delta),
+            "same_basin": same}

@@ -168,8 +168,9 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
 
 
 def competitor_ruled_out(competitor: dict | None) -> bool:
-    """Whether the uncertainty's ``competitor`` record (``{"delta_cost", "weight"}``, None:
-    none) weighs the search's clinically different pose below :data:`RULED_OUT_WEIGHT`."""
+    """Whether the uncertainty's ``competitor`` record (``{"delta_cost", "weight",
+    "same_basin"}``, None: none) weighs the search's clinically different pose below
+    :data:`RULED_OUT_WEIGHT` (0 when, refitted, it falls into the chosen pose's basin)."""
     return competitor is not None and competitor["weight"] < RULED_OUT_WEIGHT
 
 
@@ -178,6 +179,8 @@ def ambiguity_words(ambiguous: bool, competitor: dict | None) -> str:
     "no", "YES: check the images", or that the fit rules the close pose out."""
     if not ambiguous:
         return "no"
+    if competitor_ruled_out(competitor) and competitor.get("same_basin"):
+        return "close in score, but refitted it falls into this pose's basin"
     if competitor_ruled_out(competitor):
         return (f"close in score, but the fit rules it out (weight {competitor['weight']:.0e}, "
                 f"under {RULED_OUT_WEIGHT:.0e})")
