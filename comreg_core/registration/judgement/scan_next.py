@@ -31,7 +31,7 @@ SIDED = 0.3
 
 
 #: Each CT surface's patches (:func:`_surface_patches`), made once: they do not depend on the pose.
-_PATCHES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_PATCHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _surface_patches(surface) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

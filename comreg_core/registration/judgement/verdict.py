@@ -182,12 +182,12 @@ def ambiguity_words(ambiguous: bool, competitor: dict | None) -> str:
     "no", "YES: check the images", or that the fit rules the close pose out."""
     if not ambiguous:
         return "no"
-    if competitor_ruled_out(competitor) and competitor.get("same_basin"):
+    if not competitor_ruled_out(competitor):
+        return "YES: check the images"
+    if competitor.get("same_basin"):
         return "close in score, but refitted it falls into this pose's basin"
-    if competitor_ruled_out(competitor):
-        return (f"close in score, but the fit rules it out (weight {competitor['weight']:.0e}, "
-                f"under {RULED_OUT_WEIGHT:.0e})")
-    return "YES: check the images"
+    return (f"close in score, but the fit rules it out (weight {competitor['weight']:.0e}, "
+            f"under {RULED_OUT_WEIGHT:.0e})")
 
 
 def _reasons(f: dict, uncertainty, th: VerdictThresholds, ok_probability: float,
