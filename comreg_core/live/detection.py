@@ -57,9 +57,12 @@ def _serve(config, connection) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     try:
         from comreg_core.live.stream import Frame
+        from comreg_core.surfaces.us_detector import warm_up_frame
 
-        blank = np.zeros((64, 64), np.uint8)
-        detect_frame(Frame(-1, blank, np.array([0.1, 0.1]), np.eye(4), 0.0, 0.0), config)
+        first = detect_frame(Frame(-1, warm_up_frame(), np.array([0.1, 0.1]), np.eye(4), 0.0,
+                                   0.0), config)
+        if not len(first.points):
+            raise RuntimeError("the detector found no bone in its warm-up frame")
     except Exception as exc:  # the parent detects itself then
         connection.send(("failed", f"{type(exc).__name__}: {exc}"))
         return

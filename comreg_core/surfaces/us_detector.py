@@ -35,11 +35,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy import ndimage
 
 from comreg_core.progress import Progress
 from comreg_core.io.sweeps import TrackedSweep
 from comreg_core.surfaces.us_config import BoneDetectorConfig
+from comreg_core.surfaces.us_filters import bone_probability, gaussian_filter, shadow_and_tissue
 from comreg_core.surfaces.us_points import (USSurfacePoints, collect_surface_points,
                                             frames_to_use)
 
@@ -115,15 +115,15 @@ def bone_evidence(frame: np.ndarray, spacing, config: BoneDetectorConfig | None 
     if h < 3 or w < 3:
         return BoneEvidence(zeros, zeros, zeros, zeros, zeros, (ky, kx), (py, px))
 
-    intensity = ndimage.gaussian_filter(a, (c.smoothing_mm / py, c.smoothing_mm / px))
+    intensity = gaussian_filter(a, (c.smoothing_mm / py, c.smoothing_mm / px))
     ref = max(float(np.percentile(intensity, 99)), 0.2 * float(intensity.max()))
     if not ref > 0:  # a blank frame
         return BoneEvidence(zeros, zeros, zeros, zeros, zeros, (ky, kx), (py, px))
 
     sigma = (c.ridge_scale_mm / py, c.ridge_scale_mm / px)
-    iyy = ndimage.gaussian_filter(a, sigma, order=(2, 0)) / py ** 2
-    ixx = ndimage.gaussian_filter(a, sigma, order=(0, 2)) / px ** 2
-    ixy = ndimage.gaussian_filter(a, sigma, order=(1, 1)) / (px * py)
+    iyy = gaussian_filter(a, sigma, (2, 0)) / py ** 2
+    ixx = gaussian_filter(a, sigma, (0, 2)) / px ** 2
+    ixy = gaussian_filter(a, sigma, (1, 1)) / (px * py)
     lam_min = 0.5 * (iyy + ixx) - np.sqrt((0.5 * (iyy - ixx)) ** 2 + ixy ** 2)
     strength = -lam_min * c.ridge_scale_mm ** 2 / (ref * c.ridge_saturation)
     ridge = np.clip(strength, 0.0, 1.0)
@@ -138,36 +138,26 @@ def bone_evidence(frame: np.ndarray, spacing, config: BoneDetectorConfig | None 
     gap = max(1, int(round(c.shadow_gap_mm / py)))
     depth = max(1, int(round(c.shadow_depth_mm / py)))
     above_n = max(1, int(round(c.tissue_depth_mm / py)))
-    cum = np.vstack([np.zeros((1, w), np.float64), np.cumsum(intensity, axis=0, dtype=np.float64)])
     profile = np.maximum(np.percentile(intensity[:, fov], c.shadow_reference_percentile, axis=1),
                          floor)
     pcum = np.concatenate([[0.0], np.cumsum(profile, dtype=np.float64)])
-
-    below, n_below = _window_means(cum, rows + gap, rows + gap + depth)
     expected, _ = _window_means(pcum, rows + gap, rows + gap + depth)
-    shadow = np.clip(1.0 - below / np.maximum(expected, floor)[:, None], 0.0, 1.0)
-    shadow[n_below == 0] = 0.0
-
     first = min(int(c.min_depth_mm / py), h - 1)
     tissue_ref = max(float(np.median(intensity[first:max(first + 1, h // 2)][:, fov])), floor)
-    above, n_above = _window_means(cum, rows - gap - above_n, rows - gap)
-    tissue = np.clip(above / tissue_ref, 0.0, 1.0)
-    if c.tissue_min_fill > 0:  # mostly echogenic, not one bright reflector over water
-        echo = np.vstack([np.zeros((1, w)), np.cumsum(intensity > 0.25 * tissue_ref, axis=0)])
-        fill, _ = _window_means(echo, rows - gap - above_n, rows - gap)
-        tissue *= np.clip(fill / c.tissue_min_fill, 0.0, 1.0)
-    tissue[n_above < max(1, above_n // 2)] = 0.0
+    shadow, tissue = shadow_and_tissue(
+        intensity, np.maximum(expected, floor), gap, depth, above_n, tissue_ref,
+        np.float32(0.25 * tissue_ref), float(c.tissue_min_fill), max(1, above_n // 2))
 
     norm = np.clip(intensity / ref, 0.0, 1.0)
-    probability = ((norm ** c.intensity_power) * (ridge ** c.ridge_power)
-                   * (shadow ** c.shadow_power) * (tissue ** c.tissue_power)).astype(np.float32)
+    probability = bone_probability(norm, ridge, shadow, tissue, (
+        c.intensity_power, c.ridge_power, c.shadow_power, c.tissue_power))
     probability[:first] = 0.0
     probability[:, ~fov] = 0.0
     if c.max_depth_mm is not None:
         probability[int(math.ceil(c.max_depth_mm / py)):] = 0.0
-    return BoneEvidence(norm.astype(np.float32), ridge.astype(np.float32),
+    return BoneEvidence(norm.astype(np.float32, copy=False), ridge.astype(np.float32, copy=False),
                         shadow.astype(np.float32), tissue.astype(np.float32), probability,
-                        (ky, kx), (py, px), strength.astype(np.float32))
+                        (ky, kx), (py, px), strength.astype(np.float32, copy=False))
 
 
 def _viterbi(gain: np.ndarray, max_step: int, step_cost: float, switch_cost: float
@@ -286,6 +276,18 @@ def detect_bone_surface(frame: np.ndarray, spacing, config: BoneDetectorConfig |
     full_rows = (rows + offset) * ky + (ky - 1) / 2.0
     full_cols = cols * kx + (kx - 1) / 2.0
     return FrameDetection(full_rows, full_cols.astype(np.float64), score)
+
+
+def warm_up_frame() -> np.ndarray:
+    """A small synthetic B-mode frame ``(120, 80)`` uint8 at 0.1 mm (tissue speckle, a bright
+    echo at 8 mm, its shadow below) on which :func:`detect_bone_surface` finds bone: running it
+    compiles (or loads from numba's cache) every kernel of the detector."""
+    rng = np.random.default_rng(0)
+    frame = rng.integers(40, 90, size=(120, 80)).astype(np.uint8)
+    frame[:5] = 0  # the gel
+    frame[78:82] = 230  # the echo
+    frame[82:] //= 8  # its shadow
+    return frame
 
 
 def detect_sweep_surface(sweep: TrackedSweep, config: BoneDetectorConfig | None = None, *,
