@@ -118,14 +118,23 @@ class IncrementalDenoise:
 
     def _link(self, n0: int, core_before: np.ndarray) -> None:
         """Neighbour counts, new cluster edges and borders' nearest core points for the points
-        from ``n0`` on (module docstring)."""
+        from ``n0`` on (module docstring). Only two kinds of pairs within ``r`` can change
+        anything: those with a new point, and those with an old point that has just become
+        core; both lie within ``2 r`` of the new points' bounding box."""
         r = float(self.config.cluster_radius_mm)
-        i, j, d2 = self._pairs_near(n0, r)
-        touch = (i >= n0) | (j >= n0)
-        np.add.at(self._counts, i[touch], 1)
-        np.add.at(self._counts, j[touch], 1)
+        new = self.points[n0:]
+        lo, hi = new.min(axis=0) - 2.0 * r, new.max(axis=0) + 2.0 * r
+        local = np.flatnonzero(((self.points >= lo) & (self.points <= hi)).all(axis=1))
+        tree = cKDTree(self.points[local])
+        i, j, d2 = self._pairs_with(np.arange(n0, len(self.points)), local, tree, r)
+        np.add.at(self._counts, i, 1)
+        np.add.at(self._counts, j, 1)
         core = self._counts >= self.config.cluster_min_points
         newly = core & ~core_before
+        old_newly = np.flatnonzero(newly[:n0])
+        if len(old_newly):  # their pairs with old points (those with new ones are counted)
+            a, b, ab2 = self._pairs_with(old_newly, local[local < n0], None, r)
+            i, j, d2 = np.concatenate([i, a]), np.concatenate([j, b]), np.concatenate([d2, ab2])
         edges = core[i] & core[j] & (newly[i] | newly[j])
         _union(self._parent, i[edges], j[edges])
         self._nearest[newly] = -1
@@ -144,14 +153,18 @@ class IncrementalDenoise:
         self._nearest[border_a[closer]] = core_b[closer]
         self._nearest_d2[border_a[closer]] = dist2[closer]
 
-    def _pairs_near(self, n0: int, r: float):
-        """``(i, j, d2)``: the pairs of points within ``r`` (``d2 <= r * r``, ``i < j``) among
-        those within ``2 r`` of the bounding box of the points from ``n0`` on."""
-        new = self.points[n0:]
-        lo, hi = new.min(axis=0) - 2.0 * r, new.max(axis=0) + 2.0 * r
-        local = np.flatnonzero(((self.points >= lo) & (self.points <= hi)).all(axis=1))
-        pairs = cKDTree(self.points[local]).query_pairs(r * (1.0 + 1e-9), output_type="ndarray")
-        i, j = local[pairs[:, 0]], local[pairs[:, 1]]
+    def _pairs_with(self, queries: np.ndarray, others: np.ndarray, tree, r: float):
+        """``(i, j, d2)``, ``i < j``: each pair within ``r`` (``d2 <= r * r``, the full clean-up's
+        arithmetic) of one of the points ``queries`` and one of ``others`` (insertion indices,
+        ascending; ``tree``: the ``cKDTree`` of ``others``' points, or None), once."""
+        if tree is None:
+            tree = cKDTree(self.points[others])
+        found = cKDTree(self.points[queries]).sparse_distance_matrix(
+            tree, r * (1.0 + 1e-9), output_type="ndarray")
+        a, b = queries[found["i"]], others[found["j"]]
+        in_queries = np.isin(b, queries)
+        once = (a != b) & (~in_queries | (a < b))
+        i, j = np.minimum(a[once], b[once]), np.maximum(a[once], b[once])
         d = self.points[i] - self.points[j]
         d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
         within = d2 <= r * r
