@@ -40,23 +40,31 @@ def moved_beyond(T: np.ndarray, T_last: np.ndarray, centroid: np.ndarray,
     return rotation_error_deg(T, T_last) > deg or translation_error_mm(T, T_last, centroid) > mm
 
 
+def unsettled_reason(T_ct_us: np.ndarray, centroid: np.ndarray, earlier: np.ndarray | None,
+                     full_every_mm: float) -> str | None:
+    """Why the pose ``T_ct_us`` has not settled (None: it has): it is beyond
+    :data:`SETTLED_TOLERANCE` (at ``centroid``) from ``earlier``, the pose of the last full search
+    made on at least ``full_every_mm`` less bone, or there is none yet (None)."""
+    if earlier is None:
+        return "No registration of less bone to confirm this pose yet."
+    deg, mm = SETTLED_TOLERANCE
+    turned = rotation_error_deg(T_ct_us, earlier)
+    moved = translation_error_mm(T_ct_us, earlier, centroid)
+    if turned <= deg and moved <= mm:
+        return None
+    return (f"The pose moved {moved:.1f} mm / {turned:.1f} deg since the registration "
+            f"of {full_every_mm:g} mm less bone: it has not settled yet.")
+
+
 def settled(verdict, T_ct_us: np.ndarray, centroid: np.ndarray, earlier: np.ndarray | None,
             full_every_mm: float):
-    """``verdict``, turned CHECK when it is OK but the pose ``T_ct_us`` has not settled: it is
-    beyond :data:`SETTLED_TOLERANCE` (at ``centroid``) from ``earlier``, the pose of the last
-    full search made on at least ``full_every_mm`` less bone (None: there is none yet)."""
+    """``verdict``, turned CHECK when it is OK but the pose ``T_ct_us`` has not settled
+    (:func:`unsettled_reason`)."""
     if not verdict.ok:
         return verdict
-    if earlier is not None:
-        deg, mm = SETTLED_TOLERANCE
-        turned = rotation_error_deg(T_ct_us, earlier)
-        moved = translation_error_mm(T_ct_us, earlier, centroid)
-        if turned <= deg and moved <= mm:
-            return verdict
-        why = (f"The pose moved {moved:.1f} mm / {turned:.1f} deg since the registration "
-               f"of {full_every_mm:g} mm less bone: it has not settled yet.")
-    else:
-        why = "No registration of less bone to confirm this pose yet."
+    why = unsettled_reason(T_ct_us, centroid, earlier, full_every_mm)
+    if why is None:
+        return verdict
     return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
 
 
@@ -84,13 +92,24 @@ class VerdictChecks:
         self._evidence = Evidence.of(result, pts, self.ct_length, self.calibration, allowed)
         return self._evidence
 
+    def _earlier_full(self, covered: float) -> np.ndarray | None:
+        """The pose of the last full search made on at least ``full_every_mm`` less than
+        ``covered`` mm of bone (None: none yet)."""
+        earlier = [T for mm, T in self._fulls if mm <= covered - self.full_every_mm]
+        return earlier[-1] if earlier else None
+
     def _settled(self, verdict, T_ct_us: np.ndarray, pts: np.ndarray, covered: float):
         """``verdict``, turned CHECK when it is OK but the pose has not settled
         (:func:`~comreg_core.live.gates.settled`: against the last full search made on at
         least ``full_every_mm`` less than ``covered`` mm of bone)."""
-        earlier = [T for mm, T in self._fulls if mm <= covered - self.full_every_mm]
-        return settled(verdict, T_ct_us, pts.mean(axis=0), earlier[-1] if earlier else None,
+        return settled(verdict, T_ct_us, pts.mean(axis=0), self._earlier_full(covered),
                        self.full_every_mm)
+
+    def _can_settle(self, T_ct_us: np.ndarray, pts: np.ndarray, covered: float) -> bool:
+        """Whether the pose has settled (:meth:`_settled` would keep an OK): a full search's
+        verdict that cannot be OK needs neither the scale check nor the profiles."""
+        return unsettled_reason(T_ct_us, pts.mean(axis=0), self._earlier_full(covered),
+                                self.full_every_mm) is None
 
     def _short(self, pts: np.ndarray) -> bool:
         """Whether the sweep ``pts`` is short (:func:`is_short_sweep`: for the verdict and the
@@ -116,7 +135,8 @@ class VerdictChecks:
         no profiles of the weakest directions: both are the full searches' (a scale problem
         or another basin found there makes the warm verdicts differ, so each update runs the
         full search again and stays CHECK; a warm OK only keeps an OK a full judgement gave,
-        see :mod:`.session`)."""
+        see :mod:`.session`); so is a full search's whose pose has not settled
+        (:meth:`_can_settle`): it is CHECK whatever they find."""
         if len(pts) > VERDICT_POINTS:
             pts = pts[np.sort(np.random.default_rng(self.seed).choice(
                 len(pts), VERDICT_POINTS, replace=False))]

@@ -11,7 +11,8 @@ points and registers the grown sweep (:class:`LiveSession`; docs/live.md for the
   answer is used). The verdict only turns OK, or back to CHECK, on a full search.
 - **Verdict.** The one judge (:func:`~comreg_core.register.judge.judge`) on at most
   :data:`~comreg_core.live.gates.VERDICT_POINTS` points with the result's own evidence; the scale scan and the profiles
-  of the weakest directions run on full searches only (a warm update costs less). An OK must also have *settled*
+  of the weakest directions run on full searches only, and only when the pose has settled (a
+  warm update, or a verdict that is CHECK whatever they find, costs less). An OK must also have *settled*
   (:data:`~comreg_core.live.gates.SETTLED_TOLERANCE` from the full
   search on ``full_every_mm`` less bone) and, on a short sweep, its two halves must agree
   (:func:`~comreg_core.registration.search.polish.halves_disagreement_deg` within
@@ -337,7 +338,8 @@ class LiveSession(VerdictChecks):
                 base, mode, self._halves_deg = done.result, "warm+full", done.halves_deg
         result = warm_register(self.registrar, pts, origins, base, self.seed, self.prior)
         verdict = self._judge(pts, result, self._evidence_of(result, pts),
-                              full=mode == "warm+full")
+                              full=mode == "warm+full" and self._can_settle(
+                                  result.T_ct_us, pts, job_covered))
         if mode == "warm+full":  # judged as that full search; its own pose is recorded
             verdict = self._settled(verdict, result.T_ct_us, pts, job_covered)
             self._fulls.append((job_covered, np.array(done.result.T_ct_us)))
@@ -370,7 +372,9 @@ class LiveSession(VerdictChecks):
                                          prior=self.prior, residuals=False)  # verdict: own
         self._result = result
         self._covered_at_full = self.covered_mm(everything, result.T_ct_us)
-        verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts)),
+        full = self._can_settle(result.T_ct_us, pts, self._covered_at_full)
+        verdict = self._settled(self._judge(pts, result, self._evidence_of(result, pts),
+                                            full=full),
                                 result.T_ct_us, pts, self._covered_at_full)
         self._halves_deg = None
         verdict = self._consistent(verdict, pts, result, origins)

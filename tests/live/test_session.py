@@ -134,11 +134,15 @@ def _pose(R, t) -> np.ndarray:
     return T
 
 
-def test_warm_updates_leave_the_profiles_and_the_scale_scan_to_the_full_searches(
+def test_warm_updates_leave_the_profiles_and_the_scale_scan_to_the_settled_full_searches(
         sweep, search_registrar, monkeypatch):
-    """The one judge runs with its profiles and scale scan on a full search's pose and without
-    them on a warm update's (a warm OK only keeps an OK that a full judgement gave)."""
+    """The one judge runs with its profiles and scale scan on a full search's pose that has
+    settled (it agrees with the full search on ``full_every_mm`` less bone, so it may be OK),
+    and without them on a warm update's (a warm OK only keeps an OK that a full judgement gave)
+    and on a first full search's (nothing to settle against: CHECK whatever they find)."""
     import comreg_core.live.gates as gates
+    from comreg_core.registration.geometry.metrics import (rotation_error_deg,
+                                                           translation_error_mm)
 
     calls = []
     judge = gates.judge
@@ -147,9 +151,28 @@ def test_warm_updates_leave_the_profiles_and_the_scale_scan_to_the_full_searches
         calls.append((kwargs["profiles"], kwargs["scale_scan"]))
         return judge(*args, **kwargs)
 
+    def three_updates(session, before_the_third=lambda: None):
+        updates = [session.update(_frames(sweep, range(6))),
+                   session.update(_frames(sweep, [5], first_index=6))]
+        before_the_third()
+        return updates + [session.update(_frames(sweep, range(6, 14), first_index=7))]
+
     monkeypatch.setattr(gates, "judge", spy)
+    # the first full search (6 frames) and the second (15 frames) disagree: not settled
+    first, again, grown = three_updates(LiveSession(search_registrar, spacing=None))
+    assert [u.mode for u in (first, again, grown)] == ["full", "warm", "full"]
+    assert rotation_error_deg(grown.T_ct_us, first.T_ct_us) > 2.0
+    assert calls == [(False, False)] * 3
+    calls.clear()
     session = LiveSession(search_registrar, spacing=None)
-    first = session.update(_frames(sweep, range(6)))
-    assert first.mode == "full" and calls == [(True, True)]
-    again = session.update(_frames(sweep, [5], first_index=6))
-    assert again.mode == "warm" and calls[1:] == [(False, False)]
+
+    def settle():  # as if the first full search had found the second's pose
+        session._fulls = [(mm, grown.T_ct_us) for mm, _ in session._fulls]
+
+    first, again, later = three_updates(session, settle)
+    assert first.mode == "full" and first.verdict == "check" and calls[0] == (False, False)
+    assert again.mode == "warm" and calls[1] == (False, False)
+    assert later.mode == "full" and later.covered_mm >= first.covered_mm + session.full_every_mm
+    assert rotation_error_deg(later.T_ct_us, grown.T_ct_us) < 1e-6  # the same search
+    assert translation_error_mm(later.T_ct_us, grown.T_ct_us, later.centroid) < 1e-6
+    assert calls[2:] == [(True, True)]
