@@ -147,6 +147,7 @@ class LiveSession(VerdictChecks):
         self._job: tuple[int, float] | None = None  # (id, covered mm) of the worker's job
         self._jobs = 0
         self._done: FullSearchDone | None = None  # the worker's answer, not yet used
+        self._answer_s = math.nan  # when the last answer was read
         self.last: LiveUpdate | None = None
 
     def warm_up(self) -> None:
@@ -202,7 +203,8 @@ class LiveSession(VerdictChecks):
             p_correct=verdict.figures.get("p_correct"), confidence=self._evidence.confidence,
             advice=advice, T_ct_us=np.array(result.T_ct_us), centroid=cloud.points.mean(axis=0),
             mode=mode, register_s=self.clock() - start, waiting=len(self.backlog),
-            newest_s=max(record.received_s for record in self.points.records),
+            newest_s=(max(record.received_s for record in self.points.records) if found
+                      else self._answer_s),
             searching=self.searching,
             frame_age_s=max((start - d.received_s for d in found), default=math.nan),
             skipped=counts["skipped"], dropped_lag=counts["lag"],
@@ -291,7 +293,7 @@ class LiveSession(VerdictChecks):
             return False
         done = self.worker.poll()
         if done is not None:
-            self._done = done
+            self._done, self._answer_s = done, self.clock()
         if self.worker.failed is not None:
             self._notes.append(f"{self.worker.failed}; full searches run in the update loop "
                                "from now")

@@ -33,8 +33,10 @@ class LiveUpdate:
             background full search: warm from the full search's result that just came).
         register_s: the update's time (s): detection, registration, verdict.
         waiting: frames left in the backlog for later updates (the loop is lagging).
-        newest_s: arrival (``time.monotonic()``) of the newest frame registered; latency_s:
-            from it to the update being sent (set by whoever sends it).
+        newest_s: arrival (``time.monotonic()``) of the update's newest input: the newest frame
+            registered, or for an update without new frames (a background full search's
+            answer at the end of a stream) the answer; latency_s: from it to the update being
+            sent (set by whoever sends it).
         searching: a full search runs in the background (its answer comes with a later update).
         frame_age_s: the age of the oldest frame this update took (s, from its arrival).
         skipped, dropped_lag, dropped_no_pose: frames so far skipped (no new bone: not a loss),

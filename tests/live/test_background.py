@@ -103,6 +103,14 @@ def test_a_session_with_the_worker_is_warm_and_adopts_full_searches(worker, swee
     confirming = [u for u in updates if any("is confirming" in r for r in u.reasons)]
     assert all(u.verdict == "check" and u.mode == "warm" for u in confirming)
     assert session.take_notes() == []
+    # the end of a stream: the last answer comes with an update without new frames, whose
+    # latency runs from the answer (its newest input), not from the last frame
+    assert session.answer_waiting()
+    before = time.monotonic()
+    final = session.update()
+    assert final.mode == "warm+full" and final.frames_used == updates[-1].frames_used
+    assert before <= final.newest_s <= time.monotonic()
+    assert updates[-1].newest_s < before
 
 
 def test_a_worker_that_cannot_start_is_let_go(shared_data, tmp_path, search_registrar,
