@@ -1,16 +1,16 @@
 """Bone detection off the update loop (:class:`DetectionPool`): worker processes that find the
 bone in frames while the update loop registers.
 
-Why processes: detection (~22 ms a frame on an idle core of the test machine) is numpy and scipy
-code that holds Python's lock, so a thread beside the update loop would take turns with it.
-Each worker is started with ``spawn`` (as the full-search worker: a fork of a process whose
-numba and torch pools run can hang), runs its kernels on one thread, and answers one frame at
-a time, so a frame goes to a worker only when one is free (the age limit is checked then:
-:class:`~comreg_core.live.intake.FrameGate`). A detection is a pure function of the frame
-(:func:`~comreg_core.live.points.detect_frame`): a worker's answer is the update loop's own,
-bit for bit, and which worker answers does not matter. ``workers=0`` detects in the calling
-thread; a worker that cannot start or stops is let go (one note) and its frames are detected
-in the calling thread from then on.
+Why processes: detection (~9 ms a fibula frame on an idle core of the test machine: numpy,
+scipy and numba kernels) holds Python's lock for much of it, so a thread beside the update loop
+would take turns with it. Each worker is started with ``spawn`` (as the full-search worker: a
+fork of a process whose numba and torch pools run can hang), runs its kernels on one thread,
+and answers one frame at a time, so a frame goes to a worker only when one is free (the age
+limit is checked then: :class:`~comreg_core.live.intake.FrameGate`). A detection is a pure
+function of the frame (:func:`~comreg_core.live.points.detect_frame`): a worker's answer is the
+update loop's own, bit for bit, and which worker answers does not matter. ``workers=0`` detects
+in the calling thread; a worker that cannot start or stops is let go (one note) and its frames
+are detected in the calling thread from then on.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from comreg_core.live.points import Detection, detect_frame
 
 log = logging.getLogger(__name__)
 
-#: Detection workers at most (four keep up with 100 frames/s at ~30 ms a frame).
+#: Detection workers at most (four keep up with 100 frames/s even at ~30 ms a frame).
 MAX_WORKERS = 4
 #: Seconds ``comreg live`` waits for the workers to start.
 WORKER_START_S = 60.0
