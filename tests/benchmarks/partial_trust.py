@@ -78,9 +78,9 @@ def sample_prior(rng, kind: str, T_true: np.ndarray, moved: np.ndarray, space: s
 def calibration_for(bone: str, ct, sweeps: int):
     """The CT's calibration (made once, then read from :data:`CACHE`)."""
     from comreg_core.evaluation.calibrate import calibrate
-    from comreg_core.registration.judgement.calibration import Calibration
+    from comreg_core.registration.judgement.calibration import CALIBRATION_FORMAT, Calibration
 
-    path = CACHE / f"calibration_v2_{bone}_{sweeps}.json"
+    path = CACHE / f"calibration_v{CALIBRATION_FORMAT}_{bone}_{sweeps}.json"
     if path.is_file():
         return Calibration.load(path)
     start = time.perf_counter()

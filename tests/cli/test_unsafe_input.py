@@ -98,8 +98,9 @@ BAD_CALIBRATIONS = {  # name: (key, value, what the error says)
     "reliability row": ("reliability", [{"p_low": 0.0}], "'reliability' row"),
     "no knots": ("knots", _DROP, "lacks 'knots'"),
     "unknown entry": ("scale", 2.0, "unknown entry 'scale'"),
-    "another format": ("format", 3, "'format' is not 2"),
-    "the older format": ("format", 1, "older ComReg (format 1)"),
+    "another format": ("format", 4, "'format' is not 3"),
+    "the oldest format": ("format", 1, "older ComReg (format 1)"),
+    "the older format": ("format", 2, "older ComReg (format 2"),
     "bad fingerprint": ("ct_fingerprint", {"sha256": "abc"}, "'ct_fingerprint'"),
 }
 

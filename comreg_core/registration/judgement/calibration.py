@@ -46,8 +46,10 @@ COMPARE_POINTS = 500
 IDENTITY_PRIOR_WEIGHT = 2.0
 #: ``p_correct`` at or above which a result may be OK (the verdict's limit).
 OK_PROBABILITY = 0.95
-#: Calibration file format version.
-CALIBRATION_FORMAT = 2
+#: Calibration file format version: 3 since a frame counts as 4 independent points in the
+#: pose's uncertainty (:data:`~comreg_core.registration.judgement.uncertainty.GROUP_UNITS`),
+#: which changed ``p_raw``; a format 2 file maps the earlier ``p_raw``.
+CALIBRATION_FORMAT = 3
 
 
 def calibrated(p_raw: float, knots: dict[str, list[float]]) -> float:
@@ -198,6 +200,9 @@ class Calibration:
             if data.get("format") == 1:
                 raise ValueError("it maps the score margin of an older ComReg (format 1), not "
                                  "the pose's uncertainty; make it again")
+            if data.get("format") == 2:
+                raise ValueError("it maps the pose's uncertainty of an older ComReg (format 2, "
+                                 "a frame counted as one point); make it again")
             if data.pop("format", None) != CALIBRATION_FORMAT:
                 raise ValueError(f"its 'format' is not {CALIBRATION_FORMAT}")
             missing = [name for name in _REQUIRED if name not in data]
