@@ -175,16 +175,21 @@ def child_environment():
 
 @contextmanager
 def one_thread():
-    """While inside, this thread's numba kernels and torch run on one thread (the worker has
-    the other core); the counts before come back on leaving."""
+    """While inside, this thread's numba kernels, torch and pykdtree's OpenMP queries run on one
+    thread (the workers have the other core); the counts before come back on leaving. On 2
+    cores shared with the detection workers, a second OpenMP thread only waits at each query's
+    barrier for a core: at 40 frames/s it doubled the updates' time (docs/live.md)."""
     import numba
+    import pykdtree.kdtree  # noqa: F401  (its OpenMP library loaded, so that it is limited)
     import torch
+    from threadpoolctl import threadpool_limits
 
     numba_threads, torch_threads = numba.get_num_threads(), torch.get_num_threads()
     numba.set_num_threads(1)
     torch.set_num_threads(1)
     try:
-        yield
+        with threadpool_limits(limits=1, user_api="openmp"):
+            yield
     finally:
         numba.set_num_threads(numba_threads)
         torch.set_num_threads(torch_threads)

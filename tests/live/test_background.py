@@ -13,7 +13,7 @@ import pytest
 
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.background import (FULL_SEARCH_NICENESS, FullSearchJob, FullSearchWorker,
-                                         RegistrarRecipe)
+                                         RegistrarRecipe, one_thread)
 from comreg_core.live.session import LiveSession
 from comreg_core.live.stream import Frame
 from tests.helpers import FIBULA_STL, assert_close
@@ -55,6 +55,36 @@ def test_the_ready_worker_yields_the_processor_to_detection_and_updates(worker):
     mine = os.getpriority(os.PRIO_PROCESS, 0)
     theirs = os.getpriority(os.PRIO_PROCESS, worker._process.pid)
     assert theirs == min(19, mine + FULL_SEARCH_NICENESS), (mine, theirs)
+
+
+def test_one_thread_limits_numba_torch_and_pykdtree_openmp_and_restores_them():
+    """The update loop's threads (one_thread): numba, torch and every loaded OpenMP library
+    (pykdtree's own among them) at 1 inside, the counts before after; closest points in it
+    (the serial kernel, pykdtree alone) equal those outside, bit for bit."""
+    import numba
+    import numpy as np
+    import torch
+    from threadpoolctl import threadpool_info
+
+    from comreg_core.registration.geometry.surface import CTSurface
+
+    surface = CTSurface(FIBULA_STL)
+    points = surface.samples(500)[0] + np.random.default_rng(3).normal(size=(500, 3))
+    outside = surface.closest(points, 5.0)
+    before = (numba.get_num_threads(), torch.get_num_threads(),
+              [i["num_threads"] for i in threadpool_info() if i["user_api"] == "openmp"])
+    with one_thread():
+        openmp = [i for i in threadpool_info() if i["user_api"] == "openmp"]
+        assert any("pykdtree" in i["filepath"] for i in openmp), openmp
+        assert {i["num_threads"] for i in openmp} == {1}
+        assert numba.get_num_threads() == torch.get_num_threads() == 1
+        inside = surface.closest(points, 5.0)
+    after = (numba.get_num_threads(), torch.get_num_threads(),
+             [i["num_threads"] for i in threadpool_info() if i["user_api"] == "openmp"])
+    assert after == before
+    assert np.isfinite(inside[2]).sum() > 400
+    for a, b in zip(outside, inside):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_the_worker_finds_what_the_session_would(worker, sweep, search_registrar):

@@ -129,3 +129,6 @@ def test_closest_on_candidates_matches_the_numpy_voronoi_tests(fibula_surface):
     np.testing.assert_allclose(dist, dq[rows, best], atol=1e-9)
     np.testing.assert_allclose(closest, q[rows, best], atol=1e-9)
     np.testing.assert_array_equal(face, candidates[rows, best])
+    serial = mesh_kernels.closest_on_candidates_serial(points, candidates, vertices, faces)
+    for parallel, alone in zip((closest, face, dist), serial):  # the same numbers, bit for bit
+        np.testing.assert_array_equal(parallel, alone)

@@ -355,10 +355,12 @@ def compile_kernels() -> None:
     pose_steps(np.stack([points] * 2), np.stack([points] * 2), np.stack([normals] * 2),
                np.ones((2, 12)), 0.1, eye.copy())
     transform_points(eye[:, :3, :3].copy(), eye[:, :3, 3].copy(), points[None])
-    from comreg_core.registration.geometry.mesh_kernels import closest_on_candidates
+    from comreg_core.registration.geometry.mesh_kernels import (closest_on_candidates,
+                                                                closest_on_candidates_serial)
 
-    closest_on_candidates(points, np.zeros((12, 2), dtype=np.int64), points,
-                          np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int64))
+    for closest in (closest_on_candidates, closest_on_candidates_serial):
+        closest(points, np.zeros((12, 2), dtype=np.int64), points,
+                np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int64))
     from comreg_core.surfaces.us_detector import _viterbi  # the bone detector's kernel
 
     _viterbi(np.zeros((4, 3)), 1, 0.5, 1.0)

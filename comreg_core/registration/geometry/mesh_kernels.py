@@ -53,26 +53,41 @@ def _closest_on_triangle(p, vertices, face):
     return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
 
 
+@njit(cache=True, inline="always")
+def _closest_of(i, points, candidates, vertices, faces, closest, face, dist):
+    """Row ``i`` of :func:`closest_on_candidates`, written into its outputs."""
+    best = np.inf
+    for j in range(candidates.shape[1]):
+        f = candidates[i, j]
+        qx, qy, qz = _closest_on_triangle(points[i], vertices, faces[f])
+        d = np.sqrt((qx - points[i, 0]) ** 2 + (qy - points[i, 1]) ** 2
+                    + (qz - points[i, 2]) ** 2)
+        if d < best:
+            best = d
+            closest[i, 0], closest[i, 1], closest[i, 2] = qx, qy, qz
+            face[i] = f
+    dist[i] = best
+
+
 @njit(cache=True, parallel=True)
 def closest_on_candidates(points, candidates, vertices, faces):
     """For each of ``points`` ``(n, 3)`` mm, the closest point on its candidate triangles
     ``candidates`` ``(n, k)`` (face indices into ``faces`` ``(F, 3)`` of ``vertices``
     ``(V, 3)``): ``(closest (n, 3), face (n,), distance (n,))``, the first candidate of the
-    smallest distance winning ties."""
-    n, k = candidates.shape
-    closest = np.empty((n, 3))
-    face = np.empty(n, dtype=np.int64)
-    dist = np.empty(n)
+    smallest distance winning ties. Rows spread over numba's threads."""
+    n = candidates.shape[0]
+    closest, face, dist = np.empty((n, 3)), np.empty(n, dtype=np.int64), np.empty(n)
     for i in prange(n):
-        best = np.inf
-        for j in range(k):
-            f = candidates[i, j]
-            qx, qy, qz = _closest_on_triangle(points[i], vertices, faces[f])
-            d = np.sqrt((qx - points[i, 0]) ** 2 + (qy - points[i, 1]) ** 2
-                        + (qz - points[i, 2]) ** 2)
-            if d < best:
-                best = d
-                closest[i, 0], closest[i, 1], closest[i, 2] = qx, qy, qz
-                face[i] = f
-        dist[i] = best
+        _closest_of(i, points, candidates, vertices, faces, closest, face, dist)
+    return closest, face, dist
+
+
+@njit(cache=True)
+def closest_on_candidates_serial(points, candidates, vertices, faces):
+    """:func:`closest_on_candidates` in the calling thread (the same numbers): for a caller
+    limited to one thread, which would otherwise hand every call to numba's pool and wait."""
+    n = candidates.shape[0]
+    closest, face, dist = np.empty((n, 3)), np.empty(n, dtype=np.int64), np.empty(n)
+    for i in range(n):
+        _closest_of(i, points, candidates, vertices, faces, closest, face, dist)
     return closest, face, dist

@@ -18,6 +18,7 @@ import functools
 from pathlib import Path
 from typing import Callable
 
+import numba
 import numpy as np
 
 from comreg_core.registration.geometry.mesh_normals import smooth_normals, vertex_normals
@@ -238,10 +239,13 @@ class _ClosestPoints:
         if ok.any():
             idx = np.where(np.isfinite(d[ok]), idx[ok], idx[ok][:, :1])
             faces = self.sample_face[idx]  # (n_ok, k)
-            with kernels.PARALLEL:
-                closest[ok], face, dist[ok] = mesh_kernels.closest_on_candidates(
-                    np.ascontiguousarray(points[ok], dtype=np.float64),
+            args = (np.ascontiguousarray(points[ok], dtype=np.float64),
                     np.ascontiguousarray(faces, dtype=np.int64), self.vertices, self.faces)
+            if numba.get_num_threads() == 1:  # no hand-off to numba's pool (one_thread)
+                closest[ok], face, dist[ok] = mesh_kernels.closest_on_candidates_serial(*args)
+            else:
+                with kernels.PARALLEL:
+                    closest[ok], face, dist[ok] = mesh_kernels.closest_on_candidates(*args)
             normals[ok] = self.face_normals[face]
         far = dist > max_distance
         dist[far] = np.inf
