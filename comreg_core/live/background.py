@@ -179,10 +179,13 @@ def one_thread():
     thread (the workers have the other core); the counts before come back on leaving. On 2
     cores shared with the detection workers, a second OpenMP thread only waits at each query's
     barrier for a core: at 40 frames/s it doubled the updates' time (docs/live.md)."""
+    import importlib
+
     import numba
-    import pykdtree.kdtree  # noqa: F401  (its OpenMP library loaded, so that it is limited)
     import torch
     from threadpoolctl import threadpool_limits
+
+    importlib.import_module("pykdtree.kdtree")  # its OpenMP library loaded, so that it is limited
 
     numba_threads, torch_threads = numba.get_num_threads(), torch.get_num_threads()
     numba.set_num_threads(1)

@@ -5,7 +5,6 @@ and 2 threads."""
 
 import numba
 import numpy as np
-import pytest
 from scipy.spatial.transform import Rotation
 
 from comreg_core.registration.geometry import kernels, mesh_kernels
