@@ -17,8 +17,10 @@ against the pseudo ground truth (ICP of the whole sweep from its recorded pose, 
 ``bench_live``). Per start and method it prints the bone covered at the first OK (mm along the
 CT's long axis, as ``comreg live``'s ``covered_mm``, the points placed by the pseudo ground
 truth), whether it was right, how many
-registrations were OK and wrong (target: none), how many were right but CHECK, and how many
-``register`` refused (the network needs 256 points; the first frames of a start give fewer).
+registrations were OK and wrong (target: none), how many were wrong with ``p_correct`` >= 0.95
+whatever the verdict (``wr>=.95``; target: none; each listed at the end with its errors), how
+many were right but CHECK, and how many ``register`` refused (the network needs 256 points; the
+first frames of a start give fewer).
 The *settle point* is the bone covered from which on every longer prefix's pose is right (the
 data settle the pose there); ``lag`` is the bone between it and the first OK (target: <= 30 mm),
 ``early`` the OKs before it (target: none).
@@ -103,14 +105,18 @@ def main(argv=None) -> None:
           f"{args.step} frames; verdict: " + (f"p_correct ({args.verdict_calibration})"
                                               if calibration else "uncalibrated"), flush=True)
     print(f"{'method':9} {'start':>5} {'regs':>4} {'ok@mm':>6} {'ok?':>4} {'ok&wrong':>8} "
-          f"{'right&check':>11} {'refused':>7} {'settle@mm':>9} {'lag mm':>6} {'early':>5}",
+          f"{'wr>=.95':>7} {'right&check':>11} {'refused':>7} {'settle@mm':>9} {'lag mm':>6} "
+          f"{'early':>5}",
           flush=True)
-    # per method: registrations, OK and wrong, right but CHECK, refused
-    totals = {name: [0, 0, 0, 0] for name in registrars}
+    # per method: registrations, OK and wrong, wrong at p_correct >= 0.95, right but CHECK,
+    # refused; and the wrong ones at p_correct >= 0.95
+    totals = {name: [0, 0, 0, 0, 0] for name in registrars}
+    confident_wrong = []
     for start in starts:
         grown = list(prefixes(start, args.step))
         for name, registrar in registrars.items():
-            first, first_right, wrong, checked, count, refused = None, None, 0, 0, 0, 0
+            first, first_right, wrong, sure, checked, count, refused = (None, None, 0, 0, 0, 0,
+                                                                        0)
             trail = []  # (covered mm, right, ok) per registered prefix
             for _, points, origins in grown:
                 try:
@@ -120,22 +126,35 @@ def main(argv=None) -> None:
                     continue
                 verdict, _ = registration_verdict(result, registrar, calibration)
                 centroid = points.mean(axis=0)
-                right = (translation_error_mm(result.T_ct_us, T_truth, centroid) < 4.0
-                         and rotation_error_deg(result.T_ct_us, T_truth) < 5.0)
+                rte = translation_error_mm(result.T_ct_us, T_truth, centroid)
+                rre = rotation_error_deg(result.T_ct_us, T_truth)
+                right = rte < 4.0 and rre < 5.0
+                p_correct = verdict.figures.get("p_correct")
                 count += 1
                 wrong += verdict.ok and not right
+                if not right and p_correct is not None and p_correct >= 0.95:
+                    sure += 1
+                    confident_wrong.append(
+                        f"{name} from {start}, {len(points)} points, "
+                        f"{covered_mm(points, T_truth, target):.0f} mm of bone: {rte:.1f} mm / "
+                        f"{rre:.1f} deg off, p_correct {p_correct:.2f}, {verdict.verdict.upper()}")
                 checked += right and not verdict.ok
                 trail.append((covered_mm(points, T_truth, target), right, verdict.ok))
                 if verdict.ok and first is None:
                     first, first_right = trail[-1][0], right
-            totals[name] = [a + b for a, b in zip(totals[name], (count, wrong, checked, refused))]
+            totals[name] = [a + b for a, b in zip(totals[name],
+                                                  (count, wrong, sure, checked, refused))]
             print(f"{name:9} {start:>5} {count:>4} "
                   + ("     -" if first is None else f"{first:6.0f}")
                   + f" {'-' if first_right is None else ('yes' if first_right else 'NO'):>4} "
-                  f"{wrong:>8} {checked:>11} {refused:>7} {settle_columns(trail)}", flush=True)
-    for name, (count, wrong, checked, refused) in totals.items():
-        print(f"{name}: {count} registrations, OK and wrong {wrong} (target 0), right but "
-              f"CHECK {checked}, refused {refused}")
+                  f"{wrong:>8} {sure:>7} {checked:>11} {refused:>7} {settle_columns(trail)}",
+                  flush=True)
+    for name, (count, wrong, sure, checked, refused) in totals.items():
+        print(f"{name}: {count} registrations, OK and wrong {wrong} (target 0), wrong at "
+              f"p_correct >= 0.95 {sure} (target 0), right but CHECK {checked}, refused "
+              f"{refused}")
+    for line in confident_wrong:
+        print(f"wrong at p_correct >= 0.95: {line}")
 
 
 if __name__ == "__main__":
