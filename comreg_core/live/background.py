@@ -177,8 +177,9 @@ def child_environment():
 def one_thread():
     """While inside, this thread's numba kernels, torch and pykdtree's OpenMP queries run on one
     thread (the workers have the other core); the counts before come back on leaving. On 2
-    cores shared with the detection workers, a second OpenMP thread only waits at each query's
-    barrier for a core: at 40 frames/s it doubled the updates' time (docs/live.md)."""
+    cores shared with the detection workers, a second OpenMP thread only waited for a core at
+    each query's barrier (at 40 frames/s: median latency 0.40-0.57 s with it, 0.25-0.37 s
+    without; docs/live.md)."""
     import importlib
 
     import numba
