@@ -115,8 +115,8 @@ def main(argv=None) -> None:
     for start in starts:
         grown = list(prefixes(start, args.step))
         for name, registrar in registrars.items():
-            first, first_right, wrong, sure, checked, count, refused = (None, None, 0, 0, 0, 0,
-                                                                        0)
+            first, first_right = None, None
+            wrong = sure = checked = count = refused = 0
             trail = []  # (covered mm, right, ok) per registered prefix
             for _, points, origins in grown:
                 try:
@@ -130,16 +130,17 @@ def main(argv=None) -> None:
                 rre = rotation_error_deg(result.T_ct_us, T_truth)
                 right = rte < 4.0 and rre < 5.0
                 p_correct = verdict.figures.get("p_correct")
+                covered = covered_mm(points, T_truth, target)
                 count += 1
                 wrong += verdict.ok and not right
                 if not right and p_correct is not None and p_correct >= 0.95:
                     sure += 1
                     confident_wrong.append(
                         f"{name} from {start}, {len(points)} points, "
-                        f"{covered_mm(points, T_truth, target):.0f} mm of bone: {rte:.1f} mm / "
+                        f"{covered:.0f} mm of bone: {rte:.1f} mm / "
                         f"{rre:.1f} deg off, p_correct {p_correct:.2f}, {verdict.verdict.upper()}")
                 checked += right and not verdict.ok
-                trail.append((covered_mm(points, T_truth, target), right, verdict.ok))
+                trail.append((covered, right, verdict.ok))
                 if verdict.ok and first is None:
                     first, first_right = trail[-1][0], right
             totals[name] = [a + b for a, b in zip(totals[name],
