@@ -28,6 +28,7 @@ per-CT calibration (:mod:`.calibration`) maps it to ``p_correct``.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -275,11 +276,20 @@ def truncated_cost(points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: Fit
     return float(costs[0]) if poses.ndim == 2 else costs
 
 
+#: Each CT surface's long axis (:func:`long_axis_of`), found once.
+_LONG_AXES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def long_axis_of(surface) -> np.ndarray:
-    """``(3,)`` the CT's long axis (the principal axis of its vertices)."""
+    """``(3,)`` the CT's long axis (the principal axis of its vertices; found once per
+    surface, read-only)."""
     from comreg_core.registration.geometry.surface import principal_frame
 
-    return principal_frame(surface.vertices)[1][:, 0]
+    if surface not in _LONG_AXES:
+        axis = np.array(principal_frame(surface.vertices)[1][:, 0])
+        axis.flags.writeable = False
+        _LONG_AXES[surface] = axis
+    return _LONG_AXES[surface]
 
 
 def extent_along(points: np.ndarray, axis: np.ndarray) -> tuple[float, float]:

@@ -132,6 +132,24 @@ def target_errors(L, z, targets, centre, scale):
     return largest, angle
 
 
+@njit(cache=True)
+def patch_target_errors(samples, normals, starts, chosen, A, weight, c, z, targets, centre,
+                        scale):
+    """The largest target displacements ``(P, K)`` mm of :func:`target_errors` (draws ``z``
+    ``(K, 6)``) for each of the ``P`` patches ``chosen`` ``(P,)`` scanned in thought: patch
+    ``p`` is rows ``starts[p]:starts[p + 1]`` of the ``(m, 3)`` CT ``samples`` and their
+    ``normals``, its information ``H_p`` their :func:`moments` on themselves, its covariance
+    ``c * inverse(A + weight * H_p)``. The same arithmetic as one patch at a time."""
+    out = np.empty((len(chosen), z.shape[0]))
+    for i in range(len(chosen)):
+        a, b = starts[chosen[i]], starts[chosen[i] + 1]
+        H, _, _ = moments(samples[a:b], samples[a:b], normals[a:b], centre, scale,
+                          np.zeros(b - a, dtype=np.int64), 1)
+        covariance = c * inverse(A + weight * H)
+        out[i], _ = target_errors(cholesky(covariance), z, targets, centre, scale)
+    return out
+
+
 def compile_uncertainty_kernels() -> None:
     """Compile (or load from numba's cache) every kernel here on a tiny problem."""
     pts = np.random.default_rng(0).normal(size=(12, 3))
@@ -140,3 +158,5 @@ def compile_uncertainty_kernels() -> None:
     A = H + np.eye(6)
     product(inverse(A), A)
     target_errors(cholesky(A), np.ones((2, 6)), pts, np.zeros(3), 1.0)
+    patch_target_errors(pts, nrm, np.array([0, 6, 12]), np.array([1, 0]), A, 0.5, 1.0, np.ones((2, 6)), pts,
+                        np.zeros(3), 1.0)
