@@ -53,8 +53,8 @@ def _surface_patches(surface) -> _Patches:
     if surface not in _PATCHES:
         samples, normals = surface.samples(SCAN_SAMPLES)
         group, count = block_groups(samples, PATCH_MM)
-        members = [group == k for k in range(count)]
-        members = [m for m in members if m.sum() >= MIN_PATCH_SAMPLES]
+        members = [m for m in (group == k for k in range(count))
+                   if m.sum() >= MIN_PATCH_SAMPLES]
         means = []
         for member in members:
             mean = normals[member].mean(axis=0)

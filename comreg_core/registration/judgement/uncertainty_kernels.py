@@ -158,5 +158,5 @@ def compile_uncertainty_kernels() -> None:
     A = H + np.eye(6)
     product(inverse(A), A)
     target_errors(cholesky(A), np.ones((2, 6)), pts, np.zeros(3), 1.0)
-    patch_target_errors(pts, nrm, np.array([0, 6, 12]), np.array([1, 0]), A, 0.5, 1.0, np.ones((2, 6)), pts,
-                        np.zeros(3), 1.0)
+    patch_target_errors(pts, nrm, np.array([0, 6, 12]), np.array([1, 0]), A, 0.5, 1.0,
+                        np.ones((2, 6)), pts, np.zeros(3), 1.0)
