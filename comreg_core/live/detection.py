@@ -24,7 +24,7 @@ from multiprocessing.connection import wait as wait_for
 
 import numpy as np
 
-from comreg_core.live.background import child_environment, close_process
+from comreg_core.live.background import child_environment, close_process, keep_freed_memory
 from comreg_core.live.points import Detection, detect_frame
 
 log = logging.getLogger(__name__)
@@ -55,6 +55,7 @@ def _serve(config, connection) -> None:
     """A worker: say "ready" after a first detection (imports, compiled kernels), then answer
     frames with their :class:`Detection` until None."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    keep_freed_memory()
     try:
         from comreg_core.live.stream import Frame
         from comreg_core.surfaces.us_detector import warm_up_frame

@@ -4,13 +4,15 @@ UltraBones100k fibula sweep.
 Run from the repository root::
 
     .venv/bin/python -m tests.benchmarks.bench_us_detector [--repeats 3] [--no-accuracy]
+        [--keep-freed-memory]
 
 Frames per second of :func:`detect_bone_surface` (evidence maps + dynamic programme + subpixel
 refinement) on the fibula frames (950 x 811 px at 0.054 mm, worked at 0.108 mm) and on PLUS's
 SpinePhantomFreehand frames (820 x 616 px at 0.085 mm, worked at full resolution), in this
 process with BLAS/OpenMP threads set to 1, and seconds per reconstructed volume (bone points
 from a compounded fibula volume and PLUS's spine-phantom reconstruction). Timings on a shared
-2-core machine are pessimistic.
+2-core machine are pessimistic. ``--keep-freed-memory``: as ``comreg live``'s detection workers
+run (:func:`~comreg_core.live.background.keep_freed_memory`).
 """
 
 from __future__ import annotations
@@ -85,7 +87,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-accuracy", action="store_true")
+    parser.add_argument("--keep-freed-memory", action="store_true")
     args = parser.parse_args(argv)
+    if args.keep_freed_memory:
+        from comreg_core.live.background import keep_freed_memory
+
+        print(f"keep_freed_memory: {keep_freed_memory()}")
     logging.basicConfig(level=logging.ERROR)
 
     fibula = read_frame_folder(SHARED_DATA / "ultrabones100k-fibula")

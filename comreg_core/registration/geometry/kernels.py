@@ -363,7 +363,7 @@ def compile_kernels() -> None:
                 np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int64))
     from comreg_core.surfaces.us_detector import _viterbi  # the bone detector's kernel
 
-    _viterbi(np.zeros((4, 3)), 1, 0.5, 1.0)
+    _viterbi(np.zeros((4, 3), dtype=np.float32), 1, 0.5, 1.0)  # the detector's gains
     from comreg_core.surfaces.us_denoise import cluster_labels  # the clean-up's kernel
 
     cluster_labels(points, 1.0, 2)
