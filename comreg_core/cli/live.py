@@ -236,7 +236,8 @@ def _listen(session, recipe, work: tuple, where: tuple[str, int],
     """Prepare the CT side (and the full-search and detection workers), then register the
     stream's frames until it stops; returns the run's summary. ``work``: ``(background
     search, detection workers or None, seconds between updates)``."""
-    from comreg_core.live.background import WORKER_START_S, FullSearchWorker, one_thread
+    from comreg_core.live.background import (WORKER_START_S, FullSearchWorker,
+                                             keep_freed_memory, one_thread)
     from comreg_core.live.detection import DetectionPool, default_workers
     from comreg_core.live.run import FrameReceiver, run_live, stop_on_signals
 
@@ -249,6 +250,7 @@ def _listen(session, recipe, work: tuple, where: tuple[str, int],
         workers = default_workers() if detect_workers is None else detect_workers
         pool = stack.enter_context(DetectionPool(workers, session.points.config))
         stack.enter_context(one_thread())
+        keep_freed_memory()
         typer.echo("preparing the CT side ...", err=True)
         session.warm_up()
         if session.worker is not None and not session.worker.wait_ready(WORKER_START_S):
@@ -329,6 +331,7 @@ def replay(
 
     from comreg_core.errors import ComRegError
     from comreg_core.io.tracked_us import read_tracked_sweep
+    from comreg_core.live.background import keep_freed_memory
     from comreg_core.live.replay import ReplayServer, replay_sweep
     from comreg_core.live.stream import recorded_probe_poses
 
@@ -342,6 +345,7 @@ def replay(
                           f"{tracked.n_frames} frames.",
                           f"Give a frame number from 0 to {tracked.n_frames - 1}.")
     probe_poses, source = recorded_probe_poses(tracked, calibration)
+    keep_freed_memory()  # a frame's messages are built anew at every send
     server = ReplayServer(host, port)
     speed = f"x{rate:g}" if fps is None else f"{fps:g} frames/s"
     typer.echo(f"serving {sweep} ({tracked.n_frames - first_frame} frames from frame "

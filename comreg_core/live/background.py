@@ -107,6 +107,7 @@ class FullSearchDone:
 def _serve(recipe: RegistrarRecipe, prior, connection) -> None:
     """The worker process: build the registrar, say "ready", answer jobs until None."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    keep_freed_memory()
     import torch
 
     from comreg_core.registration.search.polish import halves_disagreement_deg
