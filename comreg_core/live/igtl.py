@@ -3,7 +3,8 @@ client (:class:`LiveClient`) and the wire conventions; ``comreg replay``'s serve
 :mod:`comreg_core.live.replay`.
 
 pyigtl gives the messages (``ImageMessage``, ``TransformMessage``, ``StringMessage``: packing,
-header parsing, unpacking, the CRC) and the client and server classes, which ComReg subclasses
+header parsing, unpacking; the CRC of a message read is checked by :func:`crc64`, ~4 times
+faster than pyigtl's) and the client and server classes, which ComReg subclasses
 for what a live registration needs and pyigtl 0.3.4 lacks (measured with its own classes on
 127.0.0.1):
 
@@ -32,8 +33,10 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
 import pyigtl
-from pyigtl.messages import CRC64, MessageBase
+from numba import njit
+from pyigtl.messages import MessageBase
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +55,59 @@ BODY_TIMEOUT_S = 5.0
 #: How long sending one message may take (s).
 SEND_TIMEOUT_S = 10.0
 _HEADER = MessageBase.IGTL_HEADER_SIZE
+
+
+# OpenIGTLink's CRC-64 (ECMA-182, as pyigtl's ``CRC64``: polynomial 0x42F0E1EBA9EA3693, MSB
+# first, no reflection, initial value and final XOR 0), compiled and eight bytes at a time
+# ("slicing by 8"). A 950 x 811 B-mode frame's IMAGE body (770 kB) took 1.9 ms with pyigtl's
+# (crcmod's C extension, a byte at a time, holding Python's lock) and takes ~0.5 ms here,
+# without Python's lock: at 40 frames/s the receiver checks every frame beside the update loop.
+
+#: The generator polynomial, its x^64 term implied.
+POLYNOMIAL = 0x42F0E1EBA9EA3693
+_MASK = (1 << 64) - 1
+
+
+def _tables() -> np.ndarray:
+    """``(8, 256)`` uint64: row ``k`` the CRC of each byte followed by ``k`` zero bytes."""
+    tables = np.zeros((8, 256), np.uint64)
+    for byte in range(256):
+        crc = byte << 56
+        for _ in range(8):
+            crc = ((crc << 1) ^ POLYNOMIAL if crc >> 63 else crc << 1) & _MASK
+        tables[0, byte] = crc
+    for k in range(1, 8):
+        for byte in range(256):
+            before = int(tables[k - 1, byte])
+            tables[k, byte] = ((before << 8) & _MASK) ^ int(tables[0, before >> 56])
+    return tables
+
+
+_TABLES = _tables()
+
+
+@njit(nogil=True, cache=True)
+def _crc64(data, tables):
+    """CRC-64 of ``data`` ``(n,)`` uint8 with the ``(8, 256)`` ``tables``."""
+    crc = np.uint64(0)
+    n = len(data)
+    words = n // 8
+    for i in range(words):
+        word = np.uint64(0)
+        for j in range(8):  # big-endian: the first byte is the most significant
+            word = (word << np.uint64(8)) | np.uint64(data[8 * i + j])
+        x = crc ^ word
+        crc = np.uint64(0)
+        for k in range(8):
+            crc ^= tables[k, (x >> np.uint64(8 * k)) & np.uint64(255)]
+    for j in range(8 * words, n):
+        crc = (crc << np.uint64(8)) ^ tables[0, (crc >> np.uint64(56)) ^ np.uint64(data[j])]
+    return crc
+
+
+def crc64(data: bytes) -> int:
+    """OpenIGTLink's CRC-64 of ``data`` (a message body), as pyigtl's ``CRC64(data)``."""
+    return int(_crc64(np.frombuffer(data, np.uint8), _TABLES))
 
 
 class ConnectionClosed(Exception):
@@ -121,7 +177,7 @@ def read_message(sock: socket.socket, wait_s: float):
                                f"{fields['header_version']}, a body of {size} bytes)",
                                in_sync=False)
     body = _recv_exactly(sock, size, BODY_TIMEOUT_S)
-    if struct.unpack("> Q", header[50:58])[0] != CRC64(body):
+    if struct.unpack("> Q", header[50:58])[0] != crc64(body):
         raise MalformedMessage(f"a {kind} message '{device}' whose CRC does not match its body",
                                in_sync=True)
     message = MessageBase.create_message(kind)
@@ -162,6 +218,7 @@ class LiveClient(pyigtl.OpenIGTLinkClient):
         self._idle = idle or (lambda: None)
         self._refused_told = False
         self._last_failure = ""
+        crc64(b"")  # compiled (or loaded from numba's cache) before the first message
 
     def _event(self, kind: str, text: str) -> None:
         try:
