@@ -29,7 +29,7 @@ from pyigtl.comm import OpenIGTLinkBase
 from comreg_core.errors import ComRegError
 from comreg_core.live.igtl import (DEFAULT_PORT, IMAGE_DEVICE, IMAGE_POSE_DEVICE,
                                    PROBE_POSE_DEVICE, SEND_TIMEOUT_S, ConnectionClosed,
-                                   MalformedMessage, read_message)
+                                   MalformedMessage, crc64, read_message)
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +102,7 @@ class ReplayServer(pyigtl.OpenIGTLinkServer):
         self.replies: deque = deque(maxlen=1000)
         self.clients = 0
         self._lock = threading.Lock()
+        crc64(b"")  # compiled (or loaded) now: the first reply read would stall sending ~0.3 s
         try:
             socketserver.TCPServer.__init__(self, (host, int(port)), _ReplayHandler)
         except OSError as exc:
