@@ -176,8 +176,8 @@ def _viterbi(gain: np.ndarray, max_step: int, step_cost: float, switch_cost: flo
 
 @njit(cache=True)
 def _viterbi_kernel(gain, max_step, step_cost, switch_cost):
-    """:func:`_viterbi`: ``gain`` ``(h, w)`` float32 or float64. Ties go to the first candidate (the
-    smallest previous row; numpy's ``argmax``). Each column's best predecessors are found one
+    """:func:`_viterbi`: ``gain`` ``(h, w)`` float32 or float64. Ties go to the first
+    candidate (the smallest previous row; numpy's ``argmax``). Each column's best predecessors are found one
     shift at a time over all rows (branch-free, so the compiler vectorises it), the candidates
     of a row still compared in order of their row: the same path as row by row."""
     h, w = gain.shape

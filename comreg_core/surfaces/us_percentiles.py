@@ -5,9 +5,9 @@ partly, takes the two order statistics around ``(n - 1) q / 100`` and interpolat
 them. Here the two order statistics are found exactly by a histogram of the line (its values
 binned between its minimum and maximum; only the few values in the bins that hold the two ranks
 are sorted), and numpy's own interpolation (``_lerp``, in float32) is repeated on them: the same
-bits in about a quarter of the time on a fibula frame (405 x 475 working pixels), where numpy
-first copies every column or row it partitions. Lines holding a NaN, and other dtypes, go to
-numpy itself.
+bits in about half the time on a fibula frame (405 x 475 working pixels: 2.3 ms instead of 4.8
+ms for the detector's four), where numpy first copies every column or row it partitions. Maps
+holding a NaN or an infinity, and other dtypes, go to numpy itself.
 """
 
 from __future__ import annotations
@@ -121,8 +121,9 @@ def _bins(n: int) -> int:
 
 
 def _compiled(image: np.ndarray) -> bool:
-    return image.dtype == np.float32 and image.ndim == 2 and image.size > 0 and not np.isnan(
-        image.max())
+    """Whether the compiled selection takes ``image``: a finite float32 ``(h, w)`` map."""
+    return (image.dtype == np.float32 and image.ndim == 2 and image.size > 0
+            and bool(np.isfinite(image.max())) and bool(np.isfinite(image.min())))
 
 
 def percentile(image: np.ndarray, q: float, axis: int | None = None,

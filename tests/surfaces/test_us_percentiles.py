@@ -1,7 +1,7 @@
 """The detector's compiled percentiles give numpy's bits: ``numpy.percentile`` over the whole
 map, per column and per row of chosen columns, and ``numpy.median``, on real fibula frames
 (smoothed as the detector smooths them) and on random maps with ties, constant lines and
-single values; maps with a NaN go to numpy."""
+single values; maps with a NaN or an infinity go to numpy."""
 
 from __future__ import annotations
 
@@ -58,7 +58,8 @@ def test_percentiles_of_random_maps_are_numpy_s():
     assert differ == []
 
 
-def test_a_map_with_nan_is_numpy_s():
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")  # numpy's, with inf
+def test_a_map_with_nan_or_inf_is_numpy_s():
     image = np.arange(12, dtype=np.float32).reshape(3, 4)
     image[1, 2] = np.nan
     assert np.isnan(percentile(image, 50))
@@ -66,3 +67,5 @@ def test_a_map_with_nan_is_numpy_s():
     assert _same(percentile(image, 50, axis=1, columns=np.array([1, 1, 0, 1], bool)),
                  np.array([1.0, 5.0, 9.0], np.float32))
     assert np.isnan(median(image))
+    image[1, 2] = np.inf  # an infinity goes to numpy too
+    assert _all_agree(image, 50.0, np.array([1, 0, 1, 1], bool)) == []
