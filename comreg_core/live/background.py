@@ -169,7 +169,7 @@ def keep_freed_memory() -> bool:
 
     try:
         mallopt = ctypes.CDLL(None).mallopt
-    except (AttributeError, OSError):  # not glibc
+    except (AttributeError, OSError, TypeError):  # not glibc (Windows: no CDLL(None))
         return False
     return all(mallopt(option, value) == 1 for option, value in _MALLOPT)
 
