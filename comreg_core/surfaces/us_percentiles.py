@@ -75,22 +75,6 @@ def _order_statistics_of_rows(image, columns, low_rank, high_rank, bins):
 
 
 @njit(cache=True)
-def _order_statistics_of_columns(image, low_rank, high_rank, bins):
-    """Per column of ``image`` ``(h, w)``: the two order statistics, ``(w,)`` each."""
-    h, w = image.shape
-    line = np.empty(h, image.dtype)
-    scratch = np.empty(h, image.dtype)
-    counts = np.empty(bins, np.int64)
-    low = np.empty(w, image.dtype)
-    high = np.empty(w, image.dtype)
-    for c in range(w):
-        for r in range(h):
-            line[r] = image[r, c]
-        low[c], high[c] = _two_order_statistics(line, low_rank, high_rank, counts, scratch)
-    return low, high
-
-
-@njit(cache=True)
 def _order_statistics_of_all(image, low_rank, high_rank, bins):
     """The two order statistics of all of ``image`` ``(h, w)`` (C order), as ``(1,)`` each."""
     line = image.ravel()
@@ -147,8 +131,9 @@ def percentile(image: np.ndarray, q: float, axis: int | None = None,
         return _interpolate(low, high, weight)[0]
     if axis == 0:
         low_rank, high_rank, weight = _ranks(image.shape[0], q)
-        return _interpolate(*_order_statistics_of_columns(image, low_rank, high_rank,
-                                                          _bins(image.shape[0])), weight)
+        return _interpolate(*_order_statistics_of_rows(image.T, np.arange(image.shape[0]),
+                                                       low_rank, high_rank,
+                                                       _bins(image.shape[0])), weight)
     kept = np.arange(image.shape[1]) if columns is None else np.flatnonzero(columns)
     low_rank, high_rank, weight = _ranks(len(kept), q)
     return _interpolate(*_order_statistics_of_rows(image, kept, low_rank, high_rank,
