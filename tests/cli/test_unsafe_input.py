@@ -98,9 +98,10 @@ BAD_CALIBRATIONS = {  # name: (key, value, what the error says)
     "reliability row": ("reliability", [{"p_low": 0.0}], "'reliability' row"),
     "no knots": ("knots", _DROP, "lacks 'knots'"),
     "unknown entry": ("scale", 2.0, "unknown entry 'scale'"),
-    "another format": ("format", 4, "'format' is not 3"),
+    "another format": ("format", 5, "'format' is not 4"),
     "the oldest format": ("format", 1, "older ComReg (format 1)"),
     "the older format": ("format", 2, "older ComReg (format 2"),
+    "the last format": ("format", 3, "older ComReg (format 3"),
     "bad fingerprint": ("ct_fingerprint", {"sha256": "abc"}, "'ct_fingerprint'"),
 }
 

@@ -113,7 +113,7 @@ def test_calibration_file_round_trip_and_bad_files(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"weights": [1, 2]}))
     with pytest.raises(ComRegError, match="not a ComReg calibration"):
         Calibration.load(tmp_path / "bad.json")
-    for version in (1, 2):  # the score margin's; the uncertainty's with a frame as one point
+    for version in (1, 2, 3):  # the score margin's; the uncertainty's before today's
         older = {**json.loads(path.read_text()), "format": version}
         (tmp_path / "older.json").write_text(json.dumps(older))
         with pytest.raises(ComRegError, match=f"older ComReg \\(format {version}"):

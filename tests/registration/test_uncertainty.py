@@ -253,3 +253,52 @@ def test_the_search_s_competitor_is_weighed_by_the_basin_it_falls_in():
     unfinished = weighed(single, 4.5)
     assert unfinished.competitor["same_basin"] and unfinished.competitor["weight"] == 0.0
     assert unfinished.p_basin == 1.0
+
+
+def test_basins_are_weighed_bottom_against_bottom():
+    """The chosen pose as given may sit off the judge's own optimum (the search polishes by
+    another measure): other basins are weighed against its refit, not against it."""
+    from comreg_core.registration.judgement.profile import ChosenBasin
+    from comreg_core.registration.judgement.uncertainty import truncated_cost
+
+    twin = tube(bumps=[(np.radians(90), 0.0, 3.0, 4.0), (np.radians(90), 36.0, 3.0, 4.0)])
+    points, frames = sweep_frames(twin, np.arange(-8.0, 8.5, 1.0))
+    _, normals, _ = twin.closest(points)
+    points = noisy(points, frames, normals, np.random.default_rng(3))
+    off = slid_along_axis(1.5)  # unfinished, within the tolerance
+    fit = fit_moments(points, off, twin, free_mm=LENGTH)
+    base = ChosenBasin.of(points, off, twin, fit).cost
+    as_given = truncated_cost(points, off, twin, fit)
+    assert base < as_given - 5.0  # 1.5 mm off a knob costs clearly more than its bottom
+    # the same bottom as from the pose at the knob
+    assert base == pytest.approx(ChosenBasin.of(points, np.eye(4), twin, fit).cost, abs=0.5)
+    # the twin knob 36 mm along weighs what it weighs against the pose at the optimum
+    at_optimum = pose_uncertainty(points, np.eye(4), twin, ct_length_mm=LENGTH, advice=False,
+                                  profiles=False, competitors=[slid_along_axis(33.0)])
+    unfinished = pose_uncertainty(points, off, twin, ct_length_mm=LENGTH, advice=False,
+                                  profiles=False, competitors=[slid_along_axis(33.0)])
+    assert unfinished.competitor["delta_cost"] == pytest.approx(
+        at_optimum.competitor["delta_cost"], abs=1.0)  # against the pose as given: 5+ less
+
+
+def test_neighbour_probe_finds_a_basin_just_beyond_the_tolerance():
+    """Two narrow knobs 7 mm apart and a sweep over one: the pose on the other is a different
+    answer (7 mm > 4 mm) that fits as well; the profiles' 15-35 mm offsets step over it."""
+    from comreg_core.registration.judgement.profile import ChosenBasin, neighbour_basins
+
+    knob = (np.radians(90), 0.0, 2.0, 1.5)
+    twin = tube(bumps=[knob, (np.radians(90), 7.0, 2.0, 1.5)], dz=0.25)
+    single = tube(bumps=[knob], dz=0.25)
+    points, frames = sweep_frames(twin, np.arange(-3.0, 3.25, 0.5))
+    _, normals, _ = twin.closest(points)
+    points = noisy(points, frames, normals, np.random.default_rng(6))
+    found = {}
+    for name, surface in (("twin", twin), ("single", single)):
+        fit = fit_moments(points, np.eye(4), surface, free_mm=LENGTH)
+        chosen = ChosenBasin.of(points, np.eye(4), surface, fit)
+        found[name] = neighbour_basins(points, chosen, surface, fit)
+    assert max(n["weight"] for n in found["twin"]) > 0.3, found["twin"]
+    assert max([n["weight"] for n in found["single"]], default=0.0) < 1e-3, found["single"]
+    # and it lowers the pose's p_basin where the profiles alone do not
+    u = pose_uncertainty(points, np.eye(4), twin, ct_length_mm=LENGTH, advice=False)
+    assert u.neighbours and u.p_basin < 0.8

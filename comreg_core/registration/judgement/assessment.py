@@ -9,7 +9,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from comreg_core.registration.judgement.profile import different_answer, profile, refit_holding
+from comreg_core.registration.judgement.profile import (ChosenBasin, different_answer,
+                                                         neighbour_basins, profile, refit_holding)
 from comreg_core.registration.judgement.scan_next import scan_next
 from comreg_core.registration.judgement.uncertainty import (basin_weight, extent_along,
                                                             fit_moments, long_axis_of,
@@ -30,7 +31,8 @@ class Uncertainty:
         noise_mm, design_effect, groups: the fit's robust noise per point, its design effect
             and the number of independent groups of points.
         profiles: :func:`.profile.profile` of both directions; competitor: the search's
-            clinically different pose's excess cost and weight (or None).
+            clinically different pose's excess cost and weight (or None); neighbours:
+            :func:`.profile.neighbour_basins`.
         scan_next: :func:`.scan_next.scan_next` (or None).
     """
 
@@ -43,6 +45,7 @@ class Uncertainty:
     groups: int
     profiles: list[dict[str, Any]] = field(default_factory=list)
     competitor: dict[str, Any] | None = None
+    neighbours: list[dict[str, Any]] = field(default_factory=list)
     scan_next: dict[str, Any] | None = None
 
     @property
@@ -68,7 +71,8 @@ class Uncertainty:
                 "p_raw": self.p_raw, "directions": self.directions,
                 "noise_mm": self.noise_mm, "design_effect": self.design_effect,
                 "groups": self.groups, "profiles": self.profiles,
-                "competitor": self.competitor, "summary": self.summary()}
+                "competitor": self.competitor, "neighbours": self.neighbours,
+                "summary": self.summary()}
 
 
 def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
@@ -93,14 +97,13 @@ def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
     if fit is None:
         return None
     covariance = fit.covariance
-    bound, p_local = target_error(fit, covariance)
+    chosen = ChosenBasin.of(points_us, T_ct_us, surface, fit)
+    bound, p_local = target_error(fit, covariance, offset=chosen.offset(fit))
     directions = weakest_directions(fit, covariance, long_axis)
     weights, runs = [], []
-    base = truncated_cost(points_us, T_ct_us, surface, fit) if (profiles or competitors) else 0
     if profiles:
         for d in directions:
-            run = profile(points_us, T_ct_us, surface, fit, d["kind"],
-                          np.asarray(d["axis_ct"]), base)
+            run = profile(points_us, chosen, surface, fit, d["kind"], np.asarray(d["axis_ct"]))
             runs.append(run)
             for sign in (1.0, -1.0):
                 side = [r["weight"] for r in run["offsets"] if r["offset"] * sign > 0]
@@ -108,10 +111,12 @@ def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
             key = "bound_mm" if d["kind"] == "slide" else "bound_deg"
             d[key] = max(d[key], run["flat_to"])
     bound = max([bound] + [r["flat_to"] for r in runs if r["kind"] == "slide"])
+    neighbours = neighbour_basins(points_us, chosen, surface, fit) if profiles else []
+    weights += [n["weight"] for n in neighbours]
     competitor = None
     for T in competitors:
         if different_answer(T, T_ct_us, fit.targets):
-            competitor = competitor_basin(points_us, T_ct_us, np.asarray(T), surface, fit, base)
+            competitor = competitor_basin(points_us, chosen, np.asarray(T), surface, fit)
             weights.append(competitor["weight"])
             break
     p_basin = 1.0 / (1.0 + float(sum(weights)))
@@ -119,19 +124,21 @@ def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
     return Uncertainty(bound_mm=float(bound), p_local=p_local, p_basin=p_basin,
                        directions=directions, noise_mm=fit.noise_mm,
                        design_effect=fit.design_effect, groups=fit.groups, profiles=runs,
-                       competitor=competitor, scan_next=advice_record)
+                       competitor=competitor, neighbours=neighbours,
+                       scan_next=advice_record)
 
 
-def competitor_basin(points_us: np.ndarray, T_ct_us: np.ndarray, T_competitor: np.ndarray,
-                     surface, fit, base_cost: float) -> dict[str, Any]:
+def competitor_basin(points_us: np.ndarray, chosen: ChosenBasin, T_competitor: np.ndarray,
+                     surface, fit) -> dict[str, Any]:
     """The search's clinically different pose ``T_competitor`` ``(4, 4)``, refitted free as a
     profile's offsets are (:func:`~.profile.refit_holding`): ``{"delta_cost", "weight",
     "same_basin"}``, the excess cost of the basin it falls in over the chosen pose's
-    (``base_cost``) and its :func:`basin_weight`; a competitor that falls into the chosen
-    pose's own basin (refitted within the clinical tolerance of ``T_ct_us``: the search had not
+    (``chosen.cost``) and its :func:`basin_weight`; a competitor that falls into the chosen
+    pose's own basin (not :meth:`~.profile.ChosenBasin.other_answer`: the search had not
     finished it) is no other answer, ``weight`` 0."""
     basin = refit_holding(points_us, T_competitor[None], surface, fit, None, None)[0]
-    delta = float(truncated_cost(points_us, basin, surface, fit) - base_cost)
-    same = not different_answer(basin, T_ct_us, fit.targets)
+    cost = float(truncated_cost(points_us, basin, surface, fit))
+    delta = cost - chosen.cost
+    same = not chosen.other_answer(basin, cost, fit.targets)
     return {"delta_cost": delta, "weight": 0.0 if same else basin_weight(delta),
             "same_basin": same}

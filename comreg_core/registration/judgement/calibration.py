@@ -46,10 +46,11 @@ COMPARE_POINTS = 500
 IDENTITY_PRIOR_WEIGHT = 2.0
 #: ``p_correct`` at or above which a result may be OK (the verdict's limit).
 OK_PROBABILITY = 0.95
-#: Calibration file format version: 3 since a frame counts as 4 independent points in the
-#: pose's uncertainty (:data:`~comreg_core.registration.judgement.uncertainty.GROUP_UNITS`),
-#: which changed ``p_raw``; a format 2 file maps the earlier ``p_raw``.
-CALIBRATION_FORMAT = 3
+#: Calibration file format version: 4 since the pose is judged about its own refit's optimum
+#: and other basins bottom against bottom (:class:`~comreg_core.registration.judgement.profile.
+#: ChosenBasin`), which changed ``p_raw``; format 3 (a frame counted as 4 independent points)
+#: and 2 (as one point) map earlier ``p_raw``.
+CALIBRATION_FORMAT = 4
 
 
 def calibrated(p_raw: float, knots: dict[str, list[float]]) -> float:
@@ -200,9 +201,10 @@ class Calibration:
             if data.get("format") == 1:
                 raise ValueError("it maps the score margin of an older ComReg (format 1), not "
                                  "the pose's uncertainty; make it again")
-            if data.get("format") == 2:
-                raise ValueError("it maps the pose's uncertainty of an older ComReg (format 2, "
-                                 "a frame counted as one point); make it again")
+            if data.get("format") in (2, 3):
+                raise ValueError(f"it maps the pose's uncertainty of an older ComReg (format "
+                                 f"{data['format']}, before the pose was judged about its "
+                                 "refit's optimum); make it again")
             if data.pop("format", None) != CALIBRATION_FORMAT:
                 raise ValueError(f"its 'format' is not {CALIBRATION_FORMAT}")
             missing = [name for name in _REQUIRED if name not in data]

@@ -222,12 +222,14 @@ def _prior_variances(scale: float, free_mm: float, prior_mm: float | None,
     return np.array([rotation ** 2] * 3 + [mm ** 2] * 3)
 
 
-def target_error(fit: FitMoments, covariance: np.ndarray, samples: int = SAMPLES
-                 ) -> tuple[float, float]:
+def target_error(fit: FitMoments, covariance: np.ndarray, samples: int = SAMPLES,
+                 offset: np.ndarray | None = None) -> tuple[float, float]:
     """``(95 % bound mm of the largest target displacement, share of draws within 4 mm and
-    5 deg)`` of pose errors with this ``(6, 6)`` covariance."""
+    5 deg)`` of pose errors with this ``(6, 6)`` covariance about ``offset`` ``(6,)`` (the
+    kernels' parameters of the fit's optimum from the pose judged; None: zero)."""
+    centre = np.zeros(6) if offset is None else np.asarray(offset, dtype=np.float64)
     largest, angle = kern.target_errors(kern.cholesky(covariance), standard_normals()[:samples],
-                                        fit.targets, fit.centre, fit.scale)
+                                        fit.targets, fit.centre, fit.scale, centre)
     within = (largest <= TOLERANCE_MM) & (angle <= TOLERANCE_DEG)
     return float(np.percentile(largest, 95)), float(np.mean(within))
 

@@ -102,16 +102,17 @@ def product(A, B):
 
 
 @njit(cache=True)
-def target_errors(L, z, targets, centre, scale):
-    """For each of ``K`` pose errors ``xi = L z_k`` (``L`` ``(6, 6)``, ``z`` ``(K, 6)`` standard
-    normal): ``(largest displacement (K,) mm of the (J, 3) targets, rotation (K,) deg)``."""
+def target_errors(L, z, targets, centre, scale, offset):
+    """For each of ``K`` pose errors ``xi = offset + L z_k`` (``offset`` ``(6,)``, ``L``
+    ``(6, 6)``, ``z`` ``(K, 6)`` standard normal): ``(largest displacement (K,) mm of the
+    (J, 3) targets, rotation (K,) deg)``."""
     K = z.shape[0]
     largest = np.zeros(K)
     angle = np.zeros(K)
     xi = np.zeros(6)
     for k in range(K):
         for a in range(6):
-            s = 0.0
+            s = offset[a]
             for b in range(a + 1):
                 s += L[a, b] * z[k, b]
             xi[a] = s
@@ -146,7 +147,7 @@ def patch_target_errors(samples, normals, starts, chosen, A, weight, c, z, targe
         H, _, _ = moments(samples[a:b], samples[a:b], normals[a:b], centre, scale,
                           np.zeros(b - a, dtype=np.int64), 1)
         covariance = c * inverse(A + weight * H)
-        out[i], _ = target_errors(cholesky(covariance), z, targets, centre, scale)
+        out[i], _ = target_errors(cholesky(covariance), z, targets, centre, scale, np.zeros(6))
     return out
 
 
@@ -157,6 +158,6 @@ def compile_uncertainty_kernels() -> None:
     H, M, _ = moments(pts, pts * 0.9, nrm, np.zeros(3), 1.0, np.zeros(12, dtype=np.int64), 1)
     A = H + np.eye(6)
     product(inverse(A), A)
-    target_errors(cholesky(A), np.ones((2, 6)), pts, np.zeros(3), 1.0)
+    target_errors(cholesky(A), np.ones((2, 6)), pts, np.zeros(3), 1.0, np.zeros(6))
     patch_target_errors(pts, nrm, np.array([0, 6, 12]), np.array([1, 0]), A, 0.5, 1.0,
                         np.ones((2, 6)), pts, np.zeros(3), 1.0)
