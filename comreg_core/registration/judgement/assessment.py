@@ -85,9 +85,10 @@ def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
     CT ``surface`` (a CTSurface) ``ct_length_mm`` long (None: its vertices' spread along their
     long axis). ``prior_mm``/``prior_deg``: the
     prior's tolerances; ``competitors``: clinically different poses ``(4, 4)`` the search
-    found (the first is weighed); ``groups``: ``(n,)`` frame of each point (None: blocks); ``profiles``/``advice``:
-    whether to profile the weakest directions and to find where to scan next. None when too
-    few points meet the CT."""
+    found (the first is weighed); ``groups``: ``(n,)`` frame of each point (None: blocks);
+    ``profiles``/``advice``: whether to profile the weakest directions (and probe the
+    neighbouring basins) and to find where to scan next. None when too few points meet the
+    CT."""
     long_axis = long_axis_of(surface)
     if ct_length_mm is None:
         low, high = extent_along(surface.vertices, long_axis)

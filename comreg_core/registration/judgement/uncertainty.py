@@ -13,14 +13,16 @@
   (both robust, from this case's residuals). Where the data pin the pose this is the sandwich
   ``H^-1 M H^-1``; where they do not (along a smooth shaft) it is the prior's, i.e. unbounded.
 - **target error**: the pose errors drawn from that covariance (:data:`SAMPLES` fixed normal
-  draws) move the surface under the sweep (the registered points); the 95th percentile of the
-  largest displacement is ``bound_mm``; the share within the clinical tolerance (4 mm, 5 deg)
-  is ``p_local``.
+  draws) about the fit's own optimum (the pose refitted, :class:`.profile.ChosenBasin`: a pose
+  the search left off it carries that offset) move the surface under the sweep (the registered
+  points); the 95th percentile of the largest displacement is ``bound_mm``; the share within
+  the clinical tolerance (4 mm, 5 deg) is ``p_local``.
 - **other basins** the local matrix cannot see: a profile of the fit along the weakest slide
   and about the weakest axis (that offset held, the other five refitted,
-  :mod:`.profile`), and the search's clinically different competitor; each pose that is a
-  different answer weighs ``exp(-dC / 2)`` against the chosen one (``dC``: its excess cost in
-  units of ``c``); ``p_basin = 1 / (1 + sum of weights)``.
+  :mod:`.profile`), the neighbour probe (basins just beyond the tolerance) and the search's
+  clinically different competitor; each pose that is another answer weighs ``exp(-dC / 2)``
+  against the chosen one (``dC``: its excess cost over the chosen pose's refit, in units of
+  ``c``); ``p_basin = 1 / (1 + sum of weights)``.
 
 ``p_raw = p_local * p_basin`` estimates the probability that the pose is within tolerance; a
 per-CT calibration (:mod:`.calibration`) maps it to ``p_correct``.
