@@ -35,7 +35,8 @@ NEIGHBOUR_MM = 6.0
 PROFILE_ITERATIONS = 3
 PROFILE_POINTS = 400
 #: Gauss-Newton steps of the chosen pose's own refit (:class:`ChosenBasin`): to the bottom of
-#: its basin (3 steps left a real union's refit 10 cost units above it).
+#: its basin (3 steps left the refit of a real prefix from frame 30, 135 mm of bone, 3.4 mm
+#: short of it and 7.7 cost units above it).
 HOME_ITERATIONS = 12
 #: A refit whose Gauss-Newton step moves no parameter (mm; rotations in mm at the fit's
 #: scale) by more than this has converged.
