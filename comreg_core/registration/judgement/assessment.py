@@ -98,7 +98,8 @@ def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
     if fit is None:
         return None
     covariance = fit.covariance
-    chosen = ChosenBasin.of(points_us, T_ct_us, surface, fit)
+    chosen = ChosenBasin.of(points_us, T_ct_us, surface, fit,
+                            costed=bool(profiles or len(competitors)))
     bound, p_local = target_error(fit, covariance, offset=chosen.offset(fit))
     directions = weakest_directions(fit, covariance, long_axis)
     weights, runs = [], []

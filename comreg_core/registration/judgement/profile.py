@@ -150,7 +150,7 @@ class ChosenBasin:
 
     pose: np.ndarray
     home: np.ndarray
-    cost: float
+    cost: float | None
 
     def offset(self, fit: FitMoments) -> np.ndarray:
         """``(6,)`` the kernels' parameters of the move from ``pose`` to ``home``: where the
@@ -158,10 +158,14 @@ class ChosenBasin:
         return move_parameters(fit, matmul(self.home, invert_rigid(self.pose)))
 
     @classmethod
-    def of(cls, points_us: np.ndarray, T_ct_us: np.ndarray, surface,
-           fit: FitMoments) -> ChosenBasin:
+    def of(cls, points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMoments,
+           costed: bool = True) -> ChosenBasin:
+        """``costed=False``: ``cost`` None (nothing will be weighed against it: a live warm
+        update's judgement, where the two costs took ~6 ms)."""
         home = refit_holding(points_us, T_ct_us[None], surface, fit, None, None,
                              HOME_ITERATIONS)[0]
+        if not costed:
+            return cls(pose=T_ct_us, home=home, cost=None)
         costs = truncated_cost(points_us, np.stack([T_ct_us, home]), surface, fit)
         return cls(pose=T_ct_us, home=home, cost=float(min(costs)))
 
