@@ -66,9 +66,11 @@ def apply_transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return rotate(points, T[:3, :3]) + T[:3, 3]
 
 
-def invert_rigid(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid ``(4, 4)`` transform: ``[R | t]^-1 = [R^T | -R^T t]``."""
-    T = check_rigid(T)
+def invert_rigid(T: np.ndarray, check: bool = True) -> np.ndarray:
+    """Inverse of a rigid ``(4, 4)`` transform: ``[R | t]^-1 = [R^T | -R^T t]``.
+    ``check=False`` trusts ``T`` to be rigid (a pose the code computed; the check costs ~0.1 ms,
+    which a loop over many poses feels)."""
+    T = check_rigid(T) if check else np.asarray(T, dtype=np.float64)
     inv = np.eye(4)
     inv[:3, :3] = T[:3, :3].T
     inv[:3, 3] = -rotate(T[:3, 3], T[:3, :3].T)

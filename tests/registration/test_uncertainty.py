@@ -288,7 +288,7 @@ def test_basins_are_weighed_bottom_against_bottom():
 def test_neighbour_probe_finds_a_basin_just_beyond_the_tolerance():
     """Two narrow knobs 7 mm apart and a sweep over one: the pose on the other is a different
     answer (7 mm > 4 mm) that fits as well; the profiles' 15-35 mm offsets step over it."""
-    from comreg_core.registration.judgement.profile import ChosenBasin, neighbour_basins
+    from comreg_core.registration.judgement.profile import weigh_basins
 
     knob = (np.radians(90), 0.0, 2.0, 1.5)
     twin = tube(bumps=[knob, (np.radians(90), 7.0, 2.0, 1.5)], dz=0.25)
@@ -299,8 +299,7 @@ def test_neighbour_probe_finds_a_basin_just_beyond_the_tolerance():
     found = {}
     for name, surface in (("twin", twin), ("single", single)):
         fit = fit_moments(points, np.eye(4), surface, free_mm=LENGTH)
-        chosen = ChosenBasin.of(points, np.eye(4), surface, fit)
-        found[name] = neighbour_basins(points, chosen, surface, fit)
+        found[name] = weigh_basins(points, np.eye(4), surface, fit, neighbours=True).neighbours
     assert max(n["weight"] for n in found["twin"]) > 0.3, found["twin"]
     assert max([n["weight"] for n in found["single"]], default=0.0) < 1e-3, found["single"]
     # and it lowers the pose's p_basin where the profiles alone do not

@@ -9,13 +9,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from comreg_core.registration.judgement.profile import (ChosenBasin, different_answer,
-                                                         neighbour_basins, profile, refit_holding)
+from comreg_core.registration.judgement.profile import weigh_basins
 from comreg_core.registration.judgement.scan_next import scan_next
-from comreg_core.registration.judgement.uncertainty import (basin_weight, extent_along,
-                                                            fit_moments, long_axis_of,
-                                                            target_error,
-                                                            truncated_cost, weakest_directions)
+from comreg_core.registration.judgement.uncertainty import (extent_along, fit_moments,
+                                                            long_axis_of, target_error,
+                                                            weakest_directions)
 
 
 @dataclass(frozen=True)
@@ -30,9 +28,9 @@ class Uncertainty:
             widened to the profile's flat stretch).
         noise_mm, design_effect, groups: the fit's robust noise per point, its design effect
             and the number of independent groups of points.
-        profiles: :func:`.profile.profile` of both directions; competitor: the search's
-            clinically different pose's excess cost and weight (or None); neighbours:
-            :func:`.profile.neighbour_basins`.
+        profiles, competitor, neighbours: :func:`.profile.weigh_basins`' profiles of both
+            directions, the search's clinically different pose's excess cost and weight (or
+            None) and the neighbour probe's basins.
         scan_next: :func:`.scan_next.scan_next` (or None).
     """
 
@@ -98,51 +96,31 @@ def pose_uncertainty(points_us: np.ndarray, T_ct_us: np.ndarray, surface, *,
     if fit is None:
         return None
     covariance = fit.covariance
-    chosen = ChosenBasin.of(points_us, T_ct_us, surface, fit,
-                            costed=bool(profiles or len(competitors)))
-    bound, p_local = target_error(fit, covariance, offset=chosen.offset(fit))
     directions = weakest_directions(fit, covariance, long_axis)
-    weights, runs = [], []
-    if profiles:
-        for d in directions:
-            run = profile(points_us, chosen, surface, fit, d["kind"], np.asarray(d["axis_ct"]))
-            runs.append(run)
-            for sign in (1.0, -1.0):
-                side = [r["weight"] for r in run["offsets"] if r["offset"] * sign > 0]
-                weights.append(max(side, default=0.0))
-            key = "bound_mm" if d["kind"] == "slide" else "bound_deg"
-            d[key] = max(d[key], run["flat_to"])
-    bound = max([bound] + [r["flat_to"] for r in runs if r["kind"] == "slide"])
-    neighbours = neighbour_basins(points_us, chosen, surface, fit) if profiles else []
-    weights += [n["weight"] for n in neighbours]
-    competitor = None
-    if len(competitors):
-        competitor = competitor_basin(points_us, chosen, np.asarray(competitors[0]), surface, fit)
-        weights.append(competitor["weight"])
+    competitor = np.asarray(competitors[0], dtype=np.float64) if len(competitors) else None
+    basins = weigh_basins(points_us, T_ct_us, surface, fit,
+                          directions=[(d["kind"], np.asarray(d["axis_ct"])) for d in directions]
+                          if profiles else (),
+                          neighbours=profiles, competitor=competitor,
+                          costed=bool(profiles or competitor is not None))
+    bound, p_local = target_error(fit, covariance, offset=basins.chosen.offset(fit))
+    weights = []
+    for d, run in zip(directions, basins.profiles):
+        for sign in (1.0, -1.0):
+            side = [r["weight"] for r in run["offsets"] if r["offset"] * sign > 0]
+            weights.append(max(side, default=0.0))
+        key = "bound_mm" if d["kind"] == "slide" else "bound_deg"
+        d[key] = max(d[key], run["flat_to"])
+    bound = max([bound] + [r["flat_to"] for r in basins.profiles if r["kind"] == "slide"])
+    weights += [n["weight"] for n in basins.neighbours]
+    if basins.competitor is not None:
+        weights.append(basins.competitor["weight"])
     p_basin = 1.0 / (1.0 + float(sum(weights)))
     advice_record = scan_next(fit, covariance, surface, long_axis, bound) if advice else None
     return Uncertainty(bound_mm=float(bound), p_local=p_local, p_basin=p_basin,
                        directions=directions, noise_mm=fit.noise_mm,
-                       design_effect=fit.design_effect, groups=fit.groups, profiles=runs,
-                       competitor=competitor, neighbours=neighbours,
+                       design_effect=fit.design_effect, groups=fit.groups,
+                       profiles=basins.profiles, competitor=basins.competitor,
+                       neighbours=basins.neighbours,
                        scan_next=advice_record)
 
-
-def competitor_basin(points_us: np.ndarray, chosen: ChosenBasin, T_competitor: np.ndarray,
-                     surface, fit) -> dict[str, Any]:
-    """The search's clinically different pose ``T_competitor`` ``(4, 4)``, refitted free as a
-    profile's offsets are (:func:`~.profile.refit_holding`): ``{"delta_cost", "weight",
-    "same_basin"}``, the excess cost of the basin it falls in over the chosen pose's
-    (``chosen.cost``) and its :func:`basin_weight`; a competitor within the clinical tolerance
-    of the chosen pose at this fit's targets, or that falls into the chosen pose's own basin
-    (not :meth:`~.profile.ChosenBasin.other_answer`: the search had not finished it), is no
-    other answer, ``weight`` 0. (The search calls a pose clinically different on its own
-    subset of points: on a noisy simulated whole cloud, one 4.3 mm from the truth was within
-    the tolerance here, and left unweighed it kept the search's ambiguity.)"""
-    basin = refit_holding(points_us, T_competitor[None], surface, fit, None, None)[0]
-    cost = float(truncated_cost(points_us, basin, surface, fit))
-    delta = cost - chosen.cost
-    same = (not different_answer(T_competitor, chosen.pose, fit.targets)
-            or not chosen.other_answer(basin, cost, fit.targets))
-    return {"delta_cost": delta, "weight": 0.0 if same else basin_weight(delta),
-            "same_basin": same}
