@@ -368,7 +368,9 @@ def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_m
     ``us_points_frames.npy`` (each point's frame, ``(N,)``), ``frames.csv`` (every frame that
     came with a pose: :func:`write_frames_csv`), then ``register_to_directory`` (``result.json``,
     ``transform.tfm``, ``registered_us.ply``, ``config.yaml``, ...; within ``prior``, a
-    :class:`~comreg_core.registration.search.priors.Prior` or None) and ``report.html``.
+    :class:`~comreg_core.registration.search.priors.Prior` or None; by the session's own
+    registrar, whose CT side is ready: building it again took ~0.7 s at the stream's end) and
+    ``report.html``.
     Frames still waiting in the session's backlog are detected first, so every frame received
     is used. Returns ``(RegistrationResult, report path or None)``; raises
     :class:`ComRegError` when no bone points were received."""
@@ -390,7 +392,8 @@ def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_m
     with atomic_output(out / FRAMES) as tmp:
         write_frames_csv(session.gate.fates, session.points.records, session.started_s, tmp)
     result = register_to_directory(run_dir, points_path, out, device=device, seed=session.seed,
-                                   ct_mesh=ct_mesh, calibration=calibration, prior=prior)
+                                   ct_mesh=ct_mesh, calibration=calibration, prior=prior,
+                                   registrar=session.registrar)
     path = None
     if report:
         from comreg_core.report import write_report_for_registration  # VTK

@@ -32,6 +32,7 @@ from comreg_core.live.replay import ReplayServer, frame_messages
 from comreg_core.live.run import FrameReceiver, finish_live, run_live, slicer_transform
 from comreg_core.live.session import LiveSession
 from comreg_core.live.updates import UPDATE_COLUMNS, read_updates, row_transform
+from comreg_core.register import register_to_directory
 from comreg_core.surfaces.us import extract_us_surface
 from tests.helpers import assert_close
 from tests.live.conftest import cut_sweep
@@ -229,6 +230,12 @@ def test_a_dropped_connection_is_restored_and_nothing_is_lost(sweep16, search_re
     centroid = read_points(tmp_path / "us_points.ply").points.mean(axis=0)
     assert translation_error_mm(result.T_ct_us, T_truth, centroid) < 4.0
     assert rotation_error_deg(result.T_ct_us, T_truth) < 5.0
+    # by the session's own registrar (its CT side ready): what a fresh one gives, bit for bit
+    fresh = register_to_directory(None, tmp_path / "us_points.ply", tmp_path / "fresh",
+                                  ct_mesh=ct_stl, seed=session.seed)
+    assert np.array_equal(fresh.T_ct_us, result.T_ct_us)
+    assert json.loads((tmp_path / "fresh" / "result.json").read_text())["verdict"] == \
+        json.loads((tmp_path / "result.json").read_text())["verdict"]
 
 
 @pytest.mark.parametrize("stop", ["SIGINT", "SIGTERM"])
