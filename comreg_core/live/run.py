@@ -363,16 +363,12 @@ def _one_update(session: LiveSession, receiver: FrameReceiver, batch, state: dic
 
 def finish_live(session: LiveSession, out_dir: str | Path, *, run_dir=None, ct_mesh=None,
                 device: str = "auto", calibration=None, prior=None, report: bool = True):
-    """Write what ``comreg register`` (and ``comreg report``) would for the sweep's points, into
-    ``out_dir``: ``us_points.ply`` (tracker frame, LPS, with beam origins),
-    ``us_points_frames.npy`` (each point's frame, ``(N,)``), ``frames.csv`` (every frame that
-    came with a pose: :func:`write_frames_csv`), then ``register_to_directory`` (``result.json``,
-    ``transform.tfm``, ``registered_us.ply``, ``config.yaml``, ...; within ``prior``, a
-    :class:`~comreg_core.registration.search.priors.Prior` or None; by the session's own
-    registrar, whose CT side is ready: building it again took ~0.7 s at the stream's end) and
-    ``report.html``.
-    Frames still waiting in the session's backlog are detected first, so every frame received
-    is used. Returns ``(RegistrationResult, report path or None)``; raises
+    """Write what ``comreg register`` (and ``comreg report``) would for the sweep's points into
+    ``out_dir``: ``us_points.ply`` (tracker frame, LPS, beam origins), ``us_points_frames.npy``
+    (each point's frame, ``(N,)``), ``frames.csv`` (:func:`write_frames_csv`), then
+    ``register_to_directory``'s files by the session's own registrar (its CT side ready; within
+    ``prior``, a search ``Prior``, or None) and ``report.html``. Frames still in the backlog are
+    detected first. Returns ``(RegistrationResult, report path or None)``; raises
     :class:`ComRegError` when no bone points were received."""
     from comreg_core.register import register_to_directory  # torch: only when stopping
 
