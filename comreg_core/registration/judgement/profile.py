@@ -104,6 +104,7 @@ def refit_many(points_us: np.ndarray, refits: Sequence[Refit], surface,
     by more than :data:`CONVERGED_MM` stops). The active poses' closest points are found in one
     query per step; each pose's answer is what it would be alone, bit for bit."""
     bases = [_complement(r.kind, r.axis) for r in refits]
+    transposed = [np.ascontiguousarray(B.T) for B in bases]
     prior = fit.prior / fit.c
     sub = strided(np.asarray(points_us, dtype=np.float64), PROFILE_POINTS)
     poses = [np.asarray(r.start, dtype=np.float64) for r in refits]
@@ -123,8 +124,7 @@ def refit_many(points_us: np.ndarray, refits: Sequence[Refit], surface,
             H, _, g = kern.moments(points[rows][ok], closest[rows][ok], normals[rows][ok],
                                    fit.centre, fit.scale,
                                    np.zeros(int(ok.sum()), dtype=np.int64), 1)
-            B = bases[k]
-            Bt = np.ascontiguousarray(B.T)
+            B, Bt = bases[k], transposed[k]
             reduced = kern.product(kern.product(Bt, H + prior), B)
             step = -kern.product(kern.product(B, kern.inverse(reduced)),
                                  kern.product(Bt, g[:, None]))[:, 0]
@@ -174,11 +174,11 @@ class ChosenBasin:
         return move_parameters(fit, matmul(self.home, invert_rigid(self.pose)))
 
     @classmethod
-    def of(cls, points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMoments,
-           costed: bool = True) -> ChosenBasin:
-        """The chosen basin of ``T_ct_us`` alone (:func:`weigh_basins` with nothing to weigh;
-        ``costed=False``: ``cost`` None)."""
-        return weigh_basins(points_us, T_ct_us, surface, fit, costed=costed).chosen
+    def of(cls, points_us: np.ndarray, T_ct_us: np.ndarray, surface,
+           fit: FitMoments) -> ChosenBasin:
+        """The chosen basin of ``T_ct_us`` alone (:func:`weigh_basins` with nothing to
+        weigh)."""
+        return weigh_basins(points_us, T_ct_us, surface, fit).chosen
 
     def other_answer(self, T: np.ndarray, cost: float, targets_ct: np.ndarray) -> bool:
         """Whether a refitted pose ``T`` ``(4, 4)`` of ``cost`` is another answer than the
@@ -216,6 +216,8 @@ def weigh_basins(points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMo
     ``(4, 4)`` (free). ``costed=False`` (nothing to weigh): the chosen basin's ``cost`` is None
     and no cost is computed."""
     T_ct_us = np.asarray(T_ct_us, dtype=np.float64)
+    if competitor is not None:
+        competitor = np.asarray(competitor, dtype=np.float64)
     refits = [Refit(T_ct_us, iterations=HOME_ITERATIONS)]
     plans = []
     for kind, axis in directions:
@@ -226,7 +228,7 @@ def weigh_basins(points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMo
     probes = _neighbour_starts(fit, T_ct_us) if neighbours else []
     refits += [Refit(T) for T in probes]
     if competitor is not None:
-        refits.append(Refit(np.asarray(competitor, dtype=np.float64)))
+        refits.append(Refit(competitor))
     done = refit_many(points_us, refits, surface, fit)
     home = done[0]
     if not costed:
@@ -251,8 +253,7 @@ def weigh_basins(points_us: np.ndarray, T_ct_us: np.ndarray, surface, fit: FitMo
     found = _neighbour_records(others[:len(probes)], other_costs[:len(probes)], chosen, fit)
     record = None
     if competitor is not None:
-        record = _competitor_record(np.asarray(competitor, dtype=np.float64), others[-1],
-                                    float(costs[-1]), chosen, fit)
+        record = _competitor_record(competitor, others[-1], float(costs[-1]), chosen, fit)
     return Basins(chosen=chosen, profiles=profiles, neighbours=found, competitor=record)
 
 
@@ -330,8 +331,8 @@ def _competitor_record(T_competitor: np.ndarray, basin: np.ndarray, cost: float,
                        chosen: ChosenBasin, fit: FitMoments) -> dict[str, Any]:
     """The search's clinically different pose ``T_competitor`` ``(4, 4)``, refitted free to
     ``basin`` ``(4, 4)`` of ``cost``: ``{"delta_cost", "weight", "same_basin"}``, its excess
-    cost over the chosen basin's and its weight. A competitor within the clinical tolerance of the chosen pose at
-    this fit's targets, or that falls into the chosen pose's own basin (not
+    cost over the chosen basin's and its weight. A competitor within the clinical tolerance of
+    the chosen pose at this fit's targets, or that falls into the chosen pose's own basin (not
     :meth:`ChosenBasin.other_answer`: the search had not finished it), is no other answer,
     ``weight`` 0. (The search calls a pose clinically different on its own subset of points:
     on a noisy simulated whole cloud, one 4.3 mm from the truth was within the tolerance
