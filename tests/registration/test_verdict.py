@@ -168,3 +168,35 @@ def test_the_search_s_ambiguity_stands_unless_the_fit_rules_its_competitor_out(
         slab.uncertainty["competitor"]
     assert any(r.startswith("Ambiguous pose") for r in slab.reasons), slab.reasons
     assert ambiguity_words(True, slab.uncertainty["competitor"]) == "YES: check the images"
+
+
+def test_the_ambiguity_is_overruled_at_the_ok_line_s_odds_and_p_correct_decides(
+        fibula, simulated_sweep):
+    """The search's ``ambiguous`` stands while the refitted competitor weighs over 1/19 (then
+    ``p_basin`` alone is under 0.95) and gives way at 1/19 or less, where ``p_correct``
+    decides: the same whole simulated sweep at its truth, with one competitor record each side
+    of the line (weights 0.0520 and 0.0533 around 0.0526), and at ``p_correct`` 0.90."""
+    from dataclasses import replace
+
+    from comreg_core.registration.judgement.assessment import pose_uncertainty
+    from comreg_core.registration.judgement.verdict import (RULED_OUT_WEIGHT,
+                                                            judge_registration as verdict_of)
+
+    base = pose_uncertainty(simulated_sweep, np.eye(4), fibula, profiles=False, advice=False)
+
+    def judged(weight, p_correct):
+        competitor = {"delta_cost": -2.0 * np.log(weight), "weight": weight,
+                      "same_basin": False}
+        uncertainty = replace(base, competitor=competitor)
+        return verdict_of(simulated_sweep, np.eye(4), fibula, uncertainty=uncertainty,
+                          p_correct=p_correct, confidence=0.2, ambiguous=True)
+
+    assert RULED_OUT_WEIGHT == pytest.approx(0.05 / 0.95, rel=1e-12)
+    assert 1.0 / (1.0 + 0.0533) < 0.95 <= 1.0 / (1.0 + 0.0520)
+    heavier, lighter = judged(0.0533, 0.99), judged(0.0520, 0.99)
+    assert any(r.startswith("Ambiguous pose") for r in heavier.reasons), heavier.reasons
+    assert heavier.verdict == "check"
+    assert lighter.verdict == "ok", lighter.reasons
+    unsure = judged(0.0520, 0.90)
+    assert unsure.verdict == "check"
+    assert not any(r.startswith("Ambiguous pose") for r in unsure.reasons), unsure.reasons

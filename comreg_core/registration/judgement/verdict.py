@@ -24,8 +24,8 @@ the bone for their own noise (the noise at most :attr:`VerdictThresholds.max_noi
 least ``min_within_noise`` of them within 3 noise levels), the refit stays within 5 mm (the pose
 is at the fit's optimum), no scale fits clearly better, and the pose is not tied with a
 different one, nor one the search found nearly as good (its ``ambiguous``), unless the
-uncertainty rules that clinically different competitor out by a wide margin
-(:data:`RULED_OUT_WEIGHT`).
+uncertainty, which weighs that clinically different competitor in ``p_correct``, prefers the
+chosen pose over it by at least the OK line's odds (:data:`RULED_OUT_WEIGHT`).
 
 How the limits were chosen: docs/calibration.md ("The verdict's limits").
 """
@@ -65,10 +65,14 @@ COVERAGE_SAMPLES = 10_000
 #: The search's ``ambiguous`` (a relative score margin, which noise dilutes: a whole cloud with
 #: 0.43 mm of noise scores 0.24 mm at the truth and 0.39-0.41 mm flipped end to end, a margin
 #: under the patch's 0.5) is overruled when the uncertainty weighs its clinically different
-#: competitor below this (``exp(-dC / 2)``: an excess cost over 27.6 chi-square units). The
-#: wrong near-misses of the real sweep's growing prefixes that the flag holds back weigh 1e-3
-#: to 8e-3 (4.4-4.5 mm off, ``bench_growing`` from frame 0; 2026-12-05).
-RULED_OUT_WEIGHT = 1e-6
+#: competitor, refitted, at most at the OK line's odds: ``exp(-dC / 2) <= (1 - 0.95) / 0.95``,
+#: the fit preferring the chosen pose at least 19 to 1 (an excess cost of 5.9 chi-square units
+#: or more). That weight is already in ``p_basin``, so a competitor above it keeps ``p_raw``
+#: under 0.95 by itself; below it, ``p_correct`` decides. (1e-6 until 2026-12-06: it held back
+#: right prefixes of the real sweep whose competitor weighed 6e-3 to 9e-3 at ``p_correct``
+#: 0.98-0.99, while the wrong prefixes it once held, 4.4-4.6 mm off, now have ``p_correct``
+#: 0.50-0.84.)
+RULED_OUT_WEIGHT = (1.0 - 0.95) / 0.95
 
 
 @dataclass(frozen=True)
@@ -172,9 +176,9 @@ def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
 
 def competitor_ruled_out(competitor: dict | None) -> bool:
     """Whether the uncertainty's ``competitor`` record (``{"delta_cost", "weight",
-    "same_basin"}``, None: none) weighs the search's clinically different pose below
+    "same_basin"}``, None: none) weighs the search's clinically different pose at most
     :data:`RULED_OUT_WEIGHT` (0 when, refitted, it falls into the chosen pose's basin)."""
-    return competitor is not None and competitor["weight"] < RULED_OUT_WEIGHT
+    return competitor is not None and competitor["weight"] <= RULED_OUT_WEIGHT
 
 
 def ambiguity_words(ambiguous: bool, competitor: dict | None) -> str:
@@ -186,8 +190,8 @@ def ambiguity_words(ambiguous: bool, competitor: dict | None) -> str:
         return "YES: check the images"
     if competitor.get("same_basin"):
         return "close in score, but refitted it falls into this pose's basin"
-    return (f"close in score, but the fit rules it out (weight {competitor['weight']:.0e}, "
-            f"under {RULED_OUT_WEIGHT:.0e})")
+    return (f"close in score, but the fit rules it out (weight {competitor['weight']:.1g}, "
+            f"at most {RULED_OUT_WEIGHT:.2g}: the fit favours this pose 19 to 1 or more)")
 
 
 def _reasons(f: dict, uncertainty, th: VerdictThresholds, ok_probability: float,
