@@ -166,6 +166,7 @@ def _check_us_cloud(methods: dict, points) -> None:
 CALIBRATE_CT_MESH = typer.Argument(..., help="The CT bone mesh (mm).")
 CALIBRATE_OUT = typer.Option(..., "--out", "-o", rich_help_panel=OUTPUT,
                              help="Output folder (calibration.json).")
+# comreg_core.evaluation.calibrate.CALIBRATION_SWEEPS (not imported: it pulls in numba and scipy)
 CALIBRATE_SWEEPS = typer.Option(60, "--sweeps", min=4, rich_help_panel=SWEEPS,
                                 help="Simulated sweeps to register.")
 CALIBRATE_LENGTHS = typer.Option("30,80", "--lengths", rich_help_panel=SWEEPS, help="Shortest "
@@ -186,8 +187,8 @@ def calibrate(
     search, see which come out within 4 mm / 5 deg of the truth, and fit how the margin over
     the best clinically different pose and the sweep's length map to that. 'comreg register
     --verdict-calibration DIR/calibration.json' then reports p_correct, the estimated
-    probability that its pose is correct, and says OK only at 0.95 or more. About 3 s a sweep
-    on 2 CPU cores; no network needed.
+    probability that its pose is correct, and says OK only at 0.95 or more. About 1.5 s a sweep
+    on an idle 2-core machine; no network needed.
     """
     from comreg_core.errors import ComRegError
     from comreg_core.evaluation.calibrate import calibrate_to_directory

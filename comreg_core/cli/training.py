@@ -75,7 +75,7 @@ PRETRAIN_SEED = typer.Option(None, "--seed", min=0, rich_help_panel=SCHEDULE,
                              help="Run seed (default 0).")
 PRETRAIN_CALIBRATION_SWEEPS = typer.Option(
     0, "--calibration-sweeps", min=0, rich_help_panel=VERDICT, help="Then also calibrate the "
-    "verdict on this many simulated sweeps (as 'comreg calibrate'; about 3 s each) into the run "
+    "verdict on this many simulated sweeps (as 'comreg calibrate'; about 1.5 s each) into the run "
     "folder; 0: not.")
 
 

@@ -132,6 +132,7 @@ def _row(name: str, rows: list[dict], search: list[dict] | None = None) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     from comreg_core.config import from_dict
+    from comreg_core.evaluation.calibrate import CALIBRATION_SWEEPS
     from comreg_core.simulation.config import SimulationConfig
     from tests.helpers import FIBULA_STL, SHARED_DATA, tibia_like_mesh
 
@@ -146,7 +147,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--trust", action="store_true", help="the trust rows instead (priors, "
                    "unions, verdict with p_correct: tests/benchmarks/partial_trust.py)")
     p.add_argument("--prior", default="none,init,landmark", help="with --trust")
-    p.add_argument("--calibration-sweeps", type=int, default=40, help="with --trust")
+    p.add_argument("--calibration-sweeps", type=int, default=CALIBRATION_SWEEPS,
+                   help="with --trust (default: comreg calibrate's)")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     if args.trust:
         from tests.benchmarks.partial_trust import run_trust

@@ -2,7 +2,7 @@
 
 ``.venv/bin/python -m tests.benchmarks.bench_partial --trust [--trials 22] [--seed 0]
 [--set real-fibula,real-fibula-union,simulated-fibula,simulated-tibia-anatomical]
-[--prior none,init,landmark] [--calibration-sweeps 40] [--model fibula=RUN --untrained
+[--prior none,init,landmark] [--calibration-sweeps 60] [--model fibula=RUN --untrained
 fibula=RUN0]``
 
 Per set and prior, every method (``search``: the pose search alone; ``comreg``: a run trained on

@@ -36,6 +36,17 @@ def test_console_script_is_installed_and_fast_to_import():
     assert out.stdout.strip() == "False"
 
 
+def test_calibrate_s_default_number_of_sweeps_is_the_library_s():
+    """`comreg calibrate --sweeps` defaults to the library's CALIBRATION_SWEEPS (written out in
+    the command line, which does not import the calibration), so the benchmark that defaults to
+    that constant measures what a user gets."""
+    from comreg_core.cli.evaluation import CALIBRATE_SWEEPS
+    from comreg_core.evaluation.calibrate import CALIBRATION_SWEEPS, calibrate
+
+    assert CALIBRATE_SWEEPS.default == CALIBRATION_SWEEPS == 60
+    assert calibrate.__kwdefaults__["sweeps"] == CALIBRATION_SWEEPS
+
+
 def test_info_on_mesh_volume_and_transform(tmp_path):
     result = runner.invoke(app, ["info", str(FIBULA_STL)])
     assert result.exit_code == 0, result.output
