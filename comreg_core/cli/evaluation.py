@@ -184,8 +184,8 @@ def calibrate(
     out: Path = CALIBRATE_OUT,
 ) -> None:
     """Calibrate the verdict for this CT: register simulated one-face sweeps of it by the pose
-    search, see which come out within 4 mm / 5 deg of the truth, and fit how the margin over
-    the best clinically different pose and the sweep's length map to that. 'comreg register
+    search, see which come out within 4 mm / 5 deg of the truth, and fit how the verdict's
+    p_raw (from the pose's uncertainty) maps to that. 'comreg register
     --verdict-calibration DIR/calibration.json' then reports p_correct, the estimated
     probability that its pose is correct, and says OK only at 0.95 or more. About 1.5 s a sweep
     on an idle 2-core machine; no network needed.

@@ -75,9 +75,9 @@ def calibration_sweep_config(lengths_mm: tuple[float, float]):
         "simulation")
 
 
-def calibrate(ct_mesh, *, sweeps: int = CALIBRATION_SWEEPS, lengths_mm: tuple[float, float] = (30.0, 80.0),
-              noise_mm: float = NOISE_MM, drift_deg: float = DRIFT_DEG,
-              drift_mm: float = DRIFT_MM, seed: int = 0,
+def calibrate(ct_mesh, *, sweeps: int = CALIBRATION_SWEEPS,
+              lengths_mm: tuple[float, float] = (30.0, 80.0), noise_mm: float = NOISE_MM,
+              drift_deg: float = DRIFT_DEG, drift_mm: float = DRIFT_MM, seed: int = 0,
               progress: Progress | None = None) -> Calibration:
     """Register ``sweeps`` simulated sweeps of ``ct_mesh`` (a path or ``(vertices, faces)``)
     and fit the calibration (module docstring). Deterministic for a given seed."""
