@@ -122,8 +122,10 @@ def test_the_result_line():
         f"confidence 0.80; '{COMPLETED_BONE_NODE_NAME}' added")
     assert summary.describe(False, -1.0) == (
         f"ransac: 1.23 s, median distance to CT 0.46 mm; '{COMPLETED_BONE_NODE_NAME}' added")
-    # the verdict's uncertainty weighed the search's close, clinically different pose
+    # the verdict's uncertainty weighed the search's close, clinically different pose: ruled
+    # out at 1/19 (0.0526) or less, the OK line's odds
     for weight, words in ((1e-9, "a close pose ruled out by the fit"),
-                          (1e-3, "AMBIGUOUS (check the pose)")):
+                          (0.05, "a close pose ruled out by the fit"),
+                          (0.06, "AMBIGUOUS (check the pose)")):
         summary.record = {"uncertainty": {"competitor": {"delta_cost": 1.0, "weight": weight}}}
         assert f", {words}, confidence 0.80" in summary.describe(True, 0.8)
