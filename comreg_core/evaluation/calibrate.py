@@ -42,7 +42,7 @@ DRIFT_DEG, DRIFT_MM = 1.5, 1.5
 #: Simulated sweeps a calibration registers by default (``comreg calibrate --sweeps``): the
 #: map grows stricter with more (on the fibula, OK from ``p_raw`` 0.996 with 40, 0.9996 with 60,
 #: 0.9999999995 with 160: 17 of the 52 of 160 sweeps at ``p_raw`` >= 0.95 were wrong,
-#: 2026-12-06); ~1.4 s a sweep on 2 cores.
+#: 2026-12-06); ~1.5 s a sweep on an idle 2-core machine.
 CALIBRATION_SWEEPS = 60
 
 

@@ -192,7 +192,7 @@ def test_the_ambiguity_is_overruled_at_the_ok_line_s_odds_and_p_correct_decides(
                           p_correct=p_correct, confidence=0.2, ambiguous=True)
 
     assert RULED_OUT_WEIGHT == pytest.approx(0.05 / 0.95, rel=1e-12)
-    assert 1.0 / (1.0 + 0.0533) < 0.95 <= 1.0 / (1.0 + 0.0520)
+    assert 0.0520 <= RULED_OUT_WEIGHT < 0.0533  # the two weights lie either side of the line
     heavier, lighter = judged(0.0533, 0.99), judged(0.0520, 0.99)
     assert any(r.startswith("Ambiguous pose") for r in heavier.reasons), heavier.reasons
     assert heavier.verdict == "check"

@@ -38,6 +38,7 @@ from functools import partial
 import numpy as np
 
 from comreg_core.registration.geometry.icp import point_to_plane_icp, strided
+from comreg_core.registration.judgement.calibration import OK_PROBABILITY
 from comreg_core.registration.search.scoring import SCORE_TIE_SHARE
 from comreg_core.registration.geometry.surface import as_surface
 from comreg_core.transforms import apply_transform, as_points, check_rigid
@@ -65,14 +66,14 @@ COVERAGE_SAMPLES = 10_000
 #: The search's ``ambiguous`` (a relative score margin, which noise dilutes: a whole cloud with
 #: 0.43 mm of noise scores 0.24 mm at the truth and 0.39-0.41 mm flipped end to end, a margin
 #: under the patch's 0.5) is overruled when the uncertainty weighs its clinically different
-#: competitor, refitted, at most at the OK line's odds: ``exp(-dC / 2) <= (1 - 0.95) / 0.95``,
-#: the fit preferring the chosen pose at least 19 to 1 (an excess cost of 5.9 chi-square units
-#: or more). That weight is already in ``p_basin``, so a competitor above it keeps ``p_raw``
+#: competitor, refitted, at most at the OK line's odds: ``exp(-dC / 2) <= (1 - p) / p`` for
+#: ``p = OK_PROBABILITY`` (0.95), the fit preferring the chosen pose at least 19 to 1 (an
+#: excess cost of 5.9 chi-square units or more). That weight is already in ``p_basin``, so a competitor above it keeps ``p_raw``
 #: under 0.95 by itself; below it, ``p_correct`` decides. (1e-6 until 2026-12-06: it held back
 #: right prefixes of the real sweep whose competitor weighed 6e-3 to 9e-3 at ``p_correct``
 #: 0.98-0.99, while the wrong prefixes it once held, 4.4-4.6 mm off, now have ``p_correct``
 #: 0.50-0.84.)
-RULED_OUT_WEIGHT = (1.0 - 0.95) / 0.95
+RULED_OUT_WEIGHT = (1.0 - OK_PROBABILITY) / OK_PROBABILITY
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,7 @@ class Verdict:
 
 def judge_registration(us_points, T_ct_us, ct_surface, *, uncertainty=None,
                        p_correct: float | None = None, confidence: float | None = None,
-                       ambiguous: bool = False, ok_probability: float = 0.95,
+                       ambiguous: bool = False, ok_probability: float = OK_PROBABILITY,
                        short_sweep: bool = False, scale_scan: bool = True) -> Verdict:
     """The verdict of ``T_ct_us`` (``(4, 4)`` rigid, mm) for ``us_points`` (``(N, 3)`` mm, as
     received) on ``ct_surface`` (anything :func:`~comreg_core.registration.geometry.surface.as_surface`
@@ -191,7 +192,8 @@ def ambiguity_words(ambiguous: bool, competitor: dict | None) -> str:
     if competitor.get("same_basin"):
         return "close in score, but refitted it falls into this pose's basin"
     return (f"close in score, but the fit rules it out (weight {competitor['weight']:.1g}, "
-            f"at most {RULED_OUT_WEIGHT:.2g}: the fit favours this pose 19 to 1 or more)")
+            f"at most {RULED_OUT_WEIGHT:.2g}: the fit favours this pose "
+            f"{1.0 / RULED_OUT_WEIGHT:.0f} to 1 or more)")
 
 
 def _reasons(f: dict, uncertainty, th: VerdictThresholds, ok_probability: float,
