@@ -15,7 +15,9 @@ import numpy as np
 UPDATE_COLUMNS = ("time_s", "frames_received", "frames_used", "covered_mm", "verdict",
                   "p_correct", "bound_mm", "latency_s", "update_s", "frame_age_s", "skipped_no_new_bone",
                   "dropped_lag", "dropped_no_pose", "centroid_x", "centroid_y", "centroid_z",
-                  *(f"T_ct_us_{r}{c}" for r in range(3) for c in range(4)))
+                  *(f"T_ct_us_{r}{c}" for r in range(3) for c in range(4)), "mode", "reasons")
+#: ``updates.csv``'s columns that hold text (the others are numbers).
+TEXT_COLUMNS = ("verdict", "mode", "reasons")
 
 
 @dataclass
@@ -35,7 +37,7 @@ class LiveUpdate:
         waiting: frames left in the backlog for later updates (the loop is lagging).
         newest_s: arrival (``time.monotonic()``) of the update's newest input: the newest frame
             registered, or for an update without new frames (a background full search's
-            answer at the end of a stream) the answer; latency_s: from it to the update being
+            answer alone) the answer; latency_s: from it to the update being
             sent (set by whoever sends it).
         searching: a full search runs in the background (its answer comes with a later update).
         frame_age_s: the age of the oldest frame this update took (s, from its arrival).
@@ -79,7 +81,8 @@ class LiveUpdate:
                 f"{self.covered_mm:.1f}", self.verdict, p, bound, f"{self.latency_s:.3f}",
                 f"{self.register_s:.3f}", f"{self.frame_age_s:.3f}", self.skipped, self.dropped_lag, self.dropped_no_pose,
                 *(f"{v:.4f}" for v in self.centroid),
-                *(repr(float(v)) for v in self.T_ct_us[:3].reshape(-1))]
+                *(repr(float(v)) for v in self.T_ct_us[:3].reshape(-1)), self.mode,
+                " | ".join(self.reasons)]
 
     def status_line(self) -> str:
         """One line for the terminal."""
@@ -130,12 +133,12 @@ class UpdatesLog:
 
 
 def read_updates(path: str | Path) -> list[dict]:
-    """The rows of an ``updates.csv`` as dicts of floats (``verdict`` a string, an empty
-    ``p_correct`` None)."""
+    """The rows of an ``updates.csv`` as dicts of floats (:data:`TEXT_COLUMNS` strings; the
+    ``reasons`` joined by " | "), an empty number None."""
     rows = []
     with open(path, newline="", encoding="utf-8") as f:
         for row in csv.DictReader(f):
-            rows.append({k: (v if k == "verdict" else (None if v == "" else float(v)))
+            rows.append({k: (v if k in TEXT_COLUMNS else (None if v == "" else float(v)))
                          for k, v in row.items()})
     return rows
 

@@ -64,6 +64,9 @@ def test_full_first_then_warm_then_full_when_the_bone_covered_grows(sweep, searc
                      atol=1e-4)
         assert row["latency_s"] == 0.25 and 0.0 <= row["p_correct"] <= 1.0
         assert row["bound_mm"] == pytest.approx(update.bound_mm, abs=0.005) and row["bound_mm"] > 0
+        assert row["mode"] == update.mode and row["reasons"] == " | ".join(update.reasons)
+    assert [row["mode"] for row in rows] == ["full", "warm", "full"]
+    assert all(row["reasons"] for row in rows if row["verdict"] == "check")
     assert f"{grown.mode} " in grown.status_line() and grown.advice in grown.status_line()
 
 
