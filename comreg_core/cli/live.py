@@ -239,7 +239,8 @@ def _listen(session, recipe, work: tuple, where: tuple[str, int],
     from comreg_core.live.background import (WORKER_START_S, FullSearchWorker,
                                              keep_freed_memory, one_thread)
     from comreg_core.live.detection import DetectionPool, default_workers
-    from comreg_core.live.run import FrameReceiver, run_live, stop_on_signals
+    from comreg_core.live.receiver import FrameReceiver
+    from comreg_core.live.run import run_live, stop_on_signals
 
     host, port = where
     background, detect_workers, update_every_s = work

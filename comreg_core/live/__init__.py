@@ -17,7 +17,8 @@ sweep served as PLUS Server would (``comreg replay``). docs/live.md describes bo
 - :mod:`~comreg_core.live.updates`: an update's record, ``updates.csv`` and ``frames.csv``;
 - :mod:`~comreg_core.live.igtl`: reading OpenIGTLink messages and the live client (pyigtl);
 - :mod:`~comreg_core.live.replay`: ``comreg replay``'s server;
-- :mod:`~comreg_core.live.run`: the receiver thread, the update loop and the output folder.
+- :mod:`~comreg_core.live.receiver`: the receiver thread (frames in, updates sent back);
+- :mod:`~comreg_core.live.run`: the update loop and the output folder.
 
 It sits at the top of comreg_core beside the CLI and the demo: it registers
 (:mod:`comreg_core.register`), writes ``comreg register``'s folder

@@ -47,7 +47,7 @@ class DetectionPipeline:
     """The receiver's frames -> the gate -> detection -> the update loop (module docstring).
 
     Args:
-        receiver: a :class:`~comreg_core.live.run.FrameReceiver` (anything with its ``take``).
+        receiver: a :class:`~comreg_core.live.receiver.FrameReceiver` (anything with its ``take``).
         gate: the session's :class:`FrameGate`.
         pool: the :class:`DetectionPool` (``DetectionPool(0)``: detection in this thread).
         clock: the time source (s), ``time.monotonic`` by default.

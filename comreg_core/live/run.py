@@ -1,19 +1,21 @@
 """``comreg live``: the stream in, the registration out, until the user or the stream stops.
 
-Threads and processes: the OpenIGTLink client's thread (:class:`FrameReceiver`, on
-:class:`~comreg_core.live.igtl.LiveClient`) reads every message, pairs images with poses
-(:class:`~comreg_core.live.stream.FrameAssembler`) and queues the frames; it never waits for the
-registration. The detection pipeline's thread
+Threads and processes: the OpenIGTLink client's thread
+(:class:`~comreg_core.live.receiver.FrameReceiver`) reads every message, pairs images with poses
+and queues the frames; it never waits for the registration. The detection pipeline's thread
 (:class:`~comreg_core.live.pipeline.DetectionPipeline`) decides each frame (skipped: no new
 bone; dropped: too old; :class:`~comreg_core.live.intake.FrameGate`) and has the bone detected
 in worker processes (:class:`~comreg_core.live.detection.DetectionPool`). The update loop
-(:func:`run_live`, the caller's thread) takes the detections that came, registers, sends a
-TRANSFORM and a STRING back, writes a row of ``updates.csv`` and a status line. A full
-receiver queue (:data:`MAX_QUEUED` frames) drops its oldest frame, and says so. No server within the connect timeout (``--connect-timeout``, the first connection only) ends
-the loop with :class:`NoServerError` before anything is written. A lost connection loses
-nothing registered (the client reconnects); ``--until-end`` stops when the server closes the
-stream. ``updates.csv`` is made at the first update. On stop, frames on their way are detected;
-:func:`finish_live` writes what ``comreg register`` and ``comreg report`` would for the points
+(:func:`run_live`, the caller's thread) takes the detections that came, or the answer of a full
+search running beside it as soon as it comes (with or without new frames: a probe held still
+sends frames without new bone), registers, sends a TRANSFORM and a STRING back, writes a row of
+``updates.csv`` and a status line. No server within the connect timeout
+(``--connect-timeout``, the first connection only) ends the loop with :class:`NoServerError`
+before anything is written. A lost connection loses nothing registered (the client
+reconnects); ``--until-end`` stops when the server closes the stream (after the answers of the
+full searches the last updates ask for, up to :data:`FINAL_ANSWERS`). ``updates.csv`` is made
+at the first update. On stop, frames on their way are detected; :func:`finish_live` writes what
+``comreg register`` and ``comreg report`` would for the points
 (:func:`~comreg_core.register.register_to_directory`) and each frame's fate (``frames.csv``).
 """
 
@@ -23,35 +25,30 @@ import logging
 import math
 import signal
 import threading
-import time
-from collections import deque
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-import pyigtl
 
 from comreg_core.errors import ComRegError
 from comreg_core.io import PointCloud, write_points
 from comreg_core.io._files import atomic_output
 from comreg_core.live.detection import DetectionPool
-from comreg_core.live.igtl import LiveClient, UnknownMessage, SEND_DEVICE, STATUS_DEVICE
+from comreg_core.live.igtl import SEND_DEVICE
 from comreg_core.live.intake import LAG, SKIPPED
 from comreg_core.live.pipeline import DetectionPipeline
+from comreg_core.live.receiver import FrameReceiver
 from comreg_core.live.session import LiveSession
-from comreg_core.live.updates import LiveUpdate, UpdatesLog, write_frames_csv
-from comreg_core.live.stream import Frame, FrameAssembler
-from comreg_core.transforms import space_change
+from comreg_core.live.updates import UpdatesLog, write_frames_csv
 
 log = logging.getLogger(__name__)
 
-#: Frames the receiver holds for the update loop at most (the oldest is dropped beyond).
-MAX_QUEUED = 200
 #: Seconds ``--until-end`` waits, once the stream ended, for the answer of a full search still
-#: running in the background (the last update uses it).
+#: running in the background (an update uses it); and how many such answers it waits for.
 FINAL_SEARCH_WAIT_S = 60.0
+FINAL_ANSWERS = 3
 #: File names of a live folder, besides those of a registration folder.
 UPDATES = "updates.csv"
 US_POINTS = "us_points.ply"
@@ -59,155 +56,8 @@ US_POINT_FRAMES = "us_points_frames.npy"
 FRAMES = "frames.csv"
 
 
-def slicer_transform(T_ct_us: np.ndarray, space: str) -> np.ndarray:
-    """``(4, 4)`` the pose ``T_ct_us`` (stream reference coordinates, taken as LPS as
-    ``extract-us`` takes a recording's, -> the CT in its ``space``) as 3D Slicer applies a
-    transform it receives: to the stream's coordinates as they come (Slicer puts them straight
-    into its RAS scene) -> the CT in RAS."""
-    return space_change(space, "RAS") @ np.asarray(T_ct_us) @ space_change("LPS", space)
-
-
 class NoServerError(ComRegError):
     """No OpenIGTLink server answered within the connect timeout (nothing was received)."""
-
-
-@dataclass
-class Batch:
-    """What :meth:`FrameReceiver.take` hands over: ``frames`` (in order), one-line ``notes``,
-    ``received`` images so far, ``ended`` (the server closed the stream) and ``gave_up``
-    (why no first connection was made within the connect timeout; empty otherwise)."""
-
-    frames: list[Frame] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    received: int = 0
-    ended: bool = False
-    gave_up: str = ""
-
-
-class FrameReceiver:
-    """The receiving side of ``comreg live`` (module docstring).
-
-    Args:
-        host, port: the OpenIGTLink server (PLUS Server, ``comreg replay``, Slicer).
-        image_device: the IMAGE device of the B-mode frames.
-        pose_device: the TRANSFORM device of their poses.
-        T_probe_pixel: the probe calibration when ``pose_device`` is the probe's pose.
-        max_queued: frames held for the update loop at most.
-        reconnect: connect again after the server closed the stream (``--until-end``: not).
-        connect_timeout_s: give up when no first connection was made within this many seconds
-            of :meth:`start` (None: try for ever); later reconnects are not limited.
-    """
-
-    def __init__(self, host: str, port: int, image_device: str, pose_device: str,
-                 T_probe_pixel: np.ndarray | None = None, max_queued: int = MAX_QUEUED,
-                 reconnect: bool = True, clock: Callable[[], float] = time.monotonic,
-                 connect_timeout_s: float | None = None):
-        self.image_device, self.pose_device = image_device, pose_device
-        self.clock = clock
-        self.assembler = FrameAssembler(pose_device, T_probe_pixel)
-        self._lock = threading.Lock()
-        self._frames: deque[Frame] = deque()
-        self._notes: list[str] = []
-        self._told: set = set()
-        self._ended = False
-        self._gave_up = ""
-        self.max_queued = int(max_queued)
-        self.dropped = 0
-        self.client = LiveClient(host, port, self._on_message, self._on_event, self._idle,
-                                 reconnect=reconnect, connect_timeout_s=connect_timeout_s)
-
-    def start(self) -> None:
-        self.client.start()
-
-    def stop(self) -> None:
-        self.client.stop()
-
-    def _note(self, text: str) -> None:
-        with self._lock:
-            self._notes.append(text)
-
-    def _note_once(self, key, text: str) -> None:
-        if key not in self._told:
-            self._told.add(key)
-            self._note(text)
-
-    def _push(self, frames: list[Frame], notes: list[str]) -> None:
-        with self._lock:
-            self._notes.extend(notes)
-            for frame in frames:
-                if len(self._frames) >= self.max_queued:
-                    old = self._frames.popleft()
-                    self.dropped += 1
-                    self._notes.append(f"LAGGING: the frame queue is full; dropped frame "
-                                       f"{old.index} ({self.dropped} so far)")
-                self._frames.append(frame)
-
-    def _on_message(self, message) -> None:
-        now = self.clock()
-        expected = (f"live reads IMAGE '{self.image_device}' and TRANSFORM "
-                    f"'{self.pose_device}'")
-        if isinstance(message, UnknownMessage):
-            self._note_once(("?", message.message_type, message.device_name),
-                            f"ignoring the unexpected {message.message_type or '?'} messages "
-                            f"of '{message.device_name}' ({expected})")
-        elif isinstance(message, pyigtl.ImageMessage) and \
-                message.device_name == self.image_device:
-            self._push(*self.assembler.add_image(message.image, message.ijk_to_world_matrix,
-                                                 message.timestamp, now))
-        elif isinstance(message, pyigtl.TransformMessage) and \
-                message.device_name == self.pose_device:
-            status = str(message.metadata.get("TransformStatus", "OK")).upper()
-            if status not in ("OK", "VALID"):
-                self._note_once(("invalid", message.device_name),
-                                f"the {message.device_name} pose is sent as {status}; frames "
-                                "without a valid pose are skipped")
-                return
-            self._push(*self.assembler.add_pose(message.device_name, message.matrix,
-                                                message.timestamp, now))
-        elif not isinstance(message, pyigtl.TransformMessage):
-            self._note_once((message.message_type, message.device_name),
-                            f"ignoring the {message.message_type} messages of "
-                            f"'{message.device_name}' ({expected})")
-
-    def _on_event(self, kind: str, text: str) -> None:
-        if kind == "timeout":
-            with self._lock:
-                self._gave_up = text
-            return
-        if kind == "closed" or (kind == "lost" and not self.client.reconnect):
-            self._push(*self.assembler.expire(float("inf")))
-            with self._lock:
-                self._ended = True
-        self._note(text)
-
-    def _idle(self) -> None:
-        frames, notes = self.assembler.expire(self.clock())
-        if frames or notes:
-            self._push(frames, notes)
-
-    def take(self, timeout_s: float = 0.1) -> Batch:
-        """Everything queued since the last call (waiting up to ``timeout_s`` for something)."""
-        end = self.clock() + timeout_s
-        while True:
-            with self._lock:
-                if self._frames or self._notes or self._ended or self._gave_up or \
-                        self.clock() >= end:
-                    batch = Batch(list(self._frames), self._notes, self.assembler.images,
-                                  self._ended, self._gave_up)
-                    self._frames.clear()
-                    self._notes = []
-                    self._ended = False
-                    return batch
-            time.sleep(0.005)
-
-    def send(self, update: LiveUpdate, space: str, send_device: str = SEND_DEVICE) -> bool:
-        """Send ``update`` back: a TRANSFORM ``send_device`` (:func:`slicer_transform`) and a
-        STRING :data:`~comreg_core.live.igtl.STATUS_DEVICE` (its JSON); False when not
-        connected (nothing is sent then)."""
-        return self.client.send(
-            pyigtl.TransformMessage(slicer_transform(update.T_ct_us, space),
-                                    device_name=send_device),
-            pyigtl.StringMessage(update.message_text(), device_name=STATUS_DEVICE))
 
 
 @dataclass
@@ -273,8 +123,8 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
              on_note: Callable[[str], None] | None = None,
              pool: DetectionPool | None = None, update_every_s: float = 0.0) -> LiveSummary:
     """The update loop (module docstring) until ``stop`` is set, Ctrl-C, or (``until_end``) the
-    server closed the stream and the frames that came are registered (with the answer of a
-    full search still running, waited for). ``out_dir``: gets
+    server closed the stream and the frames that came are registered (with the answers of the
+    full searches still asked for, up to :data:`FINAL_ANSWERS`). ``out_dir``: gets
     ``updates.csv`` at the first update, then a row per update, flushed. ``on_status`` gets
     each update's status line, ``on_note`` each one-line note. ``pool``: the detection workers
     (None: detection in the pipeline's thread). ``update_every_s``: while frames wait for
@@ -288,7 +138,7 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
     pipeline = DetectionPipeline(receiver, session.gate, pool or DetectionPool(0),
                                  session.clock)
     state = {"log": None, "told": set()}
-    ended = last_answer = False
+    ended, final_answers = False, 0
     next_update_s = -math.inf
     session.gate.update_every_s = update_every_s
     pipeline.start()
@@ -304,7 +154,7 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
                                     "--igtl, or wait longer (--connect-timeout).")
             if stop.is_set():  # a signal came during the wait
                 break
-            if batch.detections or (ended and session.answer_waiting()):
+            if batch.detections or session.answer_waiting():
                 start = session.clock()
                 _one_update(session, receiver, batch, state, out_dir, send_device, on_status,
                             on_note)
@@ -312,8 +162,9 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
                     next_update_s = start + update_every_s
             ended = ended or batch.ended
             if ended and until_end:
-                if session.searching and not last_answer:  # one more update, with its answer
-                    last_answer = session.worker.wait(FINAL_SEARCH_WAIT_S)
+                if session.searching and final_answers < FINAL_ANSWERS \
+                        and session.worker.wait(FINAL_SEARCH_WAIT_S):  # an update with it
+                    final_answers += 1
                     continue
                 break
         if getattr(stop, "reason", None):

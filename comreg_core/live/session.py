@@ -324,7 +324,7 @@ class LiveSession(VerdictChecks):
 
     def answer_waiting(self) -> bool:
         """Whether the worker's answer to a full search waits to be used (an update without new
-        frames uses it: at the end of the stream)."""
+        frames uses it: a probe held still, the end of the stream)."""
         return self.worker is not None and self._job is not None and (
             self._done is not None or self.worker.wait(0.0))
 

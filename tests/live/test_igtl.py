@@ -16,7 +16,7 @@ import pytest
 
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.replay import frame_messages
-from comreg_core.live.run import FrameReceiver
+from comreg_core.live.receiver import FrameReceiver
 from tests.live.conftest import cut_sweep
 
 

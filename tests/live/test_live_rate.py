@@ -26,6 +26,7 @@ import pytest
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.igtl import ConnectionClosed, read_message
 from comreg_core.live.replay import ReplayServer, replay_sweep
+from comreg_core.live.run import FINAL_ANSWERS
 from comreg_core.live.updates import read_updates
 from tests.helpers import FIBULA_DIR
 
@@ -34,50 +35,63 @@ REPO = Path(__file__).resolve().parents[2]
 REAL, HELD = range(40, 65), 16
 
 
-@pytest.fixture(scope="module")
-def paused_sweep(shared_data, tmp_path_factory) -> Path:
-    """The sweep of the module docstring as a frame folder (the images linked, not copied)."""
-    out = tmp_path_factory.mktemp("paused")
-    (out / "frames").mkdir()
+def _held_sweep(out: Path, held: list[int], seed: int) -> Path:
+    """A frame folder in ``out`` serving the fibula sweep's frames ``held`` in order (the images
+    linked, not copied), 25 ms apart; a frame repeating the one before it is a copy whose pose
+    jitters by tracking noise (0.1 mm, 0.01 deg): the probe rests."""
+    (out / "frames").mkdir(parents=True)
     shutil.copy(FIBULA_DIR / "calibration.json", out / "calibration.json")
     with open(FIBULA_DIR / "tracking.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    rng = np.random.default_rng(4)
-    held = []
-    for k in REAL:
-        for copy in range(HELD):
-            row = dict(rows[k], timestamp=str(1_000_000 + 25 * len(held)))
-            if copy:  # tracking noise while the probe rests
-                for axis in "xyz":
-                    row[axis] = repr(float(row[axis]) + rng.uniform(-0.05, 0.05))
-                    row[f"euler_{axis}"] = repr(float(row[f"euler_{axis}"])
-                                                + rng.uniform(-0.005, 0.005))
-            (out / "frames" / f"{row['timestamp']}.png").symlink_to(
-                FIBULA_DIR / "frames" / f"{rows[k]['timestamp']}.png")
-            held.append(row)
+    rng = np.random.default_rng(seed)
+    served = []
+    for n, k in enumerate(held):
+        row = dict(rows[k], timestamp=str(1_000_000 + 25 * n))
+        if n and held[n - 1] == k:
+            for axis in "xyz":
+                row[axis] = repr(float(row[axis]) + rng.uniform(-0.05, 0.05))
+                row[f"euler_{axis}"] = repr(float(row[f"euler_{axis}"])
+                                            + rng.uniform(-0.005, 0.005))
+        (out / "frames" / f"{row['timestamp']}.png").symlink_to(
+            FIBULA_DIR / "frames" / f"{rows[k]['timestamp']}.png")
+        served.append(row)
     with open(out / "tracking.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, list(rows[0]))
         writer.writeheader()
-        writer.writerows(held)
+        writer.writerows(served)
     return out
 
 
-def test_forty_frames_a_second_for_ten_seconds_keep_the_queue_bounded(paused_sweep, ct_stl,
-                                                                     tmp_path):
-    out = tmp_path / "live"
+@pytest.fixture(scope="module")
+def paused_sweep(shared_data, tmp_path_factory) -> Path:
+    """The sweep of the module docstring: each of the frames ``REAL`` held for ``HELD``."""
+    return _held_sweep(tmp_path_factory.mktemp("paused"),
+                       [k for k in REAL for _ in range(HELD)], seed=4)
+
+
+def _live(sweep: Path, ct: Path, out: Path) -> tuple[subprocess.CompletedProcess, str]:
+    """``comreg replay --fps 40`` of ``sweep`` into ``comreg live --until-end`` (default
+    settings) on 127.0.0.1: live's completed process and the replay's output."""
     cli = [sys.executable, "-m", "comreg_core.cli"]
-    replay = subprocess.Popen(cli + ["replay", str(paused_sweep), "--port", "0", "--fps", "40",
+    replay = subprocess.Popen(cli + ["replay", str(sweep), "--port", "0", "--fps", "40",
                                      "--wait", "120"], cwd=REPO, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True)
     try:
         port = int(re.search(r":(\d+); waiting", replay.stderr.readline()).group(1))
-        live = subprocess.run(cli + ["live", "--igtl", f"127.0.0.1:{port}", "--ct", str(ct_stl),
+        live = subprocess.run(cli + ["live", "--igtl", f"127.0.0.1:{port}", "--ct", str(ct),
                                      "--out", str(out), "--until-end", "--no-report"],
                               cwd=REPO, capture_output=True, text=True, timeout=240)
         served, _ = replay.communicate(timeout=60)
     finally:
         replay.kill()
     assert live.returncode == 0, live.stderr
+    return live, served
+
+
+def test_forty_frames_a_second_for_ten_seconds_keep_the_queue_bounded(paused_sweep, ct_stl,
+                                                                     tmp_path):
+    out = tmp_path / "live"
+    live, served = _live(paused_sweep, ct_stl, out)
     timing = re.search(r"served 400 frames in ([\d.]+) s: 400 sent; on time within (\d+) ms",
                        served)
     assert timing and 9.9 <= float(timing.group(1)) <= 10.5, served
@@ -121,6 +135,32 @@ def test_forty_frames_a_second_for_ten_seconds_keep_the_queue_bounded(paused_swe
     result = json.loads((out / "result.json").read_text())
     assert result["n_points"] == len(np.load(out / "us_points_frames.npy"))
     assert set(np.unique(np.load(out / "us_points_frames.npy"))) <= set(range(0, 400, HELD))
+
+
+def test_a_full_search_s_answer_is_used_while_the_probe_rests(shared_data, ct_stl, tmp_path):
+    # 12 frames with new bone (0.3 s at 40 frames/s), then the probe rests for 6 s: every
+    # frame after is skipped (no new bone), and the answer of the first full search, asked
+    # for at the third frame, still makes an update while the stream goes on
+    sweep = _held_sweep(tmp_path / "held", [*range(40, 52), *[51] * 240], seed=5)
+    out = tmp_path / "live"
+    live, _ = _live(sweep, ct_stl, out)
+    with open(out / "frames.csv", newline="") as f:
+        frames = list(csv.DictReader(f))
+    assert [r["fate"] for r in frames] == ["used"] * 12 + ["skipped"] * 240
+    stream_end = float(frames[-1]["received_s"])
+    rows = read_updates(out / "updates.csv")
+    resting = [r for r in rows if r["time_s"] < stream_end - 0.5]
+    assert resting, (stream_end, [(r["time_s"], r["mode"]) for r in rows])
+    assert all(r["frames_used"] == 12 for r in resting)
+    # each of them an answer alone (no frame taken) or with the last new frames
+    assert resting[0]["mode"] == "warm+full"
+    alone = [r for r in rows if not np.isfinite(r["frame_age_s"])]
+    assert alone and all(r["mode"] == "warm+full" for r in alone)
+    assert alone[0]["time_s"] < stream_end - 0.5
+    # after the stream ended, at most FINAL_ANSWERS more answers
+    assert sum(r["time_s"] > stream_end for r in rows) <= FINAL_ANSWERS
+    assert re.search(r"12 of 252 frames registered; 240 skipped \(no new bone\)$", live.stdout,
+                     re.MULTILINE), live.stdout
 
 
 def _arrivals(sweep, **timing) -> tuple[list[float], object]:

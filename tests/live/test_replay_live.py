@@ -29,7 +29,8 @@ from scipy.spatial.transform import Rotation
 from comreg_core.io import read_points
 from comreg_core.io.tracked_us import read_tracked_sweep
 from comreg_core.live.replay import ReplayServer, frame_messages
-from comreg_core.live.run import FrameReceiver, finish_live, run_live, slicer_transform
+from comreg_core.live.receiver import FrameReceiver, slicer_transform
+from comreg_core.live.run import finish_live, run_live
 from comreg_core.live.session import LiveSession
 from comreg_core.live.updates import UPDATE_COLUMNS, read_updates, row_transform
 from comreg_core.register import register_to_directory

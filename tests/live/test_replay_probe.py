@@ -24,7 +24,8 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.io.tracked_us import read_tracked_sweep
-from comreg_core.live.run import FrameReceiver, run_live
+from comreg_core.live.receiver import FrameReceiver
+from comreg_core.live.run import run_live
 from comreg_core.live.session import LiveSession
 from comreg_core.live.stream import probe_calibration, recorded_probe_poses
 from tests.helpers import SHARED_DATA, assert_close
