@@ -7,9 +7,9 @@ and queues the frames; it never waits for the registration. The detection pipeli
 bone; dropped: too old; :class:`~comreg_core.live.intake.FrameGate`) and has the bone detected
 in worker processes (:class:`~comreg_core.live.detection.DetectionPool`). The update loop
 (:func:`run_live`, the caller's thread) takes the detections that came, or the answer of a full
-search running beside it as soon as it comes (with or without new frames: a probe held still
-sends frames without new bone), registers, sends a TRANSFORM and a STRING back, writes a row of
-``updates.csv`` and a status line. No server within the connect timeout
+search running beside it (with the next frame of new bone, or alone once none came for
+:data:`RESTING_S`: a probe held still sends frames without new bone), registers, sends a
+TRANSFORM and a STRING back, writes a row of ``updates.csv`` and a status line. No server within the connect timeout
 (``--connect-timeout``, the first connection only) ends the loop with :class:`NoServerError`
 before anything is written. A lost connection loses nothing registered (the client
 reconnects); ``--until-end`` stops when the server closes the stream (after the answers of the
@@ -49,6 +49,9 @@ log = logging.getLogger(__name__)
 #: running in the background (an update uses it); and how many such answers it waits for.
 FINAL_SEARCH_WAIT_S = 60.0
 FINAL_ANSWERS = 3
+#: Seconds without a frame of new bone after which a full search's answer makes an update alone
+#: (the probe rests); while frames come, it waits for the next frame's update.
+RESTING_S = 0.3
 #: File names of a live folder, besides those of a registration folder.
 UPDATES = "updates.csv"
 US_POINTS = "us_points.ply"
@@ -138,7 +141,7 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
     pipeline = DetectionPipeline(receiver, session.gate, pool or DetectionPool(0),
                                  session.clock)
     state = {"log": None, "told": set()}
-    ended, final_answers = False, 0
+    ended, final_answers, new_bone_s = False, 0, -math.inf
     next_update_s = -math.inf
     session.gate.update_every_s = update_every_s
     pipeline.start()
@@ -154,7 +157,10 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
                                     "--igtl, or wait longer (--connect-timeout).")
             if stop.is_set():  # a signal came during the wait
                 break
-            if batch.detections or session.answer_waiting():
+            if batch.detections:
+                new_bone_s = session.clock()
+            resting = ended or session.clock() - new_bone_s >= RESTING_S
+            if batch.detections or (resting and session.answer_waiting()):
                 start = session.clock()
                 _one_update(session, receiver, batch, state, out_dir, send_device, on_status,
                             on_note)
