@@ -12,8 +12,9 @@ start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg li
 - ``ok@mm``: the bone covered (mm along the CT's long axis, updates.csv's ``covered_mm``) at the
   first update whose verdict is OK, and whether that pose is correct: RTE < 4 mm and
   RRE < 5 deg at the points' centroid, against the pseudo ground truth (ICP of the whole
-  sweep's points from the recorded pose: :func:`comreg_core.demo.pseudo_ground_truth`);
-  ``ok@img``: the images received by then;
+  sweep's points from the recorded pose: :func:`comreg_core.demo.pseudo_ground_truth`),
+  starred (stress set) when it came after the stream's last frame; ``ok@img``: the images
+  received by then;
 - ``ok&wrong``: updates whose verdict was OK and whose pose was not correct (target: none);
 - ``final``: the verdict and correctness of the registration written on stop;
 - latency of the updates (median, 95th percentile; target median <= 0.2 s) and how many
@@ -165,7 +166,8 @@ def one_replay(start: int, rate: float, out: Path, ct: Path, model: Path | None,
 
 def frame_figures(out: Path) -> dict:
     """Per frame (``frames.csv``): how old the frames were when an update took them (median,
-    95th percentile, largest; s) and how many were skipped (no new bone) or dropped (lag)."""
+    95th percentile, largest; s), how many were skipped (no new bone) or dropped (lag), and
+    when the last one arrived (s since live was ready: the stream's end)."""
     with open(out / "frames.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     ages = np.array([float(r["age_s"]) for r in rows if r["age_s"]])
@@ -173,7 +175,8 @@ def frame_figures(out: Path) -> dict:
             "age_p95_s": float(np.percentile(ages, 95)) if len(ages) else None,
             "age_max_s": float(ages.max()) if len(ages) else None,
             "skipped": sum(r["fate"] == "skipped" for r in rows),
-            "dropped_lag": sum(r["fate"] == "lag" for r in rows)}
+            "dropped_lag": sum(r["fate"] == "lag" for r in rows),
+            "stream_end_s": max((float(r["received_s"]) for r in rows), default=None)}
 
 
 def figures(out: Path, T_truth: np.ndarray, run: dict) -> dict:
@@ -200,7 +203,10 @@ def figures(out: Path, T_truth: np.ndarray, run: dict) -> dict:
     unreported = (run["sent"] - run["received"]) + \
         (run["received"] - run["used"] - run["reported"])
     centroid = points.mean(axis=0)
-    return {"updates": len(rows), **frame_figures(out),
+    frames = frame_figures(out)
+    return {"updates": len(rows), **frames,
+            "ok_after_end": None if first is None or frames["stream_end_s"] is None
+            else rows[first]["time_s"] > frames["stream_end_s"],
             "final_rte_mm": translation_error_mm(T_final, T_truth, centroid),
             "final_rre_deg": rotation_error_deg(T_final, T_truth),
             "ok_at_mm": None if first is None else rows[first]["covered_mm"],
@@ -354,7 +360,7 @@ def stress(args, starts: list[int], methods: list, ct: Path, T_truth: np.ndarray
         f.update(timing=label, method=name, start=start, d_rte_mm=f["final_rte_mm"] - rte,
                  d_rre_deg=f["final_rre_deg"] - rre, register_rte_mm=rte, register_rre_deg=rre)
         rows.append(f)
-        print(f"{label:6} {name:9} {start:>5} {f['updates']:>4} {_fmt(f['ok_at_mm'], '6.0f')} "
+        print(f"{label:6} {name:9} {start:>5} {f['updates']:>4} {_ok_mm(f):>6} "
               f"{_fmt(None if f['ok_correct'] is None else 'yes' if f['ok_correct'] else 'NO', '>4')} "
               f"{f['ok_and_wrong']:>5} {f['final']:>11} "
               f"{_fmt(f['latency_median_s'], '7.2f')} {_fmt(f['latency_p95_s'], '7.2f')} "
@@ -374,11 +380,17 @@ def stress(args, starts: list[int], methods: list, ct: Path, T_truth: np.ndarray
               f"{sum(r['dropped_lag'] for r in sel)}, skipped {sum(r['skipped'] for r in sel)} "
               f"of {sum(r['received'] for r in sel)}; OK-and-wrong "
               f"{sum(r['ok_and_wrong'] for r in sel)}; first OK (mm) "
-              f"{', '.join(_fmt(r['ok_at_mm'], '.0f') for r in sel)}; final - register: "
+              f"{', '.join(_ok_mm(r) for r in sel)}; final - register: "
               f"RTE {_range([r['d_rte_mm'] for r in sel], '+.2f')} mm, RRE "
               f"{_range([r['d_rre_deg'] for r in sel], '+.2f')} deg", flush=True)
+    print("* the first OK came after the stream's last frame (with a full search's answer)")
     print(f"load average at the end {', '.join(f'{v:.1f}' for v in os.getloadavg())}; "
           f"figures in {args.out / 'bench_live_stress.json'}")
+
+
+def _ok_mm(row: dict) -> str:
+    """The first OK's bone (mm), starred when it came after the stream's last frame."""
+    return _fmt(row["ok_at_mm"], ".0f") + ("*" if row.get("ok_after_end") else "")
 
 
 def _fmt(value, spec: str) -> str:
