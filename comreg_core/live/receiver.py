@@ -1,7 +1,8 @@
 """The receiving side of ``comreg live`` (:class:`FrameReceiver`): the OpenIGTLink client's
 thread reads every message, pairs images with their poses and queues the frames for the update
-loop (:func:`~comreg_core.live.run.run_live`), which takes them in :class:`Batch` es and sends
-each update back (:func:`slicer_transform`)."""
+loop (:func:`~comreg_core.live.run.run_live`), which takes them in batches (:class:`Batch`) and
+sends each update back (:func:`slicer_transform`). A full queue (:data:`MAX_QUEUED` frames)
+drops its oldest frame, and says so."""
 
 from __future__ import annotations
 

@@ -9,14 +9,15 @@ in worker processes (:class:`~comreg_core.live.detection.DetectionPool`). The up
 (:func:`run_live`, the caller's thread) takes the detections that came, or the answer of a full
 search running beside it (with the next frame of new bone, or alone once none came for
 :data:`RESTING_S`: a probe held still sends frames without new bone), registers, sends a
-TRANSFORM and a STRING back, writes a row of ``updates.csv`` and a status line. No server within the connect timeout
-(``--connect-timeout``, the first connection only) ends the loop with :class:`NoServerError`
-before anything is written. A lost connection loses nothing registered (the client
-reconnects); ``--until-end`` stops when the server closes the stream (after the answers of the
-full searches the last updates ask for, up to :data:`FINAL_ANSWERS`). ``updates.csv`` is made
-at the first update. On stop, frames on their way are detected; :func:`finish_live` writes what
-``comreg register`` and ``comreg report`` would for the points
-(:func:`~comreg_core.register.register_to_directory`) and each frame's fate (``frames.csv``).
+TRANSFORM and a STRING back, writes a row of ``updates.csv`` and a status line. No server
+within the connect timeout (``--connect-timeout``, the first connection only) ends the loop
+with :class:`NoServerError` before anything is written. A lost connection loses nothing
+registered (the client reconnects); ``--until-end`` stops when the server closes the stream
+(after the answers of the full searches the last updates ask for, up to
+:data:`FINAL_ANSWERS`). ``updates.csv`` is made at the first update. On stop, frames on their
+way are detected; :func:`finish_live` writes what ``comreg register`` and ``comreg report``
+would for the points (:func:`~comreg_core.register.register_to_directory`) and each frame's
+fate (``frames.csv``).
 """
 
 from __future__ import annotations
@@ -50,9 +51,9 @@ log = logging.getLogger(__name__)
 FINAL_SEARCH_WAIT_S = 60.0
 FINAL_ANSWERS = 3
 #: Seconds without a frame of new bone after which a full search's answer makes an update alone
-#: (the probe rests); before, it waits for the next frame's update: an update with an answer
-#: judges as a full search (0.3-0.8 s at 7-40 frames/s on 2 cores), and a frame that comes
-#: meanwhile waits for it (after 0.3 s, oldest frame 0.52-0.78 s in 4 of 18 replays at x4).
+#: (the probe rests); before, it waits for the next frame's update. An update with an answer is
+#: judged as a full search (0.3-0.8 s on 2 cores), and a frame coming meanwhile would wait for
+#: it: a sweep's short pauses are left to the frames (docs/live.md).
 RESTING_S = 1.0
 #: File names of a live folder, besides those of a registration folder.
 UPDATES = "updates.csv"
