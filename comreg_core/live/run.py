@@ -135,8 +135,8 @@ def run_live(session: LiveSession, receiver: FrameReceiver, *, out_dir: str | Pa
     each update's status line, ``on_note`` each one-line note. ``pool``: the detection workers
     (None: detection in the pipeline's thread). ``update_every_s``: while frames wait for
     detection, an update starts at least this long after the one before (the frames detected
-    meanwhile wait for it), leaving the processor to detection. Frames still on their way when it stops are
-    detected then (no update), for :func:`finish_live`. Raises :class:`NoServerError` when the
+    meanwhile wait for it), leaving the processor to detection. Frames still on their way when
+    it stops are detected then (no update), for :func:`finish_live`. Raises :class:`NoServerError` when the
     receiver's connect timeout passed without a connection (``out_dir`` untouched then)."""
     on_status = on_status or (lambda line: log.info("%s", line))
     on_note = on_note or (lambda line: log.warning("%s", line))
