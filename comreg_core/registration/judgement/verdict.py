@@ -68,11 +68,9 @@ COVERAGE_SAMPLES = 10_000
 #: under the patch's 0.5) is overruled when the uncertainty weighs its clinically different
 #: competitor, refitted, at most at the OK line's odds: ``exp(-dC / 2) <= (1 - p) / p`` for
 #: ``p = OK_PROBABILITY`` (0.95), the fit preferring the chosen pose at least 19 to 1 (an
-#: excess cost of 5.9 chi-square units or more). That weight is already in ``p_basin``, so a competitor above it keeps ``p_raw``
-#: under 0.95 by itself; below it, ``p_correct`` decides. (1e-6 until 2026-12-06: it held back
-#: right prefixes of the real sweep whose competitor weighed 6e-3 to 9e-3 at ``p_correct``
-#: 0.98-0.99, while the wrong prefixes it once held, 4.4-4.6 mm off, now have ``p_correct``
-#: 0.50-0.84.)
+#: excess cost of 5.9 chi-square units or more). That weight is already in ``p_basin``, so a
+#: competitor above it keeps ``p_raw`` under 0.95 by itself; below it, ``p_correct`` decides
+#: (docs/calibration.md, the ambiguity at the OK line's odds).
 RULED_OUT_WEIGHT = (1.0 - OK_PROBABILITY) / OK_PROBABILITY
 
 
