@@ -36,7 +36,6 @@ Run them all: ``python -m pytest tests/test_docs.py -m 'slow or not slow'``.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import re
 import shutil
@@ -222,13 +221,6 @@ def _copy_repository(dest: Path) -> None:
     (dest / ".venv").symlink_to(REPO / ".venv")
 
 
-def _numba_cache_subdir(source_dir: Path) -> str:
-    """The folder numba gives the caches of ``source_dir``'s modules under ``NUMBA_CACHE_DIR``:
-    ``<folder name>_<sha1 of its absolute path>``."""
-    path = os.path.abspath(source_dir)
-    return f"{os.path.basename(path)}_{hashlib.sha1(path.encode()).hexdigest()}"
-
-
 def _copy_numba_cache_dir(dest: Path) -> None:
     """With ``NUMBA_CACHE_DIR`` set, numba keys each cache by its source folder's absolute
     path, so a copy of the repository would compile everything again: copy the checkout's
@@ -236,10 +228,13 @@ def _copy_numba_cache_dir(dest: Path) -> None:
     cache_dir = os.environ.get("NUMBA_CACHE_DIR")
     if not cache_dir:
         return
+    from numba.core.caching import _CacheLocator  # numba's own folder name for a source file
+
     for package in sorted({p.parent for p in REPO.glob("comreg_*/**/*.py")}):
-        source = Path(cache_dir) / _numba_cache_subdir(package)
+        copy = dest / package.relative_to(REPO)
+        source = Path(cache_dir) / _CacheLocator.get_suitable_cache_subpath(package / "x.py")
         if source.is_dir():
-            target = Path(cache_dir) / _numba_cache_subdir(dest / package.relative_to(REPO))
+            target = Path(cache_dir) / _CacheLocator.get_suitable_cache_subpath(copy / "x.py")
             shutil.copytree(source, target, dirs_exist_ok=True)
 
 
