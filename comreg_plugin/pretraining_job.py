@@ -72,6 +72,14 @@ class PretrainingStatus:
         return text
 
 
+def _interruptible() -> None:
+    """In the child before it runs: SIGINT to its default, which Python turns into
+    KeyboardInterrupt. A program started in the background by a shell (a test run, a script)
+    inherits SIGINT ignored, and :meth:`PretrainingJob.cancel`'s interrupt would then wait its
+    timeout and kill the process."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class PretrainingJob:
     """``comreg pretrain`` running in a background process; nothing here blocks.
 
@@ -105,6 +113,7 @@ class PretrainingJob:
             kwargs["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP
         else:
             kwargs["start_new_session"] = True  # its own process group: signals reach only it
+            kwargs["preexec_fn"] = _interruptible  # cancel's SIGINT must reach it
         try:
             self.process = subprocess.Popen(self.command, stdout=console, stderr=subprocess.STDOUT,
                                             stdin=subprocess.DEVNULL, env=env,

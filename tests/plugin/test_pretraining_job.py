@@ -5,6 +5,7 @@ Fake trainer processes keep these fast; a real failed CLI run goes through the L
 from __future__ import annotations
 
 import os
+import signal
 import stat
 import sys
 from pathlib import Path
@@ -70,13 +71,19 @@ def test_status_lines():
 
 
 def test_cancel_stops_the_process_and_removes_temporary_files(tmp_path):
-    job = _job(tmp_path, "import time; time.sleep(120)")
+    """Started as by a program a shell put in the background (SIGINT ignored, which children
+    inherit), the job is still interrupted, not killed after the timeout."""
+    ours = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        job = _job(tmp_path, "import time; time.sleep(120)")
+    finally:
+        signal.signal(signal.SIGINT, ours)
     assert job.running and job.poll().state == "running"
     leftover = job.runDirectory / ".checkpoint.pt.abc123.tmp.pt"
     leftover.write_bytes(b"half a checkpoint")
     assert job.temporaryFiles() == [leftover]
     status = job.cancel(timeoutSeconds=20)
-    assert status.state == "cancelled" and status.returnCode not in (None, 0)
+    assert status.state == "cancelled" and status.returnCode == -signal.SIGINT  # not SIGKILL
     assert not job.running and not leftover.exists()
     with pytest.raises(ComRegError, match="not running"):
         job.cancel()
