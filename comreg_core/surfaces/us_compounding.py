@@ -10,6 +10,7 @@ from comreg_core.config import ConfigError
 from comreg_core.errors import ComRegError
 from comreg_core.io.sweeps import TrackedSweep
 from comreg_core.io.volumes import Volume
+from comreg_core.surfaces.us_kernels import bin_max, bin_sum, divide_by_count
 
 
 def compounding_grid(sweep: TrackedSweep, spacing_mm=0.5, clip_origin=(0, 0), clip_size=None
@@ -48,32 +49,31 @@ def compound_sweep(sweep: TrackedSweep, spacing_mm: float = 0.5, mode: str = "me
     rr, cc = rr.ravel(), cc.ravel()
     local = np.column_stack([cc * sweep.spacing[0], rr * sweep.spacing[1]])
     size = int(np.prod(dims))
-    total = np.zeros(size, dtype=np.float64) if mode == "mean" else None
-    count = np.zeros(size, dtype=np.int64) if mode == "mean" else None
-    peak = np.zeros(size, dtype=np.float64) if mode == "max" else None
-    frames = np.flatnonzero(sweep.valid)
-    per_chunk = max(1, 5_000_000 // max(len(rr), 1))  # pixels binned together
+    frames, dtype = np.flatnonzero(sweep.valid), sweep.frames.dtype
+    total = np.zeros(size, dtype=np.float64)  # the sums, then the means; or the maxima
+    count = np.zeros(size, dtype=np.int32 if len(rr) * len(frames) < 2**31 else np.int64) \
+        if mode == "mean" else None
+    # small integer pixels sum exactly in any order; other pixels are summed in order per chunk
+    # of frames, then added to the total
+    exact = mode == "max" or (dtype.kind in "biu" and dtype.itemsize <= 2)
+    per_chunk = max(1, 5_000_000 // max(len(rr), 1))
+    p = np.empty((len(rr), 3))  # the pixels' positions (mm from the origin) in one frame
     for start in range(0, len(frames), per_chunk):
-        flat_parts, value_parts = [], []
+        part = total if exact else np.zeros(size, dtype=np.float64)
         for f in frames[start:start + per_chunk]:
             T = sweep.T_ref_image[f]
-            p = local @ T[:3, :2].T + (T[:3, 3] - origin)
-            ijk = np.rint(p / spacing_mm).astype(np.int64)
-            inside = np.all((ijk >= 0) & (ijk < dims), axis=1)
-            flat_parts.append(np.ravel_multi_index(ijk[inside].T, dims, order="F"))
-            value_parts.append(sweep.frames[f][rr[inside], cc[inside]].astype(np.float64))
-        flat, values = np.concatenate(flat_parts), np.concatenate(value_parts)
-        if mode == "mean":
-            total += np.bincount(flat, weights=values, minlength=size)
-            count += np.bincount(flat, minlength=size)
-        else:
-            np.maximum.at(peak, flat, values)
+            np.matmul(local, T[:3, :2].T, out=p)
+            p += T[:3, 3] - origin
+            if mode == "mean":
+                bin_sum(p, float(spacing_mm), dims, sweep.frames[f], rr, cc, part, count)
+            else:
+                bin_max(p, float(spacing_mm), dims, sweep.frames[f], rr, cc, part)
+        if part is not total:
+            total += part
     if mode == "mean":
-        array = np.where(count > 0, total / np.maximum(count, 1), 0.0)
-    else:
-        array = peak
-    dtype = sweep.frames.dtype
+        divide_by_count(total, count)
+    array = total
     if dtype.kind in "ui":
-        array = np.rint(array)
+        array = np.rint(array, out=array)
     array = array.astype(dtype).reshape(tuple(dims), order="F")
     return Volume.from_geometry(array, (spacing_mm,) * 3, origin, np.eye(3), "LPS")

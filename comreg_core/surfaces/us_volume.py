@@ -36,6 +36,7 @@ from scipy import ndimage
 from comreg_core.errors import ComRegError
 from comreg_core.io.sweeps import TrackedSweep
 from comreg_core.io.volumes import Volume
+from comreg_core.surfaces.us_kernels import fill_slices, may_exceed_zero, reach_of
 
 #: ``--beam-direction`` choices: ``auto`` or a voxel index axis of the volume, either way.
 BEAM_DIRECTIONS = ("auto", "x", "-x", "y", "-y", "z", "-z")
@@ -204,8 +205,8 @@ def volume_as_sweep(volume: Volume, beam: np.ndarray, normal: np.ndarray | None 
     covered = volume.array > 0
     M = volume.ijk_to_space
     beam = _unit(np.asarray(beam, float))
-    points = np.argwhere(covered)[:: max(1, int(covered.sum()) // 200_000)] @ M[:3, :3].T \
-        + M[:3, 3]
+    where = _argwhere(covered)
+    points = where[:: max(1, len(where) // 200_000)] @ M[:3, :3].T + M[:3, 3]
     normal = slicing_normal(volume, beam, normal, points)
     across = np.cross(beam, normal)  # columns; (across, beam, normal) is right-handed
     basis = np.stack([normal, beam, across])
@@ -218,21 +219,14 @@ def volume_as_sweep(volume: Volume, beam: np.ndarray, normal: np.ndarray | None 
     fine = int(span[0] // pixel) + 1
     every = max(1, int(round(slice_mm / pixel)))
     rows, cols = (int(v) for v in np.ceil(span[1:] / pixel) + 1)
-    Minv = np.linalg.inv(M)
     rr, cc = np.meshgrid(np.arange(rows) * pixel, np.arange(cols) * pixel, indexing="ij")
     plane = lo[1] * beam + lo[2] * across + rr[..., None] * beam + cc[..., None] * across
-    values = np.zeros((fine, rows, cols), np.float32)
-    imaged = np.zeros((fine, rows, cols), bool)
-    coverage = covered.astype(np.float32)
-    for k in range(fine):
-        ijk = ((plane + (lo[0] + k * pixel) * normal).reshape(-1, 3) @ Minv[:3, :3].T
-               + Minv[:3, 3]).T
-        values[k] = ndimage.map_coordinates(array, ijk, order=0 if labels else 1,
-                                            cval=0.0).reshape(rows, cols)
-        imaged[k] = ndimage.map_coordinates(coverage, ijk, order=1,
-                                            cval=0.0).reshape(rows, cols) > 0.5
-    frames = values.astype(np.uint8) if labels else _fill_slices(values, imaged, pixel)
-    frames = frames[::every]
+    starts = lo[0] + np.arange(fine) * pixel
+    if labels:
+        frames = _resample_labels(array, M, plane, starts, normal)[::every]
+    else:
+        frames = fill_slices(*_resample(array, covered, M, plane, starts, normal), pixel,
+                             MAX_GAP_MM, every)
     n_slices = len(frames)
     T = np.tile(np.eye(4), (n_slices, 1, 1))
     T[:, :3, 0], T[:, :3, 1], T[:, :3, 2] = across, beam, normal
@@ -243,22 +237,52 @@ def volume_as_sweep(volume: Volume, beam: np.ndarray, normal: np.ndarray | None 
                         frame_names=[f"slice{k:04d}" for k in range(n_slices)], path=volume.path)
 
 
-def _fill_slices(values: np.ndarray, imaged: np.ndarray, slice_mm: float) -> np.ndarray:
-    """uint8 slices ``(K, H, W)``: pixels not imaged interpolated along the slice axis between
-    the nearest imaged ones (gaps up to :data:`MAX_GAP_MM`), the rest set to their slice's
-    median imaged value."""
-    k = np.arange(len(values))[:, None, None]
-    before = np.maximum.accumulate(np.where(imaged, k, -1), axis=0)
-    after = np.minimum.accumulate(np.where(imaged, k, len(values))[::-1], axis=0)[::-1]
-    bridged = (before >= 0) & (after < len(values)) & ((after - before) * slice_mm <= MAX_GAP_MM)
-    v0 = np.take_along_axis(values, np.clip(before, 0, len(values) - 1), axis=0)
-    v1 = np.take_along_axis(values, np.clip(after, 0, len(values) - 1), axis=0)
-    w = np.where(after > before, (k - before) / np.maximum(after - before, 1), 0.0)
-    filled = np.where(imaged, values, np.where(bridged, (1 - w) * v0 + w * v1, np.nan))
-    for s in filled:
-        known = np.isfinite(s)
-        s[~known] = float(np.median(s[known])) if known.any() else 0.0
-    return np.clip(np.rint(filled), 0, 255).astype(np.uint8)
+def _argwhere(mask: np.ndarray) -> np.ndarray:
+    """``np.argwhere(mask)`` ``(n, 3)`` (the same array, C order), without copying a Fortran
+    ordered ``mask`` (volumes are read so) to C order."""
+    if not mask.flags.f_contiguous:
+        return np.argwhere(mask)
+    where = np.unravel_index(np.flatnonzero(mask.T), mask.shape, order="F")
+    return np.stack(np.unravel_index(np.sort(np.ravel_multi_index(where, mask.shape)),
+                                     mask.shape)).T
+
+
+def _slice_ijk(Minv: np.ndarray, plane: np.ndarray, start: float, normal: np.ndarray
+               ) -> np.ndarray:
+    """``(H * W, 3)`` voxel index coordinates of the slice ``plane + start * normal``
+    (``plane`` ``(H, W, 3)`` mm; ``Minv``: the volume's ``space -> ijk``)."""
+    return (plane + start * normal).reshape(-1, 3) @ Minv[:3, :3].T + Minv[:3, 3]
+
+
+def _resample_labels(array, M, plane, starts, normal) -> np.ndarray:
+    """uint8 slices ``(K, H, W)`` of ``array`` at ``plane + starts[k] * normal`` (nearest
+    voxel, 0 outside)."""
+    slices, Minv = np.zeros((len(starts), *plane.shape[:2]), np.uint8), np.linalg.inv(M)
+    for k, start in enumerate(starts):
+        ijk = _slice_ijk(Minv, plane, start, normal).T
+        slices[k] = ndimage.map_coordinates(array, ijk, order=0, cval=0.0).reshape(
+            plane.shape[:2]).astype(np.uint8)
+    return slices
+
+
+def _resample(array, covered, M, plane, starts, normal) -> tuple[np.ndarray, np.ndarray]:
+    """``(values (K, H, W) float32, imaged (K, H, W) bool)``: the slices ``plane + starts[k] *
+    normal`` of ``array`` (trilinear), imaged where the trilinear coverage ``covered`` is above
+    0.5; values are only resampled where imaged (0 elsewhere). Only the points next to a covered
+    voxel are interpolated: the others are 0."""
+    shape = (len(starts), *plane.shape[:2])
+    values, imaged = np.zeros(shape, np.float32), np.zeros(shape, bool)
+    reach = [a.T for a in reach_of(covered.T)] if covered.flags.c_contiguous \
+        else reach_of(covered)
+    coverage, Minv = covered.astype(np.float32), np.linalg.inv(M)
+    for k, start in enumerate(starts):
+        ijk = _slice_ijk(Minv, plane, start, normal)
+        near = may_exceed_zero(ijk, *reach)
+        near = near[ndimage.map_coordinates(coverage, ijk[near].T, order=1, cval=0.0) > 0.5]
+        imaged[k].reshape(-1)[near] = True
+        values[k].reshape(-1)[near] = ndimage.map_coordinates(array, ijk[near].T, order=1,
+                                                              cval=0.0)
+    return values, imaged
 
 
 def extract_volume_surface(volume: Volume, beam_direction: str = "auto", config=None, *,
