@@ -17,7 +17,7 @@ else
   .venv/bin/python -m pip install --quiet "torch==2.13.0"
 fi
 .venv/bin/python -m pip install --quiet -e ".[test]"
-# Compile the pose search's kernels once (numba caches them beside the code: ~30 s here
-# instead of in the first registration).
-.venv/bin/python -c "from comreg_core.registration.geometry.kernels import compile_kernels; compile_kernels(); from comreg_core.registration.judgement.uncertainty_kernels import compile_uncertainty_kernels; compile_uncertainty_kernels()"
+# Compile every kernel once (numba caches them beside the code: ~35 s here instead of in the
+# first registration, bone detection, live session or volume).
+.venv/bin/python -c "from comreg_core.registration.geometry.kernels import compile_kernels; compile_kernels(); from comreg_core.registration.judgement.uncertainty_kernels import compile_uncertainty_kernels; compile_uncertainty_kernels(); from comreg_core.live.igtl import crc64; crc64(b'ComReg')"
 .venv/bin/comreg --version

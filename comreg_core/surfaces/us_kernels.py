@@ -141,3 +141,19 @@ def fill_slices(values, imaged, slice_mm, max_gap_mm, every):
                 x = np.rint(filled[r, c] if known[r, c] else rest)
                 out[k // every, r, c] = np.uint8(min(max(x, 0.0), 255.0))
     return out
+
+
+def compile_us_kernels() -> None:
+    """Compile (or load from numba's cache) these kernels on tiny problems, with the types and
+    layouts the volume paths give them (uint8 frames; volumes read in Fortran order): the
+    set-up script calls it (:func:`~comreg_core.registration.geometry.kernels.compile_kernels`)
+    so that the first volume does not wait for the compiler."""
+    dims = np.array([2, 2, 2], dtype=np.int64)
+    p, pixels = np.zeros((4, 3)), np.zeros(4, dtype=np.int64)
+    frame, total, count = np.zeros((2, 2), np.uint8), np.zeros(8), np.zeros(8, np.int32)
+    bin_sum(p, 0.5, dims, frame, pixels, pixels, total, count)
+    bin_max(p, 0.5, dims, frame, pixels, pixels, total)
+    divide_by_count(total, count)
+    reach, blocks = reach_of(np.zeros((2, 2, 2), bool, order="F"))
+    may_exceed_zero(np.zeros((4, 3)), reach, blocks)
+    fill_slices(np.zeros((2, 2, 2), np.float32), np.zeros((2, 2, 2), bool), 0.5, 2.0, 1)

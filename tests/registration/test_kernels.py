@@ -131,3 +131,45 @@ def test_closest_on_candidates_matches_the_numpy_voronoi_tests(fibula_surface):
     serial = mesh_kernels.closest_on_candidates_serial(points, candidates, vertices, faces)
     for parallel, alone in zip((closest, face, dist), serial):  # the same numbers, bit for bit
         np.testing.assert_array_equal(parallel, alone)
+
+
+#: Run in a fresh process (kernels other tests called are compiled already): the compiled
+#: kernels of comreg_core that no other kernel calls (those are compiled into their callers),
+#: with or without a compiled signature after the set-up's compile functions.
+_ENTRY_POINTS = """
+import importlib, inspect, json, pkgutil, re
+import comreg_core
+from numba.core.registry import CPUDispatcher
+from comreg_core.registration.geometry.kernels import compile_kernels
+from comreg_core.registration.judgement.uncertainty_kernels import compile_uncertainty_kernels
+from comreg_core.live.igtl import crc64
+
+compile_kernels()
+compile_uncertainty_kernels()
+crc64(b"ComReg")
+found = {}
+for info in pkgutil.walk_packages(comreg_core.__path__, "comreg_core."):
+    if not info.name.endswith("__main__"):
+        module = importlib.import_module(info.name)
+        found.update({f"{info.name}.{name}": obj for name, obj in vars(module).items()
+                      if isinstance(obj, CPUDispatcher) and obj.__module__ == info.name})
+sources = {key: inspect.getsource(kernel.py_func) for key, kernel in found.items()}
+called = {key for key in found for other, source in sources.items()
+          if other != key and re.search(rf"\\b{key.rsplit('.', 1)[1]}\\(", source)}
+print(json.dumps({key: bool(found[key].signatures) for key in sorted(set(found) - called)}))
+"""
+
+
+def test_the_set_up_compiles_every_kernel_python_calls():
+    """``compile_kernels``, ``compile_uncertainty_kernels`` and a first ``crc64`` (live's;
+    scripts/setup-env.sh calls all three) leave no kernel for the first registration, detection, live update or volume to
+    compile."""
+    import json
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", _ENTRY_POINTS], capture_output=True, text=True,
+                         check=True)
+    compiled = json.loads(run.stdout.strip().splitlines()[-1])
+    assert len(compiled) >= 20, compiled  # measured: 25
+    assert [name for name, done in compiled.items() if not done] == []

@@ -344,7 +344,8 @@ def transform_points(R, t, points):
 
 def compile_kernels() -> None:
     """Compile (or load from numba's cache) every kernel on a tiny problem: the set-up script
-    calls it so that the first registration does not wait for the compiler."""
+    calls it so that the first registration, bone detection, live update or volume does not
+    wait for the compiler (tests/registration/test_kernels.py checks that none is left out)."""
     eye = np.tile(np.eye(4), (2, 1, 1))
     points = np.random.default_rng(0).normal(size=(12, 3))
     normals = points / np.linalg.norm(points, axis=1, keepdims=True)
@@ -364,6 +365,20 @@ def compile_kernels() -> None:
     from comreg_core.surfaces.us_detector import _viterbi  # the bone detector's kernel
 
     _viterbi(np.zeros((4, 3), dtype=np.float32), 1, 0.5, 1.0)  # the detector's gains
+    from comreg_core.surfaces.us_detector import detect_bone_surface  # its filters, percentiles
+
+    frame = np.full((160, 120), 20, dtype=np.uint8)
+    frame[80:84] = 250  # a bright echo over a shadow
+    detect_bone_surface(frame, (0.1, 0.1))
+    from comreg_core.surfaces.us_denoise_incremental import IncrementalDenoise  # live's
+
+    clean_up = IncrementalDenoise()
+    for frame_index in range(2):
+        clean_up.add(points * 0.1, np.full(12, frame_index), np.ones(12))
+        clean_up.cloud(frame_index + 1, frame_index + 1)
     from comreg_core.surfaces.us_denoise import cluster_labels  # the clean-up's kernel
 
     cluster_labels(points, 1.0, 2)
+    from comreg_core.surfaces.us_kernels import compile_us_kernels  # the volume paths'
+
+    compile_us_kernels()
