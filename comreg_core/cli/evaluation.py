@@ -173,6 +173,12 @@ CALIBRATE_LENGTHS = typer.Option("30,80", "--lengths", rich_help_panel=SWEEPS, h
                                  "and longest sweep, mm: the lengths you expect to scan.")
 CALIBRATE_SEED = typer.Option(0, "--seed", min=0, rich_help_panel=SWEEPS,
                                help="Random seed of the simulated sweeps.")
+# comreg_core.evaluation.calibrate.PRIOR_KINDS
+CALIBRATE_PRIOR = typer.Option("none", "--prior", rich_help_panel=SWEEPS, help="What your "
+                               "registrations will know: none, init (an initial pose, "
+                               "'register --init') or landmark ('register --landmarks'); each "
+                               "sweep is registered within such a simulated prior. Use the "
+                               "calibration of the kind you register with.")
 
 
 @app.command("calibrate", rich_help_panel=PANEL)
@@ -182,6 +188,7 @@ def calibrate(
     lengths: str = CALIBRATE_LENGTHS,
     seed: int = CALIBRATE_SEED,
     out: Path = CALIBRATE_OUT,
+    prior: str = CALIBRATE_PRIOR,
 ) -> None:
     """Calibrate the verdict for this CT: register simulated one-face sweeps of it by the pose
     search, see which come out within 4 mm / 5 deg of the truth, and fit how the verdict's
@@ -205,7 +212,7 @@ def calibrate(
 
     path, calibration = calibrate_to_directory(ct_mesh, out, sweeps=sweeps,
                                                lengths_mm=(low, high), seed=seed,
-                                               progress=progress)
+                                               progress=progress, prior=prior)
     typer.echo(f"Wrote {path}: {calibration.sweeps} simulated sweeps, "
                f"{100 * calibration.correct_share:.0f} % registered within 4 mm / 5 deg.")
     for row in calibration.reliability:

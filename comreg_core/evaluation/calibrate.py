@@ -44,6 +44,50 @@ DRIFT_DEG, DRIFT_MM = 1.5, 1.5
 #: 0.9999999995 with 160: 17 of the 52 of 160 sweeps at ``p_raw`` >= 0.95 were wrong,
 #: 2026-12-06); ~1.5 s a sweep on an idle 2-core machine.
 CALIBRATION_SWEEPS = 60
+#: What the operating room knows, simulated on each calibration sweep (``comreg calibrate
+#: --prior``): nothing, an initial pose or one landmark (:func:`simulated_prior`). A map fitted
+#: without a prior under-rates registrations that have one (on the real fibula's runs, 0.26 /
+#: 0.63-0.67 predicted / observed below 0.5; docs/calibration.md).
+PRIOR_KINDS = ("none", "init", "landmark")
+#: The simulated initial pose's largest error (deg, mm: ``--init``'s default tolerances), and
+#: the simulated landmark's CT point's error and tolerance (mm).
+INIT_DEG, INIT_MM = 30.0, 30.0
+LANDMARK_OFF_MM, LANDMARK_TOLERANCE_MM = 10.0, 15.0
+
+
+def simulated_prior(rng: np.random.Generator, kind: str, T_true: np.ndarray, moved: np.ndarray,
+                    space: str):
+    """A :class:`~comreg_core.registration.search.priors.Prior` of ``kind`` around the true
+    pose ``T_true`` ``(4, 4)`` of the US points ``moved`` ``(n, 3)``, or None for ``none``:
+    ``init``, an initial pose turned by up to :data:`INIT_DEG` (a random axis, the angle
+    uniform) and moved by up to :data:`INIT_MM` (a random direction, the length uniform) about
+    the placed US centroid, searched within those tolerances; ``landmark``, one of the US points
+    paired with its true CT point moved :data:`LANDMARK_OFF_MM` in a random direction, within
+    :data:`LANDMARK_TOLERANCE_MM`."""
+    import math
+
+    from scipy.spatial.transform import Rotation
+
+    from comreg_core.registration.search.priors import Landmark, Prior
+    from comreg_core.transforms import apply_transform
+
+    if kind == "none":
+        return None
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    if kind == "landmark":
+        us_point = moved[rng.integers(len(moved))]
+        ct_point = apply_transform(T_true, us_point[None])[0] + LANDMARK_OFF_MM * direction
+        return Prior(landmarks=(Landmark("L1", ct_point, us_point, LANDMARK_TOLERANCE_MM),),
+                     space=space)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    R = Rotation.from_rotvec(axis * math.radians(rng.uniform(0.0, INIT_DEG))).as_matrix()
+    centre = apply_transform(T_true, moved.mean(axis=0)[None])[0]
+    D = np.eye(4)
+    D[:3, :3] = R
+    D[:3, 3] = centre - R @ centre + direction * rng.uniform(0.0, INIT_MM)
+    return Prior(T_init=D @ T_true, max_deg=INIT_DEG, max_mm=INIT_MM, space=space)
 
 
 def tracking_drift(points: np.ndarray, slice_index: np.ndarray, rng: np.random.Generator,
@@ -78,19 +122,25 @@ def calibration_sweep_config(lengths_mm: tuple[float, float]):
 def calibrate(ct_mesh, *, sweeps: int = CALIBRATION_SWEEPS,
               lengths_mm: tuple[float, float] = (30.0, 80.0), noise_mm: float = NOISE_MM,
               drift_deg: float = DRIFT_DEG, drift_mm: float = DRIFT_MM, seed: int = 0,
-              progress: Progress | None = None) -> Calibration:
+              progress: Progress | None = None, prior: str = "none") -> Calibration:
     """Register ``sweeps`` simulated sweeps of ``ct_mesh`` (a path or ``(vertices, faces)``)
-    and fit the calibration (module docstring). Deterministic for a given seed."""
+    and fit the calibration (module docstring); each sweep within a :func:`simulated_prior`
+    of kind ``prior`` (:data:`PRIOR_KINDS`), for registrations that will have one.
+    Deterministic for a given seed."""
     from comreg_core.errors import ComRegError
     from comreg_core.register import Registrar
     from comreg_core.register.judge import Evidence, judge
     from comreg_core.registration.geometry.metrics import registration_metrics
     from comreg_core.registration.geometry.surface import ct_length_mm
+    from comreg_core.registration.judgement.prior_reasons import prior_allows
     from comreg_core.simulation import BoneModel, sample_initial_pose, simulate_sweep
     from comreg_core.surfaces.us_points import beam_origins
     from comreg_core.training.checkpoint import ct_fingerprint
     from comreg_core.transforms import apply_transform, invert_rigid
 
+    if prior not in PRIOR_KINDS:
+        raise ComRegError(f"Unknown calibration prior '{prior}'.",
+                          f"Use one of {', '.join(PRIOR_KINDS)}.")
     if sweeps < 4:
         raise ComRegError(f"A calibration needs at least 4 sweeps, got {sweeps}.", "")
     if not 0 < lengths_mm[0] <= lengths_mm[1]:
@@ -109,10 +159,13 @@ def calibrate(ct_mesh, *, sweeps: int = CALIBRATION_SWEEPS,
         origins = beam_origins(sweep.points, sweep.trajectory.T_ct_image[sweep.slice_index])
         T_p = sample_initial_pose(rng, "paper", surface.bbox_centre)
         moved = apply_transform(T_p, points)
-        result = registrar.register(moved, beam_origins=apply_transform(T_p, origins))
+        known = simulated_prior(rng, prior, invert_rigid(T_p), moved, registrar.space)
+        result = registrar.register(moved, beam_origins=apply_transform(T_p, origins),
+                                    prior=known)
         errors = registration_metrics(result.T_ct_us, invert_rigid(T_p), moved, surface)
         ok = errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0
-        evidence = Evidence.of(result, moved, length)
+        evidence = Evidence.of(result, moved, length,
+                               allowed=None if known is None else prior_allows(known, result))
         figures = judge(moved, result.T_ct_us, surface, evidence).figures
         p_raw = figures["p_raw"] if figures["p_raw"] is not None else 0.0
         raw.append(p_raw)
@@ -124,7 +177,8 @@ def calibrate(ct_mesh, *, sweeps: int = CALIBRATION_SWEEPS,
                                     f"{'correct' if ok else 'wrong'}, p_raw {p_raw:.2f}")
     settings: dict[str, Any] = {"lengths_mm": list(lengths_mm), "noise_mm": noise_mm,
                                 "drift_deg": drift_deg, "drift_mm": drift_mm,
-                                "seed": seed, "perturbation": "paper", "method": "search"}
+                                "seed": seed, "perturbation": "paper", "method": "search",
+                                "prior": prior}
     calibration = fit_calibration(np.array(raw), np.array(correct),
                                   ct_length_mm=length, settings={**settings, "trials": rows},
                                   ct_fingerprint=ct_fingerprint(surface.vertices, surface.faces))

@@ -9,8 +9,8 @@ Per set and prior, every method (``search``: the pose search alone; ``comreg``: 
 that CT, then the search; ``untrained``: the same network at 0 epochs, the control) registers
 ``--trials`` sweeps moved by the paper's random poses, with beam origins, and is judged as
 ``comreg register`` judges: the verdict with the per-patient calibration of ``p_correct``
-(``comreg calibrate``; ``--calibration-sweeps`` simulated sweeps of that CT, cached in
-``out/bench_partial/``) and the prior's reasons. Columns: success (RTE < 4 mm and RRE < 5 deg; the
+(``comreg calibrate --prior`` of the set's kind of prior; ``--calibration-sweeps`` simulated
+sweeps of that CT, cached in ``out/bench_partial/``) and the prior's reasons. Columns: success (RTE < 4 mm and RRE < 5 deg; the
 truth of the real sets: the pseudo ground truth, ICP of the whole real sweep from its recorded
 pose, as the paper and the demo judge, :func:`whole_sweep_truth`, not the recording itself),
 unflagged wrong (share of all trials: wrong and verdict OK), correct unflagged (share of the
@@ -27,15 +27,12 @@ it). ``real-fibula-union``: two real runs whose centroids lie at least 150 mm ap
 from __future__ import annotations
 
 import itertools
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 
 CACHE = Path("out/bench_partial")
-INIT_DEG, INIT_MM = 30.0, 30.0
-LANDMARK_OFF_MM, LANDMARK_TOLERANCE_MM = 10.0, 15.0
 UNION_MIN_MM = 150.0
 
 
@@ -50,44 +47,26 @@ def union_runs(runs: list) -> list:
 
 def sample_prior(rng, kind: str, T_true: np.ndarray, moved: np.ndarray, space: str):
     """A :class:`~comreg_core.registration.search.priors.Prior` of ``kind`` around ``T_true`` (module
-    docstring), or None for ``none``."""
-    from scipy.spatial.transform import Rotation
+    docstring), or None for ``none``: the one ``comreg calibrate --prior`` simulates."""
+    from comreg_core.evaluation.calibrate import simulated_prior
 
-    from comreg_core.registration.search.priors import Landmark, Prior
-    from comreg_core.transforms import apply_transform
-
-    if kind == "none":
-        return None
-    direction = rng.normal(size=3)
-    direction /= np.linalg.norm(direction)
-    if kind == "landmark":
-        us_point = moved[rng.integers(len(moved))]
-        ct_point = apply_transform(T_true, us_point[None])[0] + LANDMARK_OFF_MM * direction
-        return Prior(landmarks=(Landmark("L1", ct_point, us_point, LANDMARK_TOLERANCE_MM),),
-                     space=space)
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    R = Rotation.from_rotvec(axis * math.radians(rng.uniform(0.0, INIT_DEG))).as_matrix()
-    centre = apply_transform(T_true, moved.mean(axis=0)[None])[0]
-    D = np.eye(4)
-    D[:3, :3] = R
-    D[:3, 3] = centre - R @ centre + direction * rng.uniform(0.0, INIT_MM)
-    return Prior(T_init=D @ T_true, max_deg=INIT_DEG, max_mm=INIT_MM, space=space)
+    return simulated_prior(rng, kind, T_true, moved, space)
 
 
-def calibration_for(bone: str, ct, sweeps: int):
-    """The CT's calibration (made once, then read from :data:`CACHE`)."""
+def calibration_for(bone: str, ct, sweeps: int, prior: str = "none"):
+    """The CT's calibration for registrations with a ``prior`` of that kind (``comreg calibrate
+    --prior``; made once, then read from :data:`CACHE`)."""
     from comreg_core.evaluation.calibrate import calibrate
     from comreg_core.registration.judgement.calibration import CALIBRATION_FORMAT, Calibration
 
-    path = CACHE / f"calibration_v{CALIBRATION_FORMAT}_{bone}_{sweeps}.json"
+    path = CACHE / f"calibration_v{CALIBRATION_FORMAT}_{bone}_{sweeps}_{prior}.json"
     if path.is_file():
         return Calibration.load(path)
     start = time.perf_counter()
-    calibration = calibrate(ct, sweeps=sweeps)
+    calibration = calibrate(ct, sweeps=sweeps, prior=prior)
     CACHE.mkdir(parents=True, exist_ok=True)
     calibration.save(path)
-    print(f"calibrated {bone} on {sweeps} sweeps in {time.perf_counter() - start:.0f} s: "
+    print(f"calibrated {bone} (prior {prior}) on {sweeps} sweeps in {time.perf_counter() - start:.0f} s: "
           f"{100 * calibration.correct_share:.0f} % correct; p_raw -> p_correct "
           f"{', '.join(f'{x:.2f}->{y:.2f}' for x, y in zip(*calibration.knots.values()))}",
           flush=True)
@@ -204,13 +183,13 @@ def run_trust(args, sets: list[str]) -> None:
             T_truth = whole_sweep_truth(SHARED_DATA, ct)
             if name.endswith("-union"):
                 runs = union_runs(runs)
-        calibration = calibration_for(bone, ct, args.calibration_sweeps)
         methods = {"search": Registrar.from_ct(ct)}
         for label, given in (("comreg", args.model), ("untrained", args.untrained)):
             by_bone = dict(a.split("=", 1) for a in given)
             if bone in by_bone:
                 methods[label] = Registrar.from_run(by_bone[bone], "cpu")
         for prior in (["none"] if name.endswith("-union") else args.prior.split(",")):
+            calibration = calibration_for(bone, ct, args.calibration_sweeps, prior)
             start = time.perf_counter()
             rows = trust_trials(methods, runs, ct, calibration, prior, args.trials, args.seed,
                                 T_truth)

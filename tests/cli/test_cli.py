@@ -47,6 +47,46 @@ def test_calibrate_s_default_number_of_sweeps_is_the_library_s():
     assert calibrate.__kwdefaults__["sweeps"] == CALIBRATION_SWEEPS
 
 
+def test_calibrate_with_a_prior_registers_each_sweep_within_one_and_records_it(tmp_path):
+    """`comreg calibrate --prior landmark` registers each simulated sweep within a simulated
+    landmark and records the kind in the file; an unknown kind is one line, exit 2, and
+    nothing is written. The simulated priors keep to their tolerances (scipy's angles)."""
+    import json
+
+    from scipy.spatial.transform import Rotation
+
+    from comreg_core.evaluation.calibrate import simulated_prior
+    from comreg_core.transforms import apply_transform, invert_rigid
+
+    out = tmp_path / "calibration"
+    result = runner.invoke(app, ["calibrate", str(FIBULA_STL), "--out", str(out), "--sweeps",
+                                 "4", "--prior", "landmark"])
+    assert result.exit_code == 0, result.output
+    settings = json.loads((out / "calibration.json").read_text())["settings"]
+    assert settings["prior"] == "landmark" and len(settings["trials"]) == 4
+    bad = runner.invoke(app, ["calibrate", str(FIBULA_STL), "--out", str(tmp_path / "bad"),
+                              "--sweeps", "4", "--prior", "pointer"])
+    assert bad.exit_code == 2 and "Unknown calibration prior 'pointer'" in bad.output
+    assert len(bad.output.strip().splitlines()) <= 2 and not (tmp_path / "bad").exists()
+    rng = np.random.default_rng(0)
+    moved = rng.normal(0.0, 20.0, (50, 3))
+    T_true = np.eye(4)
+    T_true[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    T_true[:3, 3] = [10.0, -40.0, 5.0]
+    assert simulated_prior(rng, "none", T_true, moved, "LPS") is None
+    centre = apply_transform(T_true, moved.mean(axis=0)[None])[0]
+    for _ in range(20):
+        init = simulated_prior(rng, "init", T_true, moved, "LPS")
+        error = init.T_init @ invert_rigid(T_true)
+        assert np.degrees(Rotation.from_matrix(error[:3, :3]).magnitude()) <= 30.0 + 1e-9
+        assert np.linalg.norm(apply_transform(error, centre[None])[0] - centre) <= 30.0 + 1e-9
+        assert (init.max_deg, init.max_mm) == (30.0, 30.0)
+        (landmark,) = simulated_prior(rng, "landmark", T_true, moved, "LPS").landmarks
+        truth = apply_transform(T_true, np.asarray(landmark.us)[None])[0]
+        assert np.linalg.norm(np.asarray(landmark.ct) - truth) == pytest.approx(10.0)
+        assert landmark.tolerance_mm == 15.0
+
+
 def test_info_on_mesh_volume_and_transform(tmp_path):
     result = runner.invoke(app, ["info", str(FIBULA_STL)])
     assert result.exit_code == 0, result.output
