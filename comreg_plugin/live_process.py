@@ -166,13 +166,16 @@ def _session(setup: LiveSetup):
                                              build_registrar)
     from comreg_core.live.session import LiveSession
     from comreg_core.register.inputs import calibration_path, find_calibration
+    from comreg_core.registration.search.priors import prior_kind
 
     recipe = setup.recipe
     calibration = find_calibration(setup.calibration, recipe.run_dir)
     registrar = build_registrar(recipe)
     if calibration is not None:
-        calibration.check_ct(registrar.fingerprint,
-                             calibration_path(setup.calibration, recipe.run_dir))
+        note = calibration.check_fits(registrar.fingerprint, prior_kind(setup.prior),
+                                      calibration_path(setup.calibration, recipe.run_dir))
+        if note:
+            log.warning("%s", note)
     session = LiveSession(registrar, calibration=calibration, prior=setup.prior,
                           seed=setup.seed, max_frames_per_update=setup.max_frames_per_update)
     worker = FullSearchWorker(recipe, session.prior) if setup.background else None

@@ -173,12 +173,13 @@ CALIBRATE_LENGTHS = typer.Option("30,80", "--lengths", rich_help_panel=SWEEPS, h
                                  "and longest sweep, mm: the lengths you expect to scan.")
 CALIBRATE_SEED = typer.Option(0, "--seed", min=0, rich_help_panel=SWEEPS,
                                help="Random seed of the simulated sweeps.")
-# comreg_core.evaluation.calibrate.PRIOR_KINDS
+# comreg_core.registration.search.priors.PRIOR_KINDS
 CALIBRATE_PRIOR = typer.Option("none", "--prior", rich_help_panel=SWEEPS, help="What your "
                                "registrations will know: none, init (an initial pose, "
                                "'register --init') or landmark ('register --landmarks'); each "
                                "sweep is registered within such a simulated prior. Use the "
-                               "calibration of the kind you register with.")
+                               "calibration of the kind you register with: register and live "
+                               "refuse one made with more than they know.")
 
 
 @app.command("calibrate", rich_help_panel=PANEL)

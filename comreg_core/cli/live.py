@@ -216,17 +216,21 @@ def _check_device_names(image_device: str, pose_device: str, send_device: str) -
 def _session(ct_mesh, model, device: Device, verdict_calibration, prior, seed: int,
              frames: dict):
     """``(the live session, the recipe of its registrar)``; a verdict calibration made for
-    another CT is refused here, before any work. ``frames``: the session's ``spacing`` and
-    ``max_frame_age_s``."""
+    another CT, or for registrations that know more than ``prior``, is refused here, before
+    any work. ``frames``: the session's ``spacing`` and ``max_frame_age_s``."""
     from comreg_core.live.background import RegistrarRecipe, build_registrar
     from comreg_core.live.session import LiveSession
     from comreg_core.register.inputs import calibration_path, find_calibration
+    from comreg_core.registration.search.priors import prior_kind
 
     verdict = find_calibration(verdict_calibration, model)
     recipe = RegistrarRecipe(str(ct_mesh), None if model is None else str(model), device.value)
     registrar = build_registrar(recipe)
     if verdict is not None:
-        verdict.check_ct(registrar.fingerprint, calibration_path(verdict_calibration, model))
+        note = verdict.check_fits(registrar.fingerprint, prior_kind(prior),
+                                  calibration_path(verdict_calibration, model))
+        if note:
+            typer.echo(f"live: {note}", err=True)
     return LiveSession(registrar, calibration=verdict, prior=prior, seed=seed, **frames), recipe
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from comreg_core import runs
 from comreg_core.progress import Progress
 from comreg_core.registration.judgement.calibration import Calibration, fit_calibration
+from comreg_core.registration.search.priors import DEFAULT_MAX_DEG, DEFAULT_MAX_MM, PRIOR_KINDS
 
 log = logging.getLogger(__name__)
 
@@ -44,14 +45,13 @@ DRIFT_DEG, DRIFT_MM = 1.5, 1.5
 #: 0.9999999995 with 160: 17 of the 52 of 160 sweeps at ``p_raw`` >= 0.95 were wrong,
 #: 2026-12-06); ~1.5 s a sweep on an idle 2-core machine.
 CALIBRATION_SWEEPS = 60
-#: What the operating room knows, simulated on each calibration sweep (``comreg calibrate
-#: --prior``): nothing, an initial pose or one landmark (:func:`simulated_prior`). A map fitted
-#: without a prior under-rates registrations that have one (on the real fibula's runs, 0.26 /
-#: 0.63-0.67 predicted / observed below 0.5; docs/calibration.md).
-PRIOR_KINDS = ("none", "init", "landmark")
-#: The simulated initial pose's largest error (deg, mm: ``--init``'s default tolerances), and
-#: the simulated landmark's CT point's error and tolerance (mm).
-INIT_DEG, INIT_MM = 30.0, 30.0
+#: What the operating room knows is simulated on each calibration sweep (``comreg calibrate
+#: --prior``, one of :data:`PRIOR_KINDS`: nothing, an initial pose or one landmark,
+#: :func:`simulated_prior`); a map fitted without a prior under-rates registrations that have
+#: one (on the real fibula's runs, 0.26 / 0.63-0.67 predicted / observed below 0.5;
+#: docs/calibration.md). The simulated initial pose's largest error (deg, mm: ``--init``'s
+#: default tolerances), and the simulated landmark's CT point's error and tolerance (mm):
+INIT_DEG, INIT_MM = DEFAULT_MAX_DEG, DEFAULT_MAX_MM
 LANDMARK_OFF_MM, LANDMARK_TOLERANCE_MM = 10.0, 15.0
 
 

@@ -28,7 +28,7 @@ from comreg_core.registration.search.config import SearchConfig
 from comreg_core.registration.geometry.inputs import MAX_US_POINTS
 from comreg_core.registration.judgement.prior_reasons import prior_allows
 from comreg_core.registration.judgement.verdict import ambiguity_words, competitor_ruled_out
-from comreg_core.registration.search.priors import Prior
+from comreg_core.registration.search.priors import Prior, prior_kind
 from comreg_core.registration.search.result import RegistrationResult
 from comreg_core.registration.geometry.surface import ct_length_mm
 from comreg_core.transforms import apply_transform, check_rigid, invert_rigid
@@ -94,13 +94,18 @@ def register_to_directory(run_dir: str | Path | None,
     elif search is not None or icp_points is not None:
         raise ComRegError("A registrar already built keeps its own search settings.",
                           "Give either the registrar or the settings, not both.")
+    notes = []  # the calibration's (logged here; a join's is logged by join_clouds)
     if calibration_record is not None:
-        calibration_record.check_ct(registrar.fingerprint, calibration_file)
+        notes.append(calibration_record.check_fits(registrar.fingerprint, prior_kind(prior),
+                                                   calibration_file))
+        if notes[-1]:
+            log.warning("%s", notes[-1])
     clouds = [cloud.in_space(registrar.space) for cloud in clouds]
-    points, origins, note = join_clouds(clouds)
+    points, origins, joined_note = join_clouds(clouds)
     result = registrar.register(points, seed=seed, beam_origins=origins, prior=prior)
-    if note:
-        result.info.setdefault("warnings", []).append(note)
+    for note in [joined_note, *notes]:
+        if note:
+            result.info.setdefault("warnings", []).append(note)
     inputs_record = input_records(paths, clouds, result, registrar)
     result.info["us_inputs"] = inputs_record
     files = _output_files(registrar, inputs_record)

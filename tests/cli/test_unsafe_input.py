@@ -103,6 +103,7 @@ BAD_CALIBRATIONS = {  # name: (key, value, what the error says)
     "the older format": ("format", 2, "older ComReg (format 2"),
     "the last format": ("format", 3, "older ComReg (format 3"),
     "bad fingerprint": ("ct_fingerprint", {"sha256": "abc"}, "'ct_fingerprint'"),
+    "unknown prior": ("settings", {"prior": "pointer"}, "'settings prior' is 'pointer'"),
 }
 
 
@@ -133,6 +134,39 @@ def test_live_refuses_a_calibration_of_another_ct_before_it_listens(case):
     _refused(["live", "--igtl", "127.0.0.1:9", "--ct", FIBULA_STL, "--out", out,
               "--verdict-calibration", path, "--inline-search", "--connect-timeout", "1"],
              out, "another CT mesh")
+
+
+def test_a_calibration_for_registrations_that_know_more_is_refused(case):
+    """A calibration fitted with landmarks (``comreg calibrate --prior landmark``) would
+    over-rate a registration without them: register and live refuse it before any work."""
+    landmark = dict(case["calibration"], settings={"prior": "landmark"})
+    path = case["dir"] / "landmark.json"
+    path.write_text(json.dumps(landmark))
+    out = case["dir"] / "out landmark"
+    line = _refused(_register(case, out, "--verdict-calibration", path), out,
+                    "prior of kind 'landmark', this one has 'none'", "--prior none")
+    assert str(path) in line
+    out = case["dir"] / "out live landmark"
+    _refused(["live", "--igtl", "127.0.0.1:9", "--ct", FIBULA_STL, "--out", out,
+              "--verdict-calibration", path, "--inline-search", "--connect-timeout", "1"],
+             out, "prior of kind 'landmark', this one has 'none'")
+
+
+def test_a_calibration_for_registrations_that_know_less_is_used_with_a_warning(case):
+    """A calibration fitted without a prior under-rates a registration with an initial pose:
+    it is used, and result.json's warnings say so."""
+    path = case["dir"] / "no_prior.json"
+    path.write_text(json.dumps(case["calibration"]))
+    init = case["dir"] / "init.tfm"
+    save_transform(np.eye(4), init)  # the patch is in the CT frame: the truth
+    out = case["dir"] / "out init"
+    result = runner.invoke(app, [str(a) for a in _register(
+        case, out, "--verdict-calibration", path, "--init", init)])
+    assert result.exit_code == 0, (result.stdout, result.stderr)
+    saved = _strict((out / "result.json").read_text())
+    notes = [w for w in saved["warnings"] if "under-rates" in w]
+    assert len(notes) == 1 and "kind 'none', this one has 'init'" in notes[0], saved["warnings"]
+    assert saved["prior"]["T_init"] is not None
 
 
 def test_a_calibration_that_is_not_a_json_object_is_refused(case):

@@ -145,11 +145,36 @@ KNOTS = {"p_raw": [0.0, 0.5, 1.0], "p_correct": [0.1, 0.4, 0.9]}
     ({"ok_probability": 1.2}, "'ok_probability' is 1.2"),
     ({"sweeps": True}, "'sweeps' is True"),
     ({"ct_fingerprint": {"n_vertices": 3}}, "'ct_fingerprint'"),
+    ({"settings": {"prior": None}}, "'settings prior' is None"),
 ])
 def test_a_calibration_with_a_wrong_entry_cannot_be_made(changes, message):
     entries = dict(knots=KNOTS, sweeps=4, correct_share=0.5, ct_length_mm=300.0)
     with pytest.raises(ValueError, match=message):
         Calibration(**{**entries, **changes})
+
+
+def test_a_calibration_fits_registrations_that_know_as_much_or_more():
+    """``check_fits``: a calibration's prior kind against a registration's (``prior_kind`` of
+    real :class:`Prior` objects): more known by the calibration is refused, less is a note."""
+    from comreg_core.registration.search.priors import Landmark, Prior, prior_kind
+
+    landmark = Landmark("L1", np.zeros(3), np.zeros(3))
+    kinds = [prior_kind(None), prior_kind(Prior(T_init=np.eye(4))),
+             prior_kind(Prior(landmarks=(landmark,))),
+             prior_kind(Prior(T_init=np.eye(4), landmarks=(landmark,)))]
+    assert kinds == ["none", "init", "landmark", "landmark"]
+    entries = dict(knots=KNOTS, sweeps=4, correct_share=0.5, ct_length_mm=300.0)
+    assert Calibration(**entries).prior_kind == "none"  # a file from before --prior
+    for fitted_at, fitted in enumerate(("none", "init", "landmark")):
+        calibration = Calibration(**entries, settings={"prior": fitted})
+        for used_at, used in enumerate(("none", "init", "landmark")):
+            if fitted_at > used_at:
+                with pytest.raises(ComRegError, match=f"kind '{fitted}', this one has '{used}'"):
+                    calibration.check_fits("f" * 64, used, "cal.json")
+            else:
+                note = calibration.check_fits("f" * 64, used, "cal.json")
+                assert (note is None) == (fitted == used), note
+                assert note is None or f"--prior {used}" in note
 
 
 def _bone_points(n=3000):

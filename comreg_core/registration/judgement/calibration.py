@@ -33,6 +33,7 @@ import numpy as np
 from comreg_core.errors import ComRegError
 from comreg_core.registration.geometry.extent import extent_share
 from comreg_core.registration.geometry.metrics import rotation_error_deg
+from comreg_core.registration.search.priors import PRIOR_KINDS
 from comreg_core.transforms import apply_transform
 
 #: Clinical tolerance: target error over the sweep (mm) and rotation (deg).
@@ -155,17 +156,30 @@ class Calibration:
             _reliability_row(row)
         if not isinstance(self.settings, dict):
             raise ValueError("'settings' is not an object")
+        if self.settings.get("prior", "none") not in PRIOR_KINDS:
+            raise ValueError(f"'settings prior' is {self.settings['prior']!r}, not one of "
+                             f"{', '.join(PRIOR_KINDS)}")
         _fingerprint(self.ct_fingerprint)
 
     def p_correct(self, p_raw: float) -> float:
         """Estimated probability that a result with this ``p_raw`` is correct."""
         return calibrated(p_raw, self.knots)
 
-    def check_ct(self, fingerprint: str, source: str | Path) -> None:
+    @property
+    def prior_kind(self) -> str:
+        """What its sweeps were registered within (``comreg calibrate --prior``, one of
+        :data:`~comreg_core.registration.search.priors.PRIOR_KINDS`; ``"none"`` when the file
+        does not say)."""
+        return self.settings.get("prior", "none")
+
+    def check_fits(self, fingerprint: str, prior_kind: str, source: str | Path) -> str | None:
         """Refuse (:class:`ComRegError`) a calibration fitted on another CT mesh than the one
         whose :func:`~comreg_core.training.checkpoint.ct_fingerprint` sha256 is
-        ``fingerprint``; ``source`` names the calibration in the message. A calibration
-        without a fingerprint is taken as it is."""
+        ``fingerprint`` (one without a fingerprint is taken as it is), or for registrations
+        that know more than this one, whose prior is of kind ``prior_kind`` (one fitted with
+        landmarks over-rates a registration without them). Returns a one-line note when it
+        was fitted for registrations that know less (its ``p_correct`` then under-rates this
+        one), else None. ``source`` names the calibration in the messages."""
         own = None if self.ct_fingerprint is None else self.ct_fingerprint["sha256"]
         if own is not None and own != fingerprint:
             raise ComRegError(f"The verdict calibration '{source}' was made for another CT "
@@ -173,6 +187,18 @@ class Calibration:
                               "of the CT registered to).",
                               "Calibrate on this CT ('comreg calibrate CT_MESH --out DIR') or "
                               "give that CT's calibration.")
+        fitted, used = PRIOR_KINDS.index(self.prior_kind), PRIOR_KINDS.index(prior_kind)
+        redo = f"'comreg calibrate CT_MESH --prior {prior_kind} --out DIR'"
+        if fitted > used:
+            raise ComRegError(f"The verdict calibration '{source}' was made for registrations "
+                              f"with a prior of kind '{self.prior_kind}', this one has "
+                              f"'{prior_kind}': its p_correct would over-rate this "
+                              "registration.", f"Calibrate for it ({redo}).")
+        if fitted < used:
+            return (f"The verdict calibration was made for registrations with a prior of kind "
+                    f"'{self.prior_kind}', this one has '{prior_kind}': its p_correct "
+                    f"under-rates this registration (calibrate for it: {redo}).")
+        return None
 
     def to_json(self) -> dict[str, Any]:
         return {"format": CALIBRATION_FORMAT, **asdict(self)}

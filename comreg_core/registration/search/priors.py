@@ -59,6 +59,9 @@ DEFAULT_MAX_MM = 30.0
 #: A landmark's tolerance (mm) when neither its description (``tol=5``) nor
 #: ``--landmark-tolerance`` gives one.
 DEFAULT_LANDMARK_TOLERANCE_MM = 10.0
+#: Kinds of prior, from what knows least to what knows most (:func:`prior_kind`): a verdict
+#: calibration is fitted for one (``comreg calibrate --prior``).
+PRIOR_KINDS = ("none", "init", "landmark")
 #: A generic axis (unit) turning the axis set of the second round's starts.
 _TURN_AXIS = np.array([1.0, 2.0, 3.0]) / math.sqrt(14.0)
 
@@ -278,3 +281,11 @@ class Prior:
         T[:3, :3] = Vt.T @ D @ U.T
         T[:3, 3] = ct.mean(axis=0) - T[:3, :3] @ us.mean(axis=0)
         return T
+
+
+def prior_kind(prior: Prior | None) -> str:
+    """The kind (:data:`PRIOR_KINDS`) of ``prior``: ``"landmark"`` with landmark pairs (with or
+    without an initial pose), ``"init"`` with an initial pose only, ``"none"`` for None."""
+    if prior is None:
+        return "none"
+    return "landmark" if prior.landmarks else "init"
