@@ -3,7 +3,7 @@ OpenIGTLink on 127.0.0.1 into ``comreg live``, real server and client in their o
 
 ``.venv/bin/python -m tests.benchmarks.bench_live [--rate 4 | --fps 40] [--starts 0,15,30,45,60,75]
 [--model RUN_DIR] [--untrained RUN0] [--verdict-calibration FILE] [--prior none,landmark]
-[--search background,inline] [--stress] [--out DIR]``
+[--search background,inline] [--stress [--timings x4,x20,40fps]] [--out DIR]``
 
 Each replay serves the shared sweep (111 B-mode frames, every 10th of the recording) from one
 start frame to its end (``comreg replay --first-frame K --rate R``); ``comreg live --until-end
@@ -226,6 +226,8 @@ def main(argv=None) -> None:
                         "rate instead of --rate")
     parser.add_argument("--stress", action="store_true", help="the stress set (module "
                         "docstring): x4, x20 and 40 frames/s, no prior, background search")
+    parser.add_argument("--timings", default=",".join(label for label, _, _ in STRESS),
+                        help="the stress set's timings to run (of x4,x20,40fps)")
     parser.add_argument("--starts", default="0,15,30,45,60,75")
     parser.add_argument("--model", type=Path, default=None)
     parser.add_argument("--untrained", type=Path, default=None, help="the same network before "
@@ -236,13 +238,16 @@ def main(argv=None) -> None:
                         "docstring)")
     parser.add_argument("--out", type=Path, default=REPO / "out" / "bench_live")
     args = parser.parse_args(argv)
+    timings = [t for t in STRESS if t[0] in args.timings.split(",")]
+    if not timings:
+        parser.error(f"--timings {args.timings}: of {', '.join(t[0] for t in STRESS)}")
     ct = SHARED / "fibula.stl"
     starts = [int(s) for s in args.starts.split(",")]
     methods = [("search", None)] + ([("comreg", args.model)] if args.model else []) \
         + ([("untrained", args.untrained)] if args.untrained else [])
     T_truth = pseudo_truth(ct)
     if args.stress:
-        return stress(args, starts, methods, ct, T_truth)
+        return stress(args, starts, methods, ct, T_truth, timings)
     print(f"replays of {SHARED.name} at "
           + (f"x{args.rate:g}" if args.fps is None else f"{args.fps:g} frames/s")
           + f" from frames {starts}; verdict: "
@@ -331,16 +336,17 @@ def reference(start: int, model: Path | None, ct: Path, T_truth: np.ndarray,
             rotation_error_deg(result.T_ct_us, T_truth))
 
 
-def stress(args, starts: list[int], methods: list, ct: Path, T_truth: np.ndarray) -> None:
-    """The stress set: the shared sweep at x4, x20 (about 37 frames/s) and 40 frames/s from
-    each start, by each method (no prior, background search): per replay and per timing and
+def stress(args, starts: list[int], methods: list, ct: Path, T_truth: np.ndarray,
+           timings=STRESS) -> None:
+    """The stress set: the shared sweep at ``timings`` (:data:`STRESS`: x4, x20, about 37
+    frames/s, and 40 frames/s) from each start, by each method (no prior, background search): per replay and per timing and
     method, the update latency, the frames' age when used, skipped and dropped frames, OK and
     wrong, the first OK in mm of bone, and the final registration against ``comreg register``
     on every frame served (RTE / RRE against the pseudo ground truth)."""
     import os
     import shutil
 
-    print(f"stress set: {SHARED.name} at " + ", ".join(label for label, _, _ in STRESS)
+    print(f"stress set: {SHARED.name} at " + ", ".join(label for label, _, _ in timings)
           + f" from frames {starts}; load average at the start "
           f"{', '.join(f'{v:.1f}' for v in os.getloadavg())}", flush=True)
     refs = {(name, start): reference(start, model, ct, T_truth,
@@ -351,7 +357,7 @@ def stress(args, starts: list[int], methods: list, ct: Path, T_truth: np.ndarray
           f"{'age_max':>7} {'skip':>4} {'drop':>4} {'recv':>4} {'used':>4} {'dRTE':>6} "
           f"{'dRRE':>6} {'late_ms':>7}", flush=True)
     rows = []
-    for (label, rate, fps), (name, model), start in itertools.product(STRESS, methods, starts):
+    for (label, rate, fps), (name, model), start in itertools.product(timings, methods, starts):
         out = args.out / f"stress_{label}_{name}_from{start:03d}"
         shutil.rmtree(out, ignore_errors=True)
         run = one_replay(start, rate, out, ct, model, args.verdict_calibration, fps=fps)
@@ -370,7 +376,7 @@ def stress(args, starts: list[int], methods: list, ct: Path, T_truth: np.ndarray
               f"{_fmt(f['replay_late_ms'], '>7')}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_live_stress.json").write_text(json.dumps(rows, indent=2) + "\n")
-    for (label, _, _), (name, _) in itertools.product(STRESS, methods):
+    for (label, _, _), (name, _) in itertools.product(timings, methods):
         sel = [r for r in rows if r["timing"] == label and r["method"] == name]
         meds = [r["latency_median_s"] for r in sel if r["latency_median_s"] is not None]
         p95s = [r["latency_p95_s"] for r in sel if r["latency_p95_s"] is not None]
