@@ -79,28 +79,11 @@ def halves_agree(verdict, halves_deg: float | None):
     return replace(verdict, verdict="check", reasons=[*verdict.reasons, why])
 
 
-def quick_then_full(points_us: np.ndarray, T_ct_us: np.ndarray, surface, evidence: Evidence,
-                    quick_first: bool = True):
-    """The full verdict (:func:`judge` with the scale check and the profiles) of ``T_ct_us``
-    for ``points_us`` ``(n, 3)``; with ``quick_first``, the verdict without them first, which
-    is returned when it is CHECK: they can only make a verdict CHECK. The profiles and the
-    neighbour probe only add basins (``p_basin``, ``p_raw`` and the calibrated ``p_correct``
-    can only fall, the bound only grow) and the scale check only adds a reason; the rest is
-    the same bits. That verdict's figures are then those of a warm update's judgement (0.04 s
-    on 1,000 points instead of 0.2 s; ``tests/live/test_gates.py`` checks the verdicts
-    agree)."""
-    if quick_first:
-        quick = judge(points_us, T_ct_us, surface, evidence, scale_scan=False, profiles=False)
-        if not quick.ok:
-            return quick
-    return judge(points_us, T_ct_us, surface, evidence, scale_scan=True, profiles=True)
-
-
 class VerdictChecks:
     """The verdict of a live update, for :class:`~comreg_core.live.session.LiveSession` (whose
     state it reads: ``prior``, ``ct_length``, ``calibration``, ``seed``, ``registrar``,
-    ``target``, ``full_every_mm``, the last update ``last``, the full searches' poses
-    ``_fulls`` and the last halves' measure ``_halves_deg``)."""
+    ``target``, ``full_every_mm``, the full searches' poses ``_fulls`` and the last halves'
+    measure ``_halves_deg``)."""
 
     def _evidence_of(self, result, pts: np.ndarray) -> Evidence:
         """The evidence of ``result`` for ``pts`` (:meth:`Evidence.of`; the competitor among the
@@ -153,13 +136,9 @@ class VerdictChecks:
         or another basin found there makes the warm verdicts differ, so each update runs the
         full search again and stays CHECK; a warm OK only keeps an OK a full judgement gave,
         see :mod:`.session`); so is a full search's whose pose has not settled
-        (:meth:`_can_settle`): it is CHECK whatever they find. A full judgement after a CHECK
-        update (``last``) is first made without them (:func:`quick_then_full`)."""
+        (:meth:`_can_settle`): it is CHECK whatever they find."""
         if len(pts) > VERDICT_POINTS:
             pts = pts[np.sort(np.random.default_rng(self.seed).choice(
                 len(pts), VERDICT_POINTS, replace=False))]
-        if not full:
-            return judge(pts, result.T_ct_us, self.registrar.surface, evidence,
-                         scale_scan=False, profiles=False)
-        return quick_then_full(pts, result.T_ct_us, self.registrar.surface, evidence,
-                               quick_first=self.last is None or self.last.verdict != "ok")
+        return judge(pts, result.T_ct_us, self.registrar.surface, evidence,
+                     scale_scan=full, profiles=full)

@@ -147,14 +147,12 @@ def test_warm_updates_leave_the_profiles_and_the_scale_scan_to_the_settled_full_
     from comreg_core.registration.geometry.metrics import (rotation_error_deg,
                                                            translation_error_mm)
 
-    calls, outcomes = [], []
+    calls = []
     judge = gates.judge
 
     def spy(*args, **kwargs):
-        verdict = judge(*args, **kwargs)
         calls.append((kwargs["profiles"], kwargs["scale_scan"]))
-        outcomes.append(verdict.verdict)
-        return verdict
+        return judge(*args, **kwargs)
 
     def three_updates(session, before_the_third=lambda: None):
         updates = [session.update(_frames(sweep, range(6))),
@@ -169,7 +167,6 @@ def test_warm_updates_leave_the_profiles_and_the_scale_scan_to_the_settled_full_
     assert rotation_error_deg(grown.T_ct_us, first.T_ct_us) > 2.0
     assert calls == [(False, False)] * 3
     calls.clear()
-    outcomes.clear()
     session = LiveSession(search_registrar, spacing=None)
 
     def settle():  # as if the first full search had found the second's pose
@@ -181,7 +178,4 @@ def test_warm_updates_leave_the_profiles_and_the_scale_scan_to_the_settled_full_
     assert later.mode == "full" and later.covered_mm >= first.covered_mm + session.full_every_mm
     assert rotation_error_deg(later.T_ct_us, grown.T_ct_us) < 1e-6  # the same search
     assert translation_error_mm(later.T_ct_us, grown.T_ct_us, later.centroid) < 1e-6
-    # after CHECK updates, first without them: a CHECK then stands (they only add reasons)
-    assert calls[2] == (False, False)
-    assert calls[3:] == ([(True, True)] if outcomes[2] == "ok" else []), (calls, outcomes)
-    assert later.verdict == outcomes[-1]
+    assert calls[2:] == [(True, True)]
