@@ -47,6 +47,7 @@ def checkVerdict(test, logic, points, ctModel):
     test.assertEqual(figures["verdict"], saved["verdict"])
     test.assertEqual(figures["verdict_reasons"], saved["verdict_reasons"])
     test.assertEqual(figures["p_correct"], saved["p_correct"])
+    test.assertEqual(figures["warnings"], saved["warnings"])
     test.assertEqual(figures["advice"] or "", recordAdvice(saved))
     test.assertIn(f"Verdict: {saved['verdict'].upper()}",
                   summary.describe(False, -1.0))

@@ -3,7 +3,7 @@
 The record is ``comreg register``'s ``result.json`` (:mod:`comreg_plugin.result_folder`), or a
 live update's figures. :func:`recordFigures` picks the figures the panel and the transform node
 carry (the verdict and its reasons, ``p_correct``, the confidence, the advice, the uncertainty
-and where to scan next when the record has them, the competitor); :func:`describeFigures`
+and where to scan next when the record has them, the competitor, the run's warnings); :func:`describeFigures`
 writes them as the panel's lines; :func:`setFigureAttributes` / :func:`figuresFromNode` store
 them on a node as ``ComReg.*`` attributes (strings, saved with the scene) and read them back.
 Whatever the record adds under ``uncertainty`` or ``scan_next`` is shown as it is.
@@ -19,9 +19,12 @@ from comreg_plugin.bone_models import ATTRIBUTE_PREFIX
 #: The figures a registration leaves on its transform node (``ComReg.<name>``); JSON values
 #: (lists, dicts) are stored as JSON text, numbers with every digit, absent ones as "".
 FIGURE_NAMES = ("verdict", "verdict_reasons", "p_correct", "confidence", "ambiguous", "advice",
-                "uncertainty", "uncertainty_mm", "scan_next", "competitor", "result_folder")
+                "uncertainty", "uncertainty_mm", "scan_next", "competitor", "warnings",
+                "result_folder")
 #: Figures stored as JSON text.
-JSON_FIGURES = ("verdict_reasons", "uncertainty", "scan_next", "competitor")
+JSON_FIGURES = ("verdict_reasons", "uncertainty", "scan_next", "competitor", "warnings")
+#: Figures that are lists (empty when absent).
+LIST_FIGURES = ("verdict_reasons", "warnings")
 
 
 def recordAdvice(record: dict) -> str:
@@ -58,6 +61,7 @@ def recordFigures(record: dict, resultFolder: Optional[str] = None) -> dict:
             "uncertainty_mm": (uncertainty or {}).get("bound_mm"),
             "scan_next": record.get("scan_next"),
             "competitor": competitor,
+            "warnings": list(record.get("warnings") or []),
             "result_folder": resultFolder}
 
 
@@ -71,12 +75,13 @@ def _weakest(uncertainty: dict) -> Optional[dict]:
 
 def describeFigures(figures: dict) -> list:
     """The panel's lines for ``figures`` (:func:`recordFigures`): the verdict, each reason,
-    ``p_correct`` and the confidence, the uncertainty (95 % bound, weakest direction), the
+    each of the run's warnings, ``p_correct`` and the confidence, the uncertainty (95 % bound, weakest direction), the
     competitor, the advice and where to scan next."""
     verdict = figures.get("verdict")
     lines = [f"Verdict: {verdict.upper()}" if verdict else "Verdict: none (this method is "
              "not judged)"]
     lines += [f"  - {reason}" for reason in figures.get("verdict_reasons") or []]
+    lines += [f"Warning: {warning}" for warning in figures.get("warnings") or []]
     numbers = []
     if figures.get("p_correct") is not None:
         numbers.append(f"p_correct {float(figures['p_correct']):.2f}")
@@ -141,7 +146,7 @@ def figuresFromNode(node) -> dict:
     for name in FIGURE_NAMES:
         text = node.GetAttribute(ATTRIBUTE_PREFIX + name) or ""
         if not text:
-            figures[name] = [] if name == "verdict_reasons" else None
+            figures[name] = [] if name in LIST_FIGURES else None
         elif name in JSON_FIGURES:
             figures[name] = json.loads(text)
         elif name in ("p_correct", "confidence", "uncertainty_mm"):

@@ -35,13 +35,17 @@ UNCERTAIN = {"verdict": "check", "verdict_reasons": ["The sweep covers too littl
                  {"words": "about its axis", "bound_mm": 1.5, "bound_deg": 2.5},
                  {"words": "along the shaft", "bound_mm": 4.0, "bound_deg": 0.5}]},
              "scan_next": {"point_ct": [0.0, 0.0, 0.0], "normal_ct": [0.0, 0.0, 1.0],
-                           "bound_mm": 1.8, "words": "scan the distal end"}}
+                           "bound_mm": 1.8, "words": "scan the distal end"},
+             "warnings": ["The verdict calibration was made for registrations with a prior of "
+                          "kind 'none', this one has 'landmark'."]}
 
 
 def test_the_lines_say_the_verdict_uncertainty_and_where_to_scan():
     lines = describeFigures(recordFigures(UNCERTAIN))
     assert lines[0] == "Verdict: CHECK"
     assert lines[1] == "  - The sweep covers too little bone."
+    assert lines[2] == ("Warning: The verdict calibration was made for registrations with a "
+                        "prior of kind 'none', this one has 'landmark'.")
     assert "p_correct 0.61, confidence 0.40" in lines
     assert ("Uncertainty: 95 % within 3.2 mm at the bone; weakest along the shaft (4.0 mm, "
             "0.5 deg)") in lines
@@ -59,6 +63,7 @@ def test_the_figures_survive_node_attributes(logic):
     assert json.loads(node.GetAttribute("ComReg.uncertainty"))["bound_mm"] == 3.25
     setFigureAttributes(node, recordFigures({"verdict": "ok"}))  # nothing lingers
     assert figuresFromNode(node)["uncertainty"] is None
+    assert figuresFromNode(node)["warnings"] == []  # none: nothing lingers
     assert node.GetAttribute("ComReg.scan_next") == ""
 
 
