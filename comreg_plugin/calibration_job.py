@@ -74,12 +74,13 @@ class CalibrationJob(PretrainingJob):
 
 
 def launchCalibration(mesh, outDirectory: Path, *, sweeps: int = DEFAULT_SWEEPS,
-                      seed: int = 0, lengths=(30.0, 80.0),
+                      seed: int = 0, lengths=(30.0, 80.0), prior: str = "none",
                       python: Optional[str] = None) -> CalibrationJob:
     """Start ``comreg calibrate`` in the background on the CT bone ``mesh``
     (:class:`~comreg_core.io.SurfaceMesh`, written to ``outDirectory/ct_bone.vtk``) into
-    ``outDirectory`` (made if missing); ``python``: the Python to run ComReg with (default
-    ``sys.executable``, inside 3D Slicer its PythonSlicer)."""
+    ``outDirectory`` (made if missing), for registrations with a ``prior`` of that kind
+    (``--prior``); ``python``: the Python to run ComReg with (default ``sys.executable``,
+    inside 3D Slicer its PythonSlicer)."""
     from comreg_core.io._files import check_output_folder
     from comreg_core.io.meshes import write_mesh
 
@@ -89,7 +90,8 @@ def launchCalibration(mesh, outDirectory: Path, *, sweeps: int = DEFAULT_SWEEPS,
     meshPath = write_mesh(mesh, outDirectory / "ct_bone.vtk")
     command = [python or sys.executable, "-m", "comreg_core.cli", "calibrate", str(meshPath),
                "--out", str(outDirectory), "--sweeps", str(int(sweeps)), "--seed",
-               str(int(seed)), "--lengths", f"{float(lengths[0])!r},{float(lengths[1])!r}"]
+               str(int(seed)), "--lengths", f"{float(lengths[0])!r},{float(lengths[1])!r}",
+               "--prior", prior]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
         [str(REPO_ROOT)] + [x for x in env.get("PYTHONPATH", "").split(os.pathsep) if x])

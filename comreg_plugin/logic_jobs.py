@@ -8,9 +8,11 @@ from typing import Optional
 
 from comreg_core.errors import ComRegError
 from comreg_core.io._files import require_input_file
+from comreg_core.registration.search.priors import prior_kind
 from comreg_plugin.calibration_job import DEFAULT_SWEEPS, CalibrationJob, launchCalibration
 from comreg_plugin.pretraining_job import (PretrainingJob, PretrainingStatus, checkRunFolder,
                                            launchPretraining)
+from comreg_plugin.scene_inputs import priorFromNodes
 from comreg_plugin.scene_io import requireNode, surfaceMeshFromModel
 
 
@@ -101,11 +103,13 @@ class JobsLogic:
     # -- the verdict's calibration --------------------------------------------------------------
 
     def startCalibration(self, ctModel=None, outDirectory=None, *, sweeps: int = DEFAULT_SWEEPS,
-                         seed: int = 0, lengths=(30.0, 80.0),
+                         seed: int = 0, lengths=(30.0, 80.0), prior: Optional[str] = None,
                          python: Optional[str] = None) -> CalibrationJob:
         """Start ``comreg calibrate`` for the verdict in the background on the CT bone model
         (default: the parameter node's ``ctModel``) into ``outDirectory`` (default: a
-        ``verdict-calibration`` folder where registrations go); when it finishes,
+        ``verdict-calibration`` folder where registrations go), for registrations with a
+        ``prior`` of that kind (default: the kind of the scene's prior, as registrations take
+        it: landmarks, else an initial pose, else none); when it finishes,
         :meth:`pollCalibration` makes its ``calibration.json`` the parameter node's
         ``verdictCalibration``. Raises :class:`ComRegError` while one is running or without
         a CT model."""
@@ -121,8 +125,11 @@ class JobsLogic:
                     "Pick the CT bone model (loaded from a segmentation or mesh).")
         if outDirectory is None:
             outDirectory = Path(self.resultBase()) / "verdict-calibration"
+        if prior is None:
+            prior = prior_kind(priorFromNodes(parameters=p))
         job = launchCalibration(surfaceMeshFromModel(ctModel), Path(outDirectory),
-                                sweeps=sweeps, seed=seed, lengths=lengths, python=python)
+                                sweeps=sweeps, seed=seed, lengths=lengths, prior=prior,
+                                python=python)
         self.calibrationJob = job
         p.calibrationState, p.calibrationProgress = "running", 0.0
         return job

@@ -50,7 +50,7 @@ def test_the_verdict_calibration_runs_in_the_background_and_then_judges(logic, c
     calibration = Calibration.load(job.calibrationPath)
     vertices, faces = arraysFromModelMesh(models[0])
     lps = apply_transform(space_change("RAS", "LPS"), vertices)
-    assert calibration.sweeps == 4
+    assert calibration.sweeps == 4 and calibration.prior_kind == "none"  # no prior in the scene
     assert calibration.ct_fingerprint["sha256"] == ct_fingerprint(lps, faces)["sha256"]
     summary = logic.register(logic.loadUSPoints(case.usPointsPath), "search",
                              ctModelNode=models[0])
@@ -61,9 +61,22 @@ def test_the_verdict_calibration_runs_in_the_background_and_then_judges(logic, c
     assert p.pCorrect == record["p_correct"] and np.isfinite(p.pCorrect)
 
 
+def _landmarks(logic, name, point_ras):
+    node = logic.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", name)
+    node.AddControlPoint(list(point_ras), "ankle")
+    return node
+
+
 def test_cancel_stops_the_calibration_and_leaves_no_calibration(logic, case, tmp_path):
+    """Also: with landmarks in the scene, the calibration is for registrations with one
+    (``comreg calibrate --prior landmark``), the kind the panel's registrations will have."""
     logic.loadSegmentation(case.segmentationPath)
+    p = logic.getParameterNode()
+    p.ctLandmarks = _landmarks(logic, "CT landmarks", (10.0, 20.0, 30.0))
+    p.usLandmarks = _landmarks(logic, "US landmarks", (1.0, 2.0, 3.0))
     job = logic.startCalibration(outDirectory=tmp_path / "calibration", sweeps=60)
+    p.ctLandmarks = p.usLandmarks = None
+    assert job.command[job.command.index("--prior") + 1] == "landmark"
     _wait(logic, lambda s: s.epoch >= 1 or s.state != "running")
     status = logic.cancelCalibration()
     assert status.state == "cancelled" and not job.running
