@@ -3,9 +3,10 @@
 The record is ``comreg register``'s ``result.json`` (:mod:`comreg_plugin.result_folder`), or a
 live update's figures. :func:`recordFigures` picks the figures the panel and the transform node
 carry (the verdict and its reasons, ``p_correct``, the confidence, the advice, the uncertainty
-and where to scan next when the record has them, the competitor, the run's warnings); :func:`describeFigures`
-writes them as the panel's lines; :func:`setFigureAttributes` / :func:`figuresFromNode` store
-them on a node as ``ComReg.*`` attributes (strings, saved with the scene) and read them back.
+and where to scan next when the record has them, the competitor, the run's warnings);
+:func:`describeFigures` writes them as the panel's lines; :func:`setFigureAttributes` /
+:func:`figuresFromNode` store them on a node as ``ComReg.*`` attributes (strings, saved with
+the scene) and read them back.
 Whatever the record adds under ``uncertainty`` or ``scan_next`` is shown as it is.
 
 Function names are camelCase, as in 3D Slicer modules.
@@ -75,8 +76,8 @@ def _weakest(uncertainty: dict) -> Optional[dict]:
 
 def describeFigures(figures: dict) -> list:
     """The panel's lines for ``figures`` (:func:`recordFigures`): the verdict, each reason,
-    each of the run's warnings, ``p_correct`` and the confidence, the uncertainty (95 % bound, weakest direction), the
-    competitor, the advice and where to scan next."""
+    each of the run's warnings, ``p_correct`` and the confidence, the uncertainty (95 % bound,
+    weakest direction), the competitor, the advice and where to scan next."""
     verdict = figures.get("verdict")
     lines = [f"Verdict: {verdict.upper()}" if verdict else "Verdict: none (this method is "
              "not judged)"]

@@ -339,10 +339,11 @@ def reference(start: int, model: Path | None, ct: Path, T_truth: np.ndarray,
 def stress(args, starts: list[int], methods: list, ct: Path, T_truth: np.ndarray,
            timings=STRESS) -> None:
     """The stress set: the shared sweep at ``timings`` (:data:`STRESS`: x4, x20, about 37
-    frames/s, and 40 frames/s) from each start, by each method (no prior, background search): per replay and per timing and
-    method, the update latency, the frames' age when used, skipped and dropped frames, OK and
-    wrong, the first OK in mm of bone, and the final registration against ``comreg register``
-    on every frame served (RTE / RRE against the pseudo ground truth)."""
+    frames/s, and 40 frames/s) from each start, by each method (no prior, background
+    search): per replay and per timing and method, the update latency, the frames' age when
+    used, skipped and dropped frames, OK and wrong, the first OK in mm of bone, and the
+    final registration against ``comreg register`` on every frame served (RTE / RRE against
+    the pseudo ground truth)."""
     import os
     import shutil
 
