@@ -7,14 +7,14 @@ fibula=RUN0]``
 
 Per set and prior, every method (``search``: the pose search alone; ``comreg``: a run trained on
 that CT, then the search; ``untrained``: the same network at 0 epochs, the control) registers
-``--trials`` sweeps moved by the paper's random poses, with beam origins, and is judged as
-``comreg register`` judges: the verdict with the per-patient calibration of ``p_correct``
-(``comreg calibrate --prior`` of the set's kind of prior; ``--calibration-sweeps`` simulated
-sweeps of that CT, cached in ``out/bench_partial/``) and the prior's reasons. Columns: success (RTE < 4 mm and RRE < 5 deg; the
-truth of the real sets: the pseudo ground truth, ICP of the whole real sweep from its recorded
-pose, as the paper and the demo judge, :func:`whole_sweep_truth`, not the recording itself),
-unflagged wrong (share of all trials: wrong and verdict OK), correct unflagged (share of the
-correct ones with verdict OK), median ``p_correct``, latency (median, p90; the registration
+``--trials`` sweeps moved by the paper's random poses, with beam origins, and is judged as ``comreg
+register`` judges: the verdict with the per-patient calibration of ``p_correct`` (``comreg
+calibrate --prior`` of the set's kind of prior; ``--calibration-sweeps`` simulated sweeps of that
+CT, cached in ``out/bench_partial/``) and the prior's reasons. Columns: success (RTE < 4 mm and RRE
+< 5 deg; the truth of the real sets: the pseudo ground truth, ICP of the whole real sweep from its
+recorded pose, as the paper and the demo judge, :func:`whole_sweep_truth`, not the recording
+itself), unflagged wrong (share of all trials: wrong and verdict OK), correct unflagged (share of
+the correct ones with verdict OK), median ``p_correct``, latency (median, p90; the registration
 only). Then ``p_correct``'s reliability over every row of the set (predicted vs observed).
 
 Priors: ``init``: an initial pose drawn uniformly within 30 deg (a random axis, angle uniform
@@ -45,14 +45,6 @@ def union_runs(runs: list) -> list:
     return joined
 
 
-def sample_prior(rng, kind: str, T_true: np.ndarray, moved: np.ndarray, space: str):
-    """A :class:`~comreg_core.registration.search.priors.Prior` of ``kind`` around ``T_true`` (module
-    docstring), or None for ``none``: the one ``comreg calibrate --prior`` simulates."""
-    from comreg_core.evaluation.calibrate import simulated_prior
-
-    return simulated_prior(rng, kind, T_true, moved, space)
-
-
 def calibration_for(bone: str, ct, sweeps: int, prior: str = "none"):
     """The CT's calibration for registrations with a ``prior`` of that kind (``comreg calibrate
     --prior``; made once, then read from :data:`CACHE`)."""
@@ -66,8 +58,9 @@ def calibration_for(bone: str, ct, sweeps: int, prior: str = "none"):
     calibration = calibrate(ct, sweeps=sweeps, prior=prior)
     CACHE.mkdir(parents=True, exist_ok=True)
     calibration.save(path)
-    print(f"calibrated {bone} (prior {prior}) on {sweeps} sweeps in {time.perf_counter() - start:.0f} s: "
-          f"{100 * calibration.correct_share:.0f} % correct; p_raw -> p_correct "
+    print(f"calibrated {bone} (prior {prior}) on {sweeps} sweeps in "
+          f"{time.perf_counter() - start:.0f} s: {100 * calibration.correct_share:.0f} % "
+          "correct; p_raw -> p_correct "
           f"{', '.join(f'{x:.2f}->{y:.2f}' for x, y in zip(*calibration.knots.values()))}",
           flush=True)
     return calibration
@@ -92,6 +85,7 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
     """Every method on ``trials`` paper poses of the runs (trial ``k``: run ``k % len(runs)``),
     judged as ``comreg register`` judges (module docstring). ``T_truth``: where the runs' points
     truly lie in the CT (tracking -> CT; identity: as given)."""
+    from comreg_core.evaluation.calibrate import simulated_prior
     from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
     from comreg_core.register.folder import registration_verdict
     from comreg_core.registration.judgement.prior_reasons import prior_allows
@@ -110,8 +104,8 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
         moved, moved_origins = apply_transform(T_p, points), apply_transform(T_p, origins)
         T_true = (np.eye(4) if T_truth is None else T_truth) @ invert_rigid(T_p)
         for name, registrar in methods.items():
-            prior = sample_prior(np.random.default_rng([seed, k, 7]), prior_kind, T_true, moved,
-                                 registrar.space)
+            prior = simulated_prior(np.random.default_rng([seed, k, 7]), prior_kind, T_true,
+                                    moved, registrar.space)  # as comreg calibrate --prior
             start = time.perf_counter()
             result = registrar.register(moved, beam_origins=moved_origins, prior=prior)
             seconds = time.perf_counter() - start

@@ -156,8 +156,8 @@ class Calibration:
             _reliability_row(row)
         if not isinstance(self.settings, dict):
             raise ValueError("'settings' is not an object")
-        if self.settings.get("prior", "none") not in PRIOR_KINDS:
-            raise ValueError(f"'settings prior' is {self.settings['prior']!r}, not one of "
+        if self.prior_kind not in PRIOR_KINDS:
+            raise ValueError(f"'settings prior' is {self.prior_kind!r}, not one of "
                              f"{', '.join(PRIOR_KINDS)}")
         _fingerprint(self.ct_fingerprint)
 
