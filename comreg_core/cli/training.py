@@ -75,8 +75,13 @@ PRETRAIN_SEED = typer.Option(None, "--seed", min=0, rich_help_panel=SCHEDULE,
                              help="Run seed (default 0).")
 PRETRAIN_CALIBRATION_SWEEPS = typer.Option(
     0, "--calibration-sweeps", min=0, rich_help_panel=VERDICT, help="Then also calibrate the "
-    "verdict on this many simulated sweeps (as 'comreg calibrate'; about 1.5 s each) into the run "
-    "folder; 0: not.")
+    "verdict on this many simulated sweeps (as 'comreg calibrate', at least 4; about 3 s each on "
+    "2 cores) into the run folder; 0: not.")
+# comreg_core.registration.search.priors.PRIOR_KINDS (imported when used: it pulls in numba)
+PRETRAIN_CALIBRATION_PRIOR = typer.Option(
+    "none", "--calibration-prior", rich_help_panel=VERDICT, help="What the registrations with "
+    "this run will know, as 'comreg calibrate --prior': none, init or landmark. Needs "
+    "--calibration-sweeps.")
 
 
 @app.command("pretrain", rich_help_panel=PANEL)
@@ -90,6 +95,7 @@ def pretrain(
     resume: bool = PRETRAIN_RESUME,
     seed: Optional[int] = PRETRAIN_SEED,
     calibration_sweeps: int = PRETRAIN_CALIBRATION_SWEEPS,
+    calibration_prior: str = PRETRAIN_CALIBRATION_PRIOR,
     out: Path = PRETRAIN_OUT,
 ) -> None:
     """Pretrain ComReg for one patient on US sweeps simulated from their CT bone.
@@ -101,6 +107,7 @@ def pretrain(
     """
     from comreg_core.training import pretrain as run_pretraining
 
+    _check_calibration_options(calibration_sweeps, calibration_prior)
     with progress_bar(1000, "pretraining") as advance:
         result = run_pretraining(
             ct_mesh, out, preset=preset.value, config=config, max_minutes=max_minutes,
@@ -112,9 +119,31 @@ def pretrain(
     if calibration_sweeps:
         from comreg_core.evaluation.calibrate import calibrate
 
-        path = calibrate(ct_mesh, sweeps=calibration_sweeps).save(
+        path = calibrate(ct_mesh, sweeps=calibration_sweeps, prior=calibration_prior).save(
             Path(result.run_dir) / runs.CALIBRATION)
-        typer.echo(f"wrote {path}: register with this run judges by p_correct")
+        typer.echo(f"wrote {path}: register with this run judges by p_correct"
+                   + ("" if calibration_prior == "none" else
+                      f" (calibrated for registrations with a prior of kind "
+                      f"'{calibration_prior}')"))
+
+
+def _check_calibration_options(sweeps: int, prior: str) -> None:
+    """Refuse, before any training, calibration options that would fail after it: 1-3 sweeps,
+    an unknown kind of prior, or a prior without sweeps."""
+    from comreg_core.errors import ComRegError
+    from comreg_core.registration.search.priors import PRIOR_KINDS
+
+    if 0 < sweeps < 4:
+        raise ComRegError(f"--calibration-sweeps {sweeps}: a calibration needs at least 4 "
+                          "sweeps.", "Give 0 (no calibration) or 4 or more (60 is the default "
+                          "of 'comreg calibrate').")
+    if prior not in PRIOR_KINDS:
+        raise ComRegError(f"Unknown --calibration-prior '{prior}'.",
+                          f"Give one of {', '.join(PRIOR_KINDS)}.")
+    if prior != "none" and not sweeps:
+        raise ComRegError("--calibration-prior needs --calibration-sweeps.",
+                          "Add e.g. --calibration-sweeps 60, or calibrate later with 'comreg "
+                          f"calibrate --prior {prior}'.")
 
 
 def _report_pretraining(result) -> None:

@@ -118,6 +118,17 @@ def test_pretrain_does_not_overwrite_another_commands_config(tmp_path):
     assert _files(folder) == {"config.yaml"}
 
 
+@pytest.mark.parametrize("options, message", [
+    (["--calibration-sweeps", "3"], "at least 4"),
+    (["--calibration-sweeps", "4", "--calibration-prior", "atlas"], "Unknown --calibration-prior"),
+    (["--calibration-prior", "init"], "needs --calibration-sweeps"),
+])
+def test_pretrain_refuses_calibration_options_before_training(tmp_path, options, message):
+    _refused(["pretrain", FIBULA_STL, "--out", tmp_path / "run", "--epochs", "1", *options],
+             message)
+    assert not (tmp_path / "run").exists()
+
+
 def test_an_output_that_is_an_input_is_refused(tmp_path):
     mesh = shutil.copy(FIBULA_STL, tmp_path / "bone.stl")
     before = Path(mesh).read_bytes()

@@ -67,3 +67,28 @@ def test_a_file_that_is_not_a_calibration_is_refused_before_any_work(short_sweep
                                  "--verdict-calibration", str(bad)])
     assert result.exit_code == 2
     assert "not a ComReg calibration" in result.output and not out.exists()
+
+
+def test_pretrain_calibrates_for_the_kind_of_prior_given(short_sweep, tmp_path):
+    """`pretrain --calibration-sweeps 4 --calibration-prior landmark` writes the run's own
+    calibration for registrations within landmarks: a registration with this run and no prior is
+    then refused, before any work (it would be over-rated)."""
+    import yaml
+
+    from tests.training.tiny import TINY
+
+    _, us = short_sweep
+    config = tmp_path / "tiny.yaml"
+    config.write_text(yaml.safe_dump(TINY))
+    run = tmp_path / "run"
+    result = runner.invoke(app, ["pretrain", str(FIBULA_STL), "--out", str(run), "--epochs", "1",
+                                 "--config", str(config), "--device", "cpu",
+                                 "--calibration-sweeps", "4", "--calibration-prior", "landmark"])
+    assert result.exit_code == 0, result.output
+    assert "'landmark'" in result.stdout
+    calibration = Calibration.load(run / "calibration.json")
+    assert calibration.prior_kind == "landmark" and calibration.sweeps == 4
+    out = tmp_path / "reg"
+    result = runner.invoke(app, ["register", str(us), "--model", str(run), "--out", str(out)])
+    assert result.exit_code == 2 and "landmark" in result.stderr, result.output
+    assert len(result.stderr.strip().splitlines()) == 1 and not out.exists()
