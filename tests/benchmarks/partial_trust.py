@@ -89,7 +89,6 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
     from comreg_core.evaluation.evaluate import STREAM_POSES, evaluation_rng
     from comreg_core.register.folder import registration_verdict
     from comreg_core.registration.judgement.prior_reasons import prior_allows
-    from comreg_core.registration.judgement.verdict import with_prior_reasons
     from comreg_core.registration.geometry.metrics import registration_metrics
     from comreg_core.registration.geometry.surface import CTSurface
     from comreg_core.simulation import sample_initial_pose
@@ -111,7 +110,6 @@ def trust_trials(methods: dict, runs: list, ct, calibration, prior_kind: str, tr
             seconds = time.perf_counter() - start
             allowed = None if prior is None else prior_allows(prior, result)
             verdict, evidence = registration_verdict(result, registrar, calibration, allowed)
-            verdict = with_prior_reasons(verdict, result.info.get("prior"))
             errors = registration_metrics(result.T_ct_us, T_true, moved, surface)
             rows[name].append({"correct": errors["RTE_mm"] < 4.0 and errors["RRE_deg"] < 5.0,
                                "ok": verdict.ok, "p_correct": verdict.figures["p_correct"],
