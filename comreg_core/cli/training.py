@@ -75,7 +75,7 @@ PRETRAIN_SEED = typer.Option(None, "--seed", min=0, rich_help_panel=SCHEDULE,
                              help="Run seed (default 0).")
 PRETRAIN_CALIBRATION_SWEEPS = typer.Option(
     0, "--calibration-sweeps", min=0, rich_help_panel=VERDICT, help="Then also calibrate the "
-    "verdict on this many simulated sweeps (as 'comreg calibrate', at least 4; about 3 s each on "
+    "verdict on this many simulated sweeps (as 'comreg calibrate', at least 4; about 1.5 s each on "
     "2 cores) into the run folder; 0: not.")
 # comreg_core.registration.search.priors.PRIOR_KINDS (imported when used: it pulls in numba)
 PRETRAIN_CALIBRATION_PRIOR = typer.Option(
