@@ -131,19 +131,20 @@ def _check_calibration_options(sweeps: int, prior: str) -> None:
     """Refuse, before any training, calibration options that would fail after it: 1-3 sweeps,
     an unknown kind of prior, or a prior without sweeps."""
     from comreg_core.errors import ComRegError
+    from comreg_core.evaluation.calibrate import CALIBRATION_SWEEPS, MIN_SWEEPS
     from comreg_core.registration.search.priors import PRIOR_KINDS
 
-    if 0 < sweeps < 4:
-        raise ComRegError(f"--calibration-sweeps {sweeps}: a calibration needs at least 4 "
-                          "sweeps.", "Give 0 (no calibration) or 4 or more (60 is the default "
-                          "of 'comreg calibrate').")
+    if 0 < sweeps < MIN_SWEEPS:
+        raise ComRegError(f"--calibration-sweeps {sweeps}: a calibration needs at least "
+                          f"{MIN_SWEEPS} sweeps.", f"Give 0 (no calibration) or {MIN_SWEEPS} or "
+                          f"more ({CALIBRATION_SWEEPS} is the default of 'comreg calibrate').")
     if prior not in PRIOR_KINDS:
         raise ComRegError(f"Unknown --calibration-prior '{prior}'.",
                           f"Give one of {', '.join(PRIOR_KINDS)}.")
     if prior != "none" and not sweeps:
         raise ComRegError("--calibration-prior needs --calibration-sweeps.",
-                          "Add e.g. --calibration-sweeps 60, or calibrate later with 'comreg "
-                          f"calibrate --prior {prior}'.")
+                          f"Add e.g. --calibration-sweeps {CALIBRATION_SWEEPS}, or calibrate "
+                          f"later with 'comreg calibrate --prior {prior}'.")
 
 
 def _report_pretraining(result) -> None:

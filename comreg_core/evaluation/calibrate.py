@@ -45,6 +45,8 @@ DRIFT_DEG, DRIFT_MM = 1.5, 1.5
 #: 0.9999999995 with 160: 17 of the 52 of 160 sweeps at ``p_raw`` >= 0.95 were wrong,
 #: 2026-12-06); ~1.5 s a sweep on an idle 2-core machine.
 CALIBRATION_SWEEPS = 60
+#: The fewest sweeps a calibration fits its map on.
+MIN_SWEEPS = 4
 #: What the operating room knows is simulated on each calibration sweep (``comreg calibrate
 #: --prior``, one of :data:`PRIOR_KINDS`: nothing, an initial pose or one landmark,
 #: :func:`simulated_prior`); a map fitted without a prior under-rates registrations that have
@@ -141,8 +143,8 @@ def calibrate(ct_mesh, *, sweeps: int = CALIBRATION_SWEEPS,
     if prior not in PRIOR_KINDS:
         raise ComRegError(f"Unknown calibration prior '{prior}'.",
                           f"Use one of {', '.join(PRIOR_KINDS)}.")
-    if sweeps < 4:
-        raise ComRegError(f"A calibration needs at least 4 sweeps, got {sweeps}.", "")
+    if sweeps < MIN_SWEEPS:
+        raise ComRegError(f"A calibration needs at least {MIN_SWEEPS} sweeps, got {sweeps}.", "")
     if not 0 < lengths_mm[0] <= lengths_mm[1]:
         raise ComRegError(f"Sweep lengths {lengths_mm} must be two increasing positive mm.", "")
     registrar = Registrar.from_ct(ct_mesh)
