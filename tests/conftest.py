@@ -1,4 +1,5 @@
 import os
+import tempfile
 
 import numpy as np
 import pytest
@@ -8,6 +9,23 @@ from comreg_core.registration.geometry.surface import CTSurface
 from tests.helpers import BOX_CENTRE, BOX_HALF, FIBULA_STL, SHARED_DATA
 
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def system_temporary_folder(tmp_path_factory):
+    """The system's temporary folder, for this process and the processes it starts, is one in
+    pytest's own folder (which pytest prunes): what the code under test puts there (the
+    module's registrations of an unsaved scene, torchrun's rendezvous files) is not left in
+    /tmp (each run of the suite left about 20 such folders there)."""
+    folder = str(tmp_path_factory.mktemp("system-tmp"))
+    before_env, before_tempdir = os.environ.get("TMPDIR"), tempfile.tempdir
+    os.environ["TMPDIR"], tempfile.tempdir = folder, folder
+    yield folder
+    tempfile.tempdir = before_tempdir
+    if before_env is None:
+        os.environ.pop("TMPDIR", None)
+    else:
+        os.environ["TMPDIR"] = before_env
 
 
 @pytest.fixture(scope="session")
