@@ -312,8 +312,10 @@ def input_records(paths: list[Path], clouds: list[PointCloud], result: Registrat
 
 def _sweep_record(sweep, calibration, T_us_ref) -> dict | None:
     """``result.json``'s ``sweep`` entry (absolute paths), checked before any work: the sweep
-    (a file or frame folder) and its calibration exist and ``T_us_ref`` is rigid."""
+    (a file or frame folder) reads with its calibration (what the report will read: 1.3 s for
+    the fibula's 111 frames) and ``T_us_ref`` is rigid."""
     from comreg_core.errors import InputFileNotFoundError
+    from comreg_core.io.tracked_us import read_tracked_sweep
 
     if sweep is None:
         if calibration is not None:
@@ -325,6 +327,7 @@ def _sweep_record(sweep, calibration, T_us_ref) -> dict | None:
     if calibration is not None and not Path(calibration).is_file():
         raise InputFileNotFoundError(Path(calibration), "sweep calibration")
     T = np.eye(4) if T_us_ref is None else check_rigid(np.asarray(T_us_ref, float))
+    read_tracked_sweep(sweep, calibration=calibration)  # a sweep the report cannot read: refused
     return {"path": str(Path(sweep).absolute()),
             "calibration": None if calibration is None else str(Path(calibration).absolute()),
             "T_us_ref": T.tolist()}

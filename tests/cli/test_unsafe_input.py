@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from comreg_core.cli import app
 from comreg_core.io import PointCloud, read_mesh, save_transform, write_points
 from comreg_core.registration.judgement.calibration import fit_calibration
-from tests.helpers import FIBULA_STL
+from tests.helpers import FIBULA_STL, SHARED_DATA
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE_SEGMENTATION = REPO / "resources" / "sample" / "fibula.seg.nrrd"
@@ -251,6 +251,21 @@ def test_bad_priors_and_points_are_refused_before_anything_is_written(case):
     out = d / "out far us"
     _refused(["register", us_far, "--ct", FIBULA_STL, "--out", out], out,
              "more than 1 km from the origin", str(us_far))
+
+
+def test_a_sweep_the_report_cannot_read_is_refused_before_anything_is_written(case):
+    """``register --sweep`` records the sweep for the report's frames: a folder without the
+    sweep's files, or a probe calibration that does not read, is refused by ``register``
+    itself, not by ``report`` after the registration."""
+    d = case["dir"]
+    (d / "no sweep").mkdir()
+    out = d / "out bad sweep"
+    _refused(_register(case, out, "--sweep", d / "no sweep"), out, "tracking.csv",
+             "does not exist")
+    (d / "bad calibration.json").write_text("{not json")
+    _refused(_register(case, out, "--sweep", SHARED_DATA / "ultrabones100k-fibula",
+                       "--probe-calibration", d / "bad calibration.json"), out,
+             "bad calibration.json")
 
 
 # --- 4. command lines click cannot parse ------------------------------------------------------
