@@ -11,6 +11,7 @@ import typer
 
 from comreg_core.cli.comreg import app
 from comreg_core.cli.options import INPUTS, OUTPUT, progress_bar
+from comreg_core.errors import ComRegError
 
 #: The panel of these commands in 'comreg --help'.
 PANEL = "Bone surfaces"
@@ -139,9 +140,15 @@ def extract_us(
     outliers (largest clusters, statistical outlier removal).
     """
     from comreg_core.surfaces.us import check_us_outputs
-    from comreg_core.surfaces.us_volume import extract_volume_to_file, is_volume_file
+    from comreg_core.surfaces.us_volume import (check_beam_direction, extract_volume_to_file,
+                                                is_volume_file)
 
     check_us_outputs(out, compound, inputs=[sweep, calibration, masks, config])
+    check_beam_direction(beam_direction)
+    if beam_direction != "auto" and not is_volume_file(sweep):
+        raise ComRegError(f"--beam-direction is for a reconstructed volume; '{sweep}' is a "
+                          "sweep of frames (each frame's pose gives its beam).",
+                          "Drop --beam-direction.")
     if is_volume_file(sweep):
         typer.echo("wrote " + extract_volume_to_file(
             sweep, out, beam_direction=beam_direction, config=config,

@@ -153,6 +153,20 @@ def test_bad_volumes_are_clear_errors(tmp_path):
         check_us_volume(Volume(np.ones((2, 40, 40)), np.eye(4)))
 
 
+def test_a_beam_direction_for_a_sweep_of_frames_is_refused(tmp_path, shared_data):
+    """A sweep of frames has its beam in each frame's pose: --beam-direction, a volume's
+    option, is refused for it (a direction or a name that is none) before any work."""
+    sweep = SHARED_DATA / "ultrabones100k-fibula"
+    for direction, message in (("-z", "--beam-direction is for a reconstructed volume"),
+                               ("nonsense", "Unknown beam direction 'nonsense'")):
+        result = CliRunner().invoke(app, ["extract-us", str(sweep), "--out",
+                                          str(tmp_path / "out" / "us.ply"),
+                                          "--beam-direction", direction])
+        assert result.exit_code == 2 and message in result.output, result.output
+        assert len(result.output.strip().splitlines()) == 1, result.output
+        assert not (tmp_path / "out").exists()
+
+
 def test_extract_us_writes_a_volume_s_points_with_beam_origins(tmp_path, shared_data):
     from comreg_core.io import read_points
 
