@@ -218,9 +218,11 @@ def run_demo(out_dir: str | Path = "out/demo", *, device: str = "auto",
     """
     from comreg_core.evaluation.evaluate import write_metrics
     from comreg_core.report import write_report_for_registration
+    from comreg_core.training.trainer import resolve_device
 
     step = step or (lambda line: log.info("%s", line))
     _sample_files()
+    resolve_device(device)  # "cuda" without CUDA: refused before any file is written
     out = check_output_folder(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ct_path, ct, us_points = _extract_inputs(out, step)

@@ -150,6 +150,19 @@ def test_demo_into_a_file_is_a_clear_error(tmp_path):
     assert target.read_text() == "x"
 
 
+def test_demo_on_cuda_without_cuda_is_refused_before_any_file_is_written(tmp_path):
+    import torch
+    from typer.testing import CliRunner
+
+    from comreg_core.cli import app
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    out = CliRunner().invoke(app, ["demo", "--out", str(tmp_path / "demo"), "--device", "cuda"])
+    assert out.exit_code == 2 and "no CUDA device" in out.output, out.output
+    assert not (tmp_path / "demo").exists()
+
+
 def test_demo_gives_the_same_figures_at_one_thread_on_a_busy_machine(demo, tmp_path):
     """The fixture ran at 2 torch threads on a quiet process; the same demo at 1 thread (torch,
     BLAS, OpenMP) while another process keeps a core busy gives the identical transform and
