@@ -109,12 +109,14 @@ class FrameAssembler:
 
     def add_image(self, image: np.ndarray, ijk_to_world: np.ndarray, timestamp: float,
                   received_s: float) -> tuple[list[Frame], list[str]]:
-        """An IMAGE: ``image`` ``(H, W)``, ``(1, H, W)`` or with colour channels last;
-        ``ijk_to_world`` its ``(4, 4)`` matrix (pixel -> image mm, or the pose itself)."""
+        """An IMAGE: ``image`` ``(H, W)``, or as pyigtl unpacks one, ``(K, H, W)`` (one
+        component) or ``(K, H, W, C)`` (colour, C <= 4) with one slice (``K = 1``); a volume of
+        several slices is no frame. ``ijk_to_world`` its ``(4, 4)`` matrix (pixel -> image mm,
+        or the pose itself)."""
         pixels = np.asarray(image)
-        while pixels.ndim > 2 and pixels.shape[0] == 1:
+        if pixels.ndim in (3, 4) and pixels.shape[0] == 1:
             pixels = pixels[0]
-        if pixels.ndim == 3:
+        if pixels.ndim == 3 and pixels.shape[-1] <= 4:  # one slice's colour channels
             pixels = frames_to_grey(pixels[None])[0]
         self.images += 1
         index = self.images - 1

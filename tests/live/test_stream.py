@@ -102,6 +102,36 @@ def test_an_image_without_a_pose_is_one_note_and_no_frame(sweep6):
     assert [f.index for f in frames] == [2] and notes == []
 
 
+def _through_pyigtl(image: np.ndarray) -> np.ndarray:
+    """``image`` as a live client gets it: packed into an IMAGE message and unpacked again."""
+    import pyigtl
+
+    packed = pyigtl.ImageMessage(image, device_name="Image", timestamp=1.0).pack()
+    received = pyigtl.ImageMessage()
+    received.unpack(pyigtl.MessageBase.parse_header(packed[:58]), packed[58:])
+    return received.image
+
+
+def test_a_frame_of_one_slice_is_used_and_a_volume_of_several_is_a_note(sweep6):
+    """PLUS sends a B-mode frame as one slice (grey, or colour channels last); an IMAGE of
+    several slices is no frame, not a colour image."""
+    sweep = read_tracked_sweep(sweep6)
+    grey, ijk, t, pose = _messages(sweep, 0)
+    colour = np.repeat(grey[None, :, :, None], 3, axis=-1)  # (1, H, W, 3), equal channels
+    for image, used in ((grey[None], True), (colour, True), (np.stack([grey] * 4), False),
+                        (np.repeat(colour, 2, axis=0), False)):
+        assembler = FrameAssembler("ImageToReference")
+        received = _through_pyigtl(image)
+        assert received.shape == image.shape
+        frames, notes = assembler.add_image(received, ijk, t, 0.0)
+        if used:
+            frames += assembler.add_pose("ImageToReference", pose, t, 0.0)[0]
+            assert len(frames) == 1 and np.array_equal(frames[0].image, grey)
+        else:
+            assert frames == [] and len(notes) == 1, notes
+            assert f"an image of shape {received.shape} is no 2D B-mode frame" in notes[0]
+
+
 def test_an_unusable_pose_is_a_note(sweep6):
     sweep = read_tracked_sweep(sweep6)
     image, ijk, t, pose = _messages(sweep, 0)
