@@ -141,8 +141,8 @@ def _read_npy(path: Path) -> tuple[np.ndarray, str]:
         array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise CorruptFileError(path, f"not a valid .npy array ({exc})") from None
-    if array.ndim != 2 or array.shape[1] < 3 or not np.issubdtype(array.dtype, np.number):
-        raise CorruptFileError(path, f"expected a numeric (N, 3) array, found {array.dtype} "
+    if array.ndim != 2 or array.shape[1] < 3 or array.dtype.kind not in "iuf":
+        raise CorruptFileError(path, f"expected a real (N, 3) array, found {array.dtype} "
                                      f"{array.shape}")
     return array[:, :3].astype(np.float64), "LPS"
 

@@ -125,6 +125,9 @@ def test_npy_shape_and_non_finite(tmp_path):
     np.save(tmp_path / "flat.npy", np.zeros(9))
     with pytest.raises(CorruptFileError, match=r"\(N, 3\)"):
         read_points(tmp_path / "flat.npy")
+    np.save(tmp_path / "complex.npy", np.ones((10, 3), complex))  # not read as its real part
+    with pytest.raises(CorruptFileError, match=r"real \(N, 3\) array, found complex128"):
+        read_points(tmp_path / "complex.npy")
     np.save(tmp_path / "nan.npy", np.array([[0, 0, 0], [np.inf, 0, 0]], float))
     with pytest.raises(InvalidGeometryError, match="non-finite"):
         read_points(tmp_path / "nan.npy")
