@@ -106,6 +106,7 @@ class FrameAssembler:
         self.images = 0
         self.without_pose = 0
         self.bad_poses = 0
+        self.not_frames = 0  # IMAGEs that are no 2D frame
 
     def add_image(self, image: np.ndarray, ijk_to_world: np.ndarray, timestamp: float,
                   received_s: float) -> tuple[list[Frame], list[str]]:
@@ -121,8 +122,10 @@ class FrameAssembler:
         self.images += 1
         index = self.images - 1
         if pixels.ndim != 2 or min(pixels.shape) < 2:
+            self.not_frames += 1
             return [], [f"frame {index}: an image of shape {np.shape(image)} is no 2D B-mode "
-                        "frame; skipped"]
+                        f"frame; skipped ({self.not_frames} so far)"] \
+                if _worth_telling(self.not_frames) else []
         self._pending.append(_Pending(pixels, np.asarray(ijk_to_world, float), float(timestamp),
                                       received_s, index))
         return self._resolve(received_s)

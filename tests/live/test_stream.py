@@ -130,6 +130,8 @@ def test_a_frame_of_one_slice_is_used_and_a_volume_of_several_is_a_note(sweep6):
         else:
             assert frames == [] and len(notes) == 1, notes
             assert f"an image of shape {received.shape} is no 2D B-mode frame" in notes[0]
+            told = [assembler.add_image(received, ijk, t, 0.0)[1] for _ in range(199)]
+            assert [k + 2 for k, n in enumerate(told) if n] == [2, 3, 100, 200]  # not all
 
 
 def test_an_unusable_pose_is_a_note(sweep6):
