@@ -18,14 +18,10 @@ def system_temporary_folder(tmp_path_factory):
     module's registrations of an unsaved scene, torchrun's rendezvous files) is not left in
     /tmp (each run of the suite left about 20 such folders there)."""
     folder = str(tmp_path_factory.mktemp("system-tmp"))
-    before_env, before_tempdir = os.environ.get("TMPDIR"), tempfile.tempdir
-    os.environ["TMPDIR"], tempfile.tempdir = folder, folder
-    yield folder
-    tempfile.tempdir = before_tempdir
-    if before_env is None:
-        os.environ.pop("TMPDIR", None)
-    else:
-        os.environ["TMPDIR"] = before_env
+    with pytest.MonkeyPatch.context() as patch:  # both put back after the run
+        patch.setenv("TMPDIR", folder)
+        patch.setattr(tempfile, "tempdir", folder)
+        yield folder
 
 
 @pytest.fixture(scope="session")

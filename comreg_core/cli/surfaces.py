@@ -145,11 +145,12 @@ def extract_us(
 
     check_us_outputs(out, compound, inputs=[sweep, calibration, masks, config])
     check_beam_direction(beam_direction)
-    if beam_direction != "auto" and not is_volume_file(sweep):
+    volume = is_volume_file(sweep)
+    if beam_direction != "auto" and not volume:
         raise ComRegError(f"--beam-direction is for a reconstructed volume; '{sweep}' is a "
                           "sweep of frames (each frame's pose gives its beam).",
                           "Drop --beam-direction.")
-    if is_volume_file(sweep):
+    if volume:
         typer.echo("wrote " + extract_volume_to_file(
             sweep, out, beam_direction=beam_direction, config=config,
             frame_options={"--probe-calibration": calibration, "--masks": masks,
