@@ -23,6 +23,7 @@ import numpy as np
 from comreg_core.errors import InvalidGeometryError
 from comreg_core.registration.geometry.kernels import pose_steps, transform_points
 from comreg_core.registration.geometry.surface import Matcher
+from comreg_core.registration.geometry.tracked_nearest import NearestTracker
 from comreg_core.transforms import as_points
 
 #: A polish (and the mesh refinement) stops once its RMS has not fallen by :data:`STALL_MM`
@@ -130,7 +131,8 @@ def point_to_plane_icp(source: np.ndarray, T_init: np.ndarray, match: Matcher, *
     best_rmse, stalled_for = np.full(B, np.inf), np.zeros(B, dtype=np.int64)
     for _ in range(iterations):
         moved = apply_poses(T[active], src if src.ndim == 2 else src[active])  # m n 3
-        q, nrm, d = match(moved)  # m n 3, m n 3, m n
+        # m n 3, m n 3, m n (a tracker remembers each start's points by its row)
+        q, nrm, d = match(moved, active) if isinstance(match, NearestTracker) else match(moved)
         done_iterations[active] += 1
         Ta = np.ascontiguousarray(T[active])
         step = pose_steps(np.ascontiguousarray(moved), np.ascontiguousarray(q, dtype=np.float64),

@@ -362,6 +362,10 @@ def compile_kernels() -> None:
     for closest in (closest_on_candidates, closest_on_candidates_serial):
         closest(points, np.zeros((12, 2), dtype=np.int64), points,
                 np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int64))
+    from comreg_core.registration.geometry.surface import SurfaceCloud
+    from comreg_core.registration.geometry.tracked_nearest import NearestTracker
+
+    NearestTracker(SurfaceCloud(points, normals=normals))(points[None], np.zeros(1, np.int64))
     from comreg_core.surfaces.us_detector import _viterbi  # the bone detector's kernel
 
     _viterbi(np.zeros((4, 3), dtype=np.float32), 1, 0.5, 1.0)  # the detector's gains

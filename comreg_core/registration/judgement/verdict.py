@@ -33,7 +33,6 @@ How the limits were chosen: docs/calibration.md ("The verdict's limits").
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from functools import partial
 
 import numpy as np
 
@@ -41,6 +40,7 @@ from comreg_core.registration.geometry.icp import point_to_plane_icp, strided
 from comreg_core.registration.judgement.calibration import OK_PROBABILITY
 from comreg_core.registration.search.scoring import SCORE_TIE_SHARE
 from comreg_core.registration.geometry.surface import as_surface
+from comreg_core.registration.geometry.tracked_nearest import NearestTracker
 from comreg_core.transforms import apply_transform, as_points, check_rigid
 
 #: Distance (mm) within which a registered US point counts as on the CT surface (and a CT
@@ -263,7 +263,7 @@ def refit(points_ct: np.ndarray, surface, *, iterations: int = 25, gate_mm: floa
     cloud = surface.cloud(CT_SAMPLES)
     c = pts.mean(axis=0)
     unit = SCALES.index(1.0)
-    moved = point_to_plane_icp(pts, np.eye(4), partial(cloud.match, max_distance=gate_mm),
+    moved = point_to_plane_icp(pts, np.eye(4), NearestTracker(cloud, gate_mm),
                                iterations=iterations, trim_fraction=0.1,
                                tolerance_mm=REFIT_TOLERANCE_MM, patience=REFIT_PATIENCE).T
     rigid = apply_transform(moved, pts)
@@ -274,7 +274,7 @@ def refit(points_ct: np.ndarray, surface, *, iterations: int = 25, gate_mm: floa
     scaled = [k for k in range(len(SCALES)) if k != unit]  # the unscaled cloud is fitted
     sources = np.stack([c + SCALES[k] * (rigid - rigid.mean(0)) for k in scaled])  # S-1 n 3
     fits = point_to_plane_icp(sources, np.tile(np.eye(4), (len(scaled), 1, 1)),
-                              partial(cloud.match, max_distance=gate_mm),
+                              NearestTracker(cloud, gate_mm),
                               iterations=iterations, trim_fraction=0.1,
                               tolerance_mm=REFIT_TOLERANCE_MM, patience=REFIT_PATIENCE).T
     fitted = {unit: rigid, **{k: apply_transform(T, src)

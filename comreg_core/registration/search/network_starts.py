@@ -22,6 +22,7 @@ from comreg_core.registration.search.polish import polish_pose
 from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.scoring import (Candidate, SearchResult, choose,
                                                      runner_up, score_poses, tied)
+from comreg_core.registration.geometry.tracked_nearest import NearestTracker
 from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
 
@@ -50,7 +51,7 @@ def add_network_starts(result: SearchResult, starts: dict[str, np.ndarray],
                                                     config.patch_min_confidence))
     names = list(starts)
     refined, rmse = coarse_to_fine_icp(subset, np.stack([starts[n] for n in names]),
-                                       target.match, iterations=config.icp_iterations,
+                                       NearestTracker(target), iterations=config.icp_iterations,
                                        schedule=config.icp_schedule,
                                        margin_mm=config.icp_margin_mm,
                                        trim_fraction=config.icp_trim)

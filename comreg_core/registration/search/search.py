@@ -61,6 +61,7 @@ from comreg_core.registration.search.screening import screen_starts
 from comreg_core.registration.search.scoring import (Candidate, SearchResult, confidence_over,
                                                      score_poses)
 from comreg_core.registration.geometry.extent import extent_share
+from comreg_core.registration.geometry.tracked_nearest import NearestTracker
 from comreg_core.registration.geometry.surface import SurfaceCloud, ct_length_mm, principal_frame
 from comreg_core.transforms import (apply_transform, as_points, check_rigid, matmul,
                                     orthonormalize, rotate)
@@ -378,7 +379,7 @@ def refine_starts(subset_mm: np.ndarray, grid: dict[str, np.ndarray], target: Su
     kept, screened = screen_starts(subset_mm, np.stack(list(grid.values())), target, config,
                                    keep_first=keep_first, origins=origins, within=within)
     names = [all_names[i] for i in kept]
-    refined, rmse = coarse_to_fine_icp(subset_mm, screened, target.match,
+    refined, rmse = coarse_to_fine_icp(subset_mm, screened, NearestTracker(target),
                                        iterations=config.icp_iterations,
                                        schedule=config.icp_schedule,
                                        margin_mm=config.icp_margin_mm,

@@ -29,6 +29,7 @@ from comreg_core.registration.search.polish import choose_and_polish
 from comreg_core.registration.search.priors import Prior
 from comreg_core.registration.search.scoring import (Candidate, SearchResult,
                                                      same_pose, score_poses)
+from comreg_core.registration.geometry.tracked_nearest import NearestTracker
 from comreg_core.registration.geometry.surface import SurfaceCloud
 from comreg_core.transforms import as_points, orthonormalize
 
@@ -86,7 +87,7 @@ def warm_search(us_points: np.ndarray, previous: SearchResult, target: SurfaceCl
     if patch:
         cfg = replace(cfg, min_confidence=max(cfg.min_confidence, cfg.patch_min_confidence))
     names, starts = warm_poses(previous, centroid, cfg, top)
-    fit = point_to_plane_icp(strided(subset_mm, WARM_POINTS), starts, target.match,
+    fit = point_to_plane_icp(strided(subset_mm, WARM_POINTS), starts, NearestTracker(target),
                              iterations=WARM_ITERATIONS, trim_fraction=cfg.icp_trim)
     poses = np.stack([orthonormalize(T) for T in fit.T])
     within = None if prior is None else (lambda T: prior.allows(T, centroid))
