@@ -2,10 +2,12 @@
 
 :func:`point_to_plane_icp` refines ``B`` start poses of one source cloud at once. Where the
 correspondences come from is the caller's choice (a :data:`~comreg_core.registration.geometry.surface.
-Matcher`): the nearest of dense CT samples (:meth:`SurfaceCloud.match`, the pose search's
-refinement), a closest-point grid (:meth:`SurfaceCloud.match_approx`, its screening), or the
-exact closest points of the CT mesh with a distance gate (:meth:`CTSurface.matcher`, the polish,
-the ``icp-gt`` baseline and the verdict's refit: a batch of one or a few).
+Matcher`): the nearest of dense CT samples (:meth:`SurfaceCloud.match`; as a
+:class:`~comreg_core.registration.geometry.tracked_nearest.NearestTracker`, the same answers
+with each start's points remembered between iterations: the pose search's refinement, the warm
+search, the verdict's refit), a closest-point grid (:meth:`SurfaceCloud.match_approx`, its
+screening), or the exact closest points of the CT mesh with a distance gate
+(:meth:`CTSurface.matcher`, the polish and the ``icp-gt`` baseline: a batch of one or a few).
 :func:`coarse_to_fine_icp` runs it on growing strided subsets, dropping starts that fall behind.
 
 No gradient and no torch: the network's own differentiable ICP is
