@@ -68,7 +68,7 @@ def test_icp_with_the_tracker_ends_where_it_ends_without(fibula_surface, fibula_
     for got, want in zip(tracked, plain):
         np.testing.assert_array_equal(got, want)
     assert plain.iterations.min() >= 3
-    total = tracker.queried + tracker.reused  # measured: 28 % skipped (dense, noiseless)
+    total = tracker.queried + tracker.reused  # measured: 32 % skipped (dense, noiseless)
     assert tracker.reused > 0.2 * total, (tracker.queried, tracker.reused)
 
 
