@@ -35,7 +35,20 @@ def test_the_tracker_answers_as_scipy_and_the_cloud_do(fibula_surface):
             np.testing.assert_array_equal(got, want)  # the same bits as the tree's
     total = tracker.queried + tracker.reused
     assert total == 6 * 4 * 300 + 6 * 3 * 300
-    assert tracker.reused > 0.3 * total, (tracker.queried, tracker.reused)
+    assert tracker.reused > 0.7 * total, (tracker.queried, tracker.reused)  # measured: 80 %
+
+
+def test_more_remembered_points_skip_more_queries_with_the_same_answers(fibula_surface):
+    """Measured share answered from memory: 60 / 74 / 82 % with 1 / 2 / 4 remembered."""
+    cloud = fibula_surface.cloud(20_000)
+    shares = []
+    for remembered in (1, 2, 4):
+        tracker = NearestTracker(cloud, remembered=remembered)
+        for points in _moving_points(cloud, np.random.default_rng(3)):
+            for got, want in zip(tracker(points), cloud.match(points)):
+                np.testing.assert_array_equal(got, want)
+        shares.append(tracker.reused / (tracker.queried + tracker.reused))
+    assert shares[0] + 0.05 < shares[1] < shares[2] - 0.05, shares
 
 
 def test_a_point_moved_beyond_its_reach_is_queried_again(fibula_surface):
@@ -68,8 +81,8 @@ def test_icp_with_the_tracker_ends_where_it_ends_without(fibula_surface, fibula_
     for got, want in zip(tracked, plain):
         np.testing.assert_array_equal(got, want)
     assert plain.iterations.min() >= 3
-    total = tracker.queried + tracker.reused  # measured: 32 % skipped (dense, noiseless)
-    assert tracker.reused > 0.2 * total, (tracker.queried, tracker.reused)
+    total = tracker.queried + tracker.reused  # measured: 47 % skipped (dense, noiseless)
+    assert tracker.reused > 0.35 * total, (tracker.queried, tracker.reused)
 
 
 def test_a_gated_tracker_leaves_far_pairs_unmatched_as_the_cloud_does(fibula_surface):
