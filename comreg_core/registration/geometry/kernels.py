@@ -362,6 +362,9 @@ def compile_kernels() -> None:
     for closest in (closest_on_candidates, closest_on_candidates_serial):
         closest(points, np.zeros((12, 2), dtype=np.int64), points,
                 np.array([[0, 1, 2], [3, 4, 5]], dtype=np.int64))
+    from comreg_core.registration.geometry.mesh_normals import smooth_normals
+
+    smooth_normals(points, np.array([[0, 1, 2]]), normals, points[:2], np.array([0, -1]))
     from comreg_core.registration.geometry.surface import SurfaceCloud
     from comreg_core.registration.geometry.tracked_nearest import NearestTracker
 

@@ -59,6 +59,13 @@ def _closest_of(i, points, candidates, vertices, faces, closest, face, dist):
     best = np.inf
     for j in range(candidates.shape[1]):
         f = candidates[i, j]
+        seen = False
+        for earlier in range(j):  # a triangle listed again can only tie with itself: skipped
+            if candidates[i, earlier] == f:
+                seen = True
+                break
+        if seen:
+            continue
         qx, qy, qz = _closest_on_triangle(points[i], vertices, faces[f])
         d = np.sqrt((qx - points[i, 0]) ** 2 + (qy - points[i, 1]) ** 2
                     + (qz - points[i, 2]) ** 2)
