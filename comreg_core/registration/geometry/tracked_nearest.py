@@ -120,17 +120,20 @@ class NearestTracker:
         self.remembered = int(remembered)
         self._points = np.ascontiguousarray(cloud.points, dtype=np.float64)
         self._normals = np.ascontiguousarray(cloud.normals, dtype=np.float64)
-        self._make_room(0, 0)
+        self._forget(0)
         self.queried = 0
         self.reused = 0
 
+    def _forget(self, n: int) -> None:
+        """An empty memory for starts of ``n`` points."""
+        self._at, self._reach = np.empty((0, n, 3)), np.empty((0, n))
+        self._bound = np.empty((0, n))
+        self._candidates = np.empty((0, n, self.remembered), dtype=np.int64)
+
     def _make_room(self, starts: int, n: int) -> None:
         """Memory for ``starts`` starts of ``n`` points (all forgotten when ``n`` changes)."""
-        if n != getattr(self, "_n", None):
-            self._n = n
-            self._at, self._reach = np.empty((0, n, 3)), np.empty((0, n))
-            self._bound = np.empty((0, n))
-            self._candidates = np.empty((0, n, self.remembered), dtype=np.int64)
+        if n != self._at.shape[1]:
+            self._forget(n)
         grow = starts - len(self._at)
         if grow > 0:
             self._at = np.concatenate([self._at, np.zeros((grow, n, 3))])
