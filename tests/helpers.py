@@ -148,3 +148,8 @@ def cut_sweep(out: Path, start: int, count: int, step: int = 1) -> Path:
     for row in keep:
         shutil.copy(FIBULA_DIR / "frames" / f"{row['timestamp']}.png", out / "frames")
     return out
+
+
+def paths_under(root: Path) -> set[str]:
+    """Every path under ``root`` (relative to it), to see what a command left behind."""
+    return {str(p.relative_to(root)) for p in root.rglob("*")}

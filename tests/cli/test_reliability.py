@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 
 from comreg_core.cli import app
 from comreg_core.io import PointCloud, SurfaceMesh, write_mesh, write_points
-from tests.helpers import FIBULA_STL, SHARED_DATA, immutable
+from tests.helpers import FIBULA_STL, immutable, paths_under
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE_MODEL = REPO / "resources" / "sample" / "fibula_cpu.pt"
@@ -32,11 +32,6 @@ runner = CliRunner()  # click >= 8.2: result.stderr apart from result.stdout
 
 
 # --- helpers --------------------------------------------------------------------------------------
-
-def _files(root: Path) -> set[str]:
-    """Every path under ``root`` (relative), to see what a command left behind."""
-    return {str(p.relative_to(root)) for p in root.rglob("*")}
-
 
 def _refused(args, *contains: str):
     """Run ``comreg ARGS``; assert exit 2 with one ``error:`` line holding ``contains``."""
@@ -98,7 +93,7 @@ def no_model_loading(monkeypatch):
 
 def test_register_into_the_run_folder_is_refused_and_the_run_is_kept(sample, no_model_loading):
     run, us = sample
-    before = {name: (run / name).read_bytes() for name in _files(run)}
+    before = {name: (run / name).read_bytes() for name in paths_under(run)}
     _refused(["register", us, "--model", run, "--out", run], "is the pretraining run folder")
     _refused(["register", us, "--model", run, "--out", run / "registration"],
              "inside the pretraining run")
@@ -106,7 +101,7 @@ def test_register_into_the_run_folder_is_refused_and_the_run_is_kept(sample, no_
     _refused(["simulate", FIBULA_STL, "--out", run], "run folder")
     _refused(["extract-ct", FIBULA_STL, "--out", run / "bone.stl"], "run folder")
     _refused(["extract-us", SAMPLE_SWEEP, "--out", run / "us.ply"], "run folder")
-    assert {name: (run / name).read_bytes() for name in _files(run)} == before  # byte-identical
+    assert {name: (run / name).read_bytes() for name in paths_under(run)} == before  # byte-identical
 
 
 def test_pretrain_does_not_overwrite_another_commands_config(tmp_path):
@@ -115,7 +110,7 @@ def test_pretrain_does_not_overwrite_another_commands_config(tmp_path):
     (folder / "config.yaml").write_text("register: {seed: 0}\n")
     _refused(["pretrain", FIBULA_STL, "--out", folder], "config.yaml", "no checkpoint.pt")
     assert (folder / "config.yaml").read_text() == "register: {seed: 0}\n"
-    assert _files(folder) == {"config.yaml"}
+    assert paths_under(folder) == {"config.yaml"}
 
 
 @pytest.mark.parametrize("options, message", [
@@ -182,9 +177,9 @@ def test_every_command_refuses_an_output_place_it_cannot_write(command, sample, 
         (out / "result.json").write_text("{}")
         monkeypatch.setattr("comreg_core.io._files._unwritable",
                             lambda folder: "read-only file system")
-    before = _files(tmp_path)
+    before = paths_under(tmp_path)
     _refused(_command_args(command, out, run, us), *expected)
-    assert _files(tmp_path) == before
+    assert paths_under(tmp_path) == before
 
 
 @pytest.mark.parametrize("command", _every_command())
@@ -197,10 +192,10 @@ def test_every_command_refuses_an_immutable_folder(command, sample, tmp_path, no
     if command == "report":
         (locked / "result.json").write_text("{}")
     out = locked if command == "report" else locked / "out"
-    before = _files(tmp_path)
+    before = paths_under(tmp_path)
     with immutable(locked):
         _refused(_command_args(command, out, run, us), "not writable")
-        assert _files(tmp_path) == before
+        assert paths_under(tmp_path) == before
 
 
 # --- 3. checkpoints that load but are unusable ----------------------------------------------------
@@ -299,7 +294,7 @@ def test_outputs_of_the_wrong_kind(tmp_path):
     _refused(["simulate", FIBULA_STL, "--out", tmp_path / "taken"], "is not a folder")
     (tmp_path / "u.ply").mkdir()
     _refused(["extract-us", SAMPLE_SWEEP, "--out", tmp_path / "u.ply"], "is an existing folder")
-    assert _files(tmp_path) == {"x.stl", "taken", "u.ply"}
+    assert paths_under(tmp_path) == {"x.stl", "taken", "u.ply"}
 
 
 # --- 6. headers that claim more points than the file holds -------------------------------------------
@@ -382,7 +377,7 @@ def test_pretrain_on_an_unusable_mesh_makes_no_run_folder(tmp_path, mesh, messag
 def test_extract_us_checks_the_compound_output_before_the_work(tmp_path):
     _refused(["extract-us", SAMPLE_SWEEP, "--out", tmp_path / "us.ply", "--compound",
               tmp_path / "vol.foo"], "vol.foo", "extension")
-    assert _files(tmp_path) == set()
+    assert paths_under(tmp_path) == set()
 
 
 @pytest.mark.parametrize("mesh, message", [
@@ -432,77 +427,6 @@ def test_vtk_errors_come_without_vtk_noise(tmp_path):
     result = _refused(["info", path], "Cannot read")
     for noise in ("0x", "vtkInformation", "vtkExecutive", "Modified Time"):
         assert noise not in result.stderr, result.stderr
-
-
-# --- 11. corrupt or truncated images in US inputs ---------------------------------------------
-
-PLUS_IMAGES = SHARED_DATA / "plus" / "TestImages"
-NWIRE_XML = SHARED_DATA / "plus" / "ConfigFiles" / "Testing" / \
-    "PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml"
-
-
-def _cut_in_half(path: Path) -> Path:
-    data = path.read_bytes()
-    path.write_bytes(data[: len(data) // 2])
-    return path
-
-
-def _sample_frames(folder: Path, ext: str, n: int = 3) -> list[Path]:
-    """The first ``n`` frames of the sample sweep as a frame folder of ``ext`` images."""
-    from PIL import Image
-
-    (folder / "frames").mkdir(parents=True)
-    lines = (SAMPLE_SWEEP / "tracking.csv").read_text().splitlines()
-    (folder / "tracking.csv").write_text("\n".join(lines[:n + 1]) + "\n")
-    shutil.copy(SAMPLE_SWEEP / "calibration.json", folder)
-    names = [line.split(",")[0] for line in lines[1:n + 1]]
-    for name in names:
-        Image.open(SAMPLE_SWEEP / "frames" / f"{name}.png").save(folder / "frames" / f"{name}{ext}")
-    return [folder / "frames" / f"{name}{ext}" for name in names]
-
-
-def _truncated_us_input(case: str, root: Path) -> tuple[list, Path]:
-    """``(extract-us arguments, the file cut in half)``: real images with one cut short."""
-    from comreg_core.io import read_volume, write_volume
-
-    root.mkdir()
-    if case in ("frames.png", "frames.jpg"):
-        frames = _sample_frames(root / "sweep", case[-4:])
-        return [root / "sweep"], _cut_in_half(frames[1])
-    if case == "masks.png":
-        frames = _sample_frames(root / "sweep", ".png")
-        (root / "masks").mkdir()
-        for frame in frames:
-            shutil.copy(frame, root / "masks")
-        return [root / "sweep", "--masks", root / "masks"], _cut_in_half(root / "masks" /
-                                                                         frames[2].name)
-    if case.startswith("sequence"):
-        path = root / f"{case}"
-        path.write_bytes((PLUS_IMAGES / f"NwirePhantomFreehand{case[8:]}").read_bytes())
-        return [path, "--calibration", NWIRE_XML], _cut_in_half(path)
-    source = PLUS_IMAGES / "NwirePhantomFreehandReconstructed.mha"
-    path = write_volume(read_volume(source), root / case)  # volume.mha or volume.nrrd
-    return [path], _cut_in_half(path)
-
-
-@pytest.mark.parametrize("case", ["frames.png", "frames.jpg", "masks.png", "sequence.igs.mha",
-                                  "sequence.igs.nrrd", "volume.mha", "volume.nrrd"])
-def test_a_truncated_us_image_exits_2_naming_the_file(tmp_path, shared_data, case):
-    """In a subprocess: a truncated PNG frame used to kill 'extract-us' with a segmentation
-    fault (libpng: Read Error) and a truncated JPEG was read as garbage. Every US input now
-    ends with one line naming the file, exit status 2, and nothing written."""
-    args, bad = _truncated_us_input(case, tmp_path / "in")
-    out = tmp_path / "out"
-    compound = [] if case.startswith("volume") else ["--compound", out / "compound.nrrd"]
-    before = _files(tmp_path)
-    done = subprocess.run([sys.executable, "-m", "comreg_core.cli", "extract-us",
-                           *map(str, [*args, "--out", out / "points.ply", *compound])],
-                          capture_output=True, text=True, timeout=120)
-    assert done.returncode == 2, (done.returncode, done.stderr)
-    lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: Cannot read "), done.stderr
-    assert f"'{bad}'" in lines[0] and "truncated" in lines[0], lines[0]
-    assert _files(tmp_path) == before
 
 
 # --- the one error handler ------------------------------------------------------------------------------
