@@ -21,12 +21,10 @@ import torch
 from typer.testing import CliRunner
 
 from comreg_core.cli import app
+from comreg_core.demo import SAMPLE_MODEL, SAMPLE_SWEEP
 from comreg_core.io import PointCloud, SurfaceMesh, write_mesh, write_points
 from tests.helpers import FIBULA_STL, immutable, paths_under
 
-REPO = Path(__file__).resolve().parents[2]
-SAMPLE_MODEL = REPO / "resources" / "sample" / "fibula_cpu.pt"
-SAMPLE_SWEEP = REPO / "resources" / "sample" / "sweep"
 
 runner = CliRunner()  # click >= 8.2: result.stderr apart from result.stdout
 

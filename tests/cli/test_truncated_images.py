@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from comreg_core.demo import SAMPLE_SWEEP
 from tests.helpers import SHARED_DATA, paths_under
 
-SAMPLE_SWEEP = Path(__file__).resolve().parents[2] / "resources" / "sample" / "sweep"
 PLUS_IMAGES = SHARED_DATA / "plus" / "TestImages"
 NWIRE_XML = SHARED_DATA / "plus" / "ConfigFiles" / "Testing" / \
     "PlusDeviceSet_NwirePhantomFreehand_vtkVolumeReconstructorTest2.xml"

@@ -21,6 +21,7 @@ from comreg_core.report.cameras import VIEW_NAMES
 from comreg_core.report.html import (Quantity, build_html, flatten, format_value, label_of,
                                      metric_rows, unit_of)
 from comreg_core.report.scenes import SCENES
+from tests.helpers import paths_under
 from tests.report.support import TEST_WINDOW
 
 METRICS = {
@@ -184,7 +185,7 @@ def test_a_failed_report_leaves_the_previous_one_untouched(case, tmp_path, monke
     (tmp_path / runs.REPORT).write_text(old_page)
     (tmp_path / IMAGES_DIR).mkdir()
     (tmp_path / IMAGES_DIR / "old.png").write_bytes(b"old")
-    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    before = paths_under(tmp_path)
 
     real = report_module.write_png
     written = []
@@ -200,7 +201,7 @@ def test_a_failed_report_leaves_the_previous_one_untouched(case, tmp_path, monke
         write_report(tmp_path, ct_mesh=case.ct, us_before=case.us_before,
                      us_after=case.us_after, window_size=(96, 96))
     assert len(written) == 2  # it failed half-way through the screenshots
-    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    assert paths_under(tmp_path) == before
     assert (tmp_path / runs.REPORT).read_text() == old_page
 
     # Once it can write, the new report replaces the old one completely.
